@@ -1,0 +1,164 @@
+"""Pointer attention over the sparse memory (paper Sec. 3.2, eq. 2).
+
+``mu_t = psi( sum_j m_j exp(-|eta_t - M*(j)|), a[floor(eta_t)-k .. floor(eta_t)+k] )``:
+soft attention over the memory features with un-normalised weights that decay
+with the distance between the pointer ``eta_t`` and each memory frame's demo
+index, a hard window of one-hot demo actions around the pointer, and a linear
+fusion layer ``psi``. Indices and the pointer are 0-based here.
+"""
+from __future__ import annotations
+
+import logging
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["PointerAttention", "action_window", "attention_weights"]
+
+#: Default half-width k of the hard action window (window size 2k+1).
+DEFAULT_WINDOW_HALF_WIDTH = 2
+#: Default number of action classes in the demonstration (forward, left, right).
+DEFAULT_NUM_ACTION_CLASSES = 3
+
+
+def attention_weights(eta: torch.Tensor, indices: torch.Tensor) -> torch.Tensor:
+    """Soft weights ``w_j = exp(-|eta - M*(j)|)`` (un-normalised, eq. 2).
+
+    Args:
+        eta (torch.Tensor): pointer, shape ``[*, 1]`` (0-based, float).
+        indices (torch.Tensor): memory indices ``M*``, shape ``[l]`` (0-based).
+
+    Returns:
+        torch.Tensor: weights of shape ``[*, l]``.
+    """
+    return torch.exp(-(eta - indices.to(eta.dtype)).abs())
+
+
+def action_window(
+    demo_actions: torch.Tensor, eta: torch.Tensor, k: int, num_classes: int
+) -> torch.Tensor:
+    """One-hot demo actions at ``floor(eta)-k .. floor(eta)+k``, zero-padded outside the demo.
+
+    ``floor(eta)`` is clamped to ``[0, n - 1]`` first; window positions outside
+    ``[0, n - 1]`` get an all-zero one-hot.
+
+    Args:
+        demo_actions (torch.Tensor): int64 ``[*, n]`` demo actions.
+        eta (torch.Tensor): pointer ``[*, 1]`` (0-based, float).
+        k (int): half-width of the window.
+        num_classes (int): number of action classes (one-hot size).
+
+    Returns:
+        torch.Tensor: float tensor ``[*, 2k + 1, num_classes]``.
+    """
+    n = demo_actions.shape[-1]
+    centre = eta.detach().floor().long().clamp(0, n - 1)  # [*, 1]
+    offsets = torch.arange(-k, k + 1, device=eta.device)
+    pos = centre + offsets  # [*, 2k+1]
+    valid = (pos >= 0) & (pos < n)
+    acts = demo_actions.gather(-1, pos.clamp(0, n - 1))
+    onehot = F.one_hot(acts, num_classes).to(eta.dtype)
+    return onehot * valid.unsqueeze(-1).to(eta.dtype)
+
+
+class PointerAttention(nn.Module):
+    """Soft attention over memory features + hard action window, fused by a linear ``psi``.
+
+    Args:
+        feature_dim (int): size ``D`` of a memory feature (ignored when ``action_only``).
+        out_dim (int): size of the fused output ``mu``.
+        k (int, optional): half-width of the action window. Defaults to 2.
+        num_action_classes (int, optional): one-hot size of a demo action. Defaults to 3.
+        action_only (bool, optional): if ``True`` there is no visual memory and ``psi``
+            takes only the action window. Defaults to ``False``.
+
+    Examples:
+        >>> import torch
+        >>> from spf_rl.modules import PointerAttention
+        >>> att = PointerAttention(feature_dim=8, out_dim=16)
+        >>> mem = torch.randn(2, 4, 8)
+        >>> idx = torch.tensor([0, 3, 6, 9])
+        >>> acts = torch.randint(0, 3, (2, 10))
+        >>> eta = torch.tensor([[0.0], [4.5]])
+        >>> att(mem, idx, acts, eta).shape
+        torch.Size([2, 16])
+        >>> att.weights_and_window(idx, acts, eta)[1].shape  # window [B, 2k+1, classes]
+        torch.Size([2, 5, 3])
+    """
+
+    def __init__(
+        self,
+        feature_dim: int,
+        out_dim: int,
+        k: int = DEFAULT_WINDOW_HALF_WIDTH,
+        num_action_classes: int = DEFAULT_NUM_ACTION_CLASSES,
+        action_only: bool = False,
+    ) -> None:
+        super().__init__()
+        if not isinstance(k, int) or k < 0:
+            raise ValueError(f"k (action window half-width) must be an int >= 0, got {k!r}.")
+        if not isinstance(num_action_classes, int) or num_action_classes < 1:
+            raise ValueError(
+                f"num_action_classes must be a positive int, got {num_action_classes!r}."
+            )
+        self.feature_dim = feature_dim
+        self.out_dim = out_dim
+        self.k = k
+        self.num_action_classes = num_action_classes
+        self.action_only = action_only
+        self.window_dim = (2 * k + 1) * num_action_classes
+        in_dim = self.window_dim + (0 if action_only else feature_dim)
+        self.psi = nn.Linear(in_dim, out_dim)
+
+    def weights_and_window(
+        self,
+        indices: torch.Tensor | None,
+        demo_actions: torch.Tensor,
+        eta: torch.Tensor,
+    ) -> tuple[torch.Tensor | None, torch.Tensor]:
+        """Return the soft weights ``[*, l]`` (``None`` when action-only) and the window ``[*, 2k+1, C]``."""
+        if demo_actions.dtype != torch.long:
+            demo_actions = demo_actions.long()
+        weights = None if self.action_only or indices is None else attention_weights(eta, indices)
+        return weights, action_window(demo_actions, eta, self.k, self.num_action_classes)
+
+    def forward(
+        self,
+        memory_features: torch.Tensor | None,
+        indices: torch.Tensor | None,
+        demo_actions: torch.Tensor,
+        eta: torch.Tensor,
+        return_window: bool = False,
+    ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+        """Compute ``mu``.
+
+        Args:
+            memory_features (torch.Tensor or None): ``[*, l, D]`` (``None`` when action-only).
+            indices (torch.Tensor or None): memory indices ``M*`` ``[l]``.
+            demo_actions (torch.Tensor): int64 ``[*, n]``.
+            eta (torch.Tensor): pointer ``[*, 1]`` (0-based, float).
+            return_window (bool, optional): also return the action window
+                ``[*, 2k+1, C]``. Defaults to ``False``.
+
+        Returns:
+            torch.Tensor: ``mu`` of shape ``[*, out_dim]`` (and the window if asked).
+        """
+        weights, window = self.weights_and_window(indices, demo_actions, eta)
+        parts = []
+        if not self.action_only:
+            if memory_features is None or weights is None:
+                raise ValueError(
+                    "memory_features and indices are required unless action_only=True."
+                )
+            if memory_features.shape[-2] != weights.shape[-1]:
+                raise ValueError(
+                    f"memory_features has {memory_features.shape[-2]} frames but indices has "
+                    f"{weights.shape[-1]}."
+                )
+            parts.append((weights.unsqueeze(-1) * memory_features).sum(-2))
+        parts.append(window.flatten(-2))
+        mu = self.psi(torch.cat(parts, -1))
+        return (mu, window) if return_window else mu

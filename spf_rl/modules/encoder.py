@@ -1,0 +1,124 @@
+"""Image encoder phi of the SPF policy (paper Sec. 3.1, eq. 3).
+
+A small CNN sized for CPU training on first-person RGB frames (64x64 pixels by
+default). The same encoder embeds the current observation ``o_t`` and the
+demonstration frames kept in the sparse memory.
+"""
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["ImageEncoder", "NUM_RGB_CHANNELS", "PIXEL_MAX"]
+
+#: Number of colour channels of an RGB frame.
+NUM_RGB_CHANNELS = 3
+#: Largest value of a uint8 pixel; uint8 frames are divided by it.
+PIXEL_MAX = 255.0
+#: Default frame size (height, width) in pixels.
+DEFAULT_IMAGE_SIZE = (64, 64)
+#: Default output size of the encoder.
+DEFAULT_FEATURE_DIM = 128
+#: Default conv channels; every layer halves the spatial size (stride 2).
+DEFAULT_CHANNELS = (32, 32, 64, 64)
+_KERNEL_SIZE = 3
+_STRIDE = 2
+_PADDING = 1
+
+
+def _conv_out(size: int) -> int:
+    return (size + 2 * _PADDING - _KERNEL_SIZE) // _STRIDE + 1
+
+
+class ImageEncoder(nn.Module):
+    """Small CNN mapping RGB frames ``[*, 3, H, W]`` to features ``[*, feature_dim]``.
+
+    Four stride-2 3x3 convolutions (ReLU) followed by a linear layer (ReLU).
+    uint8 inputs are scaled to ``[0, 1]`` by dividing by 255; floating inputs are
+    used as they are (expected in ``[0, 1]``). Any number of leading batch
+    dimensions is accepted.
+
+    Args:
+        feature_dim (int, optional): size of the output features. Defaults to 128.
+        image_size (tuple of int, optional): expected ``(height, width)`` of the
+            frames, in pixels. Defaults to ``(64, 64)``.
+        channels (sequence of int, optional): output channels of the conv layers.
+            Defaults to ``(32, 32, 64, 64)``.
+
+    Examples:
+        >>> import torch
+        >>> from spf_rl.modules import ImageEncoder
+        >>> enc = ImageEncoder(feature_dim=32, image_size=(16, 16))
+        >>> frames = torch.randint(0, 256, (2, 5, 3, 16, 16), dtype=torch.uint8)
+        >>> enc(frames).shape
+        torch.Size([2, 5, 32])
+    """
+
+    def __init__(
+        self,
+        feature_dim: int = DEFAULT_FEATURE_DIM,
+        image_size: tuple[int, int] = DEFAULT_IMAGE_SIZE,
+        channels: Sequence[int] = DEFAULT_CHANNELS,
+    ) -> None:
+        super().__init__()
+        if not isinstance(feature_dim, int) or feature_dim < 1:
+            raise ValueError(f"feature_dim must be a positive int, got {feature_dim!r}.")
+        image_size = tuple(image_size)
+        if len(image_size) != 2 or any(
+            not isinstance(s, int) or s < 1 for s in image_size
+        ):
+            raise ValueError(
+                f"image_size must be a pair of positive ints (height, width) in pixels, got {image_size!r}."
+            )
+        if len(channels) < 1 or any(c < 1 for c in channels):
+            raise ValueError(
+                f"channels must be a non-empty sequence of positive ints, got {channels!r}."
+            )
+        self.feature_dim = feature_dim
+        self.image_size: tuple[int, int] = image_size  # type: ignore[assignment]
+        layers: list[nn.Module] = []
+        in_ch = NUM_RGB_CHANNELS
+        h, w = image_size
+        for out_ch in channels:
+            layers += [
+                nn.Conv2d(in_ch, out_ch, _KERNEL_SIZE, stride=_STRIDE, padding=_PADDING),
+                nn.ReLU(),
+            ]
+            in_ch = out_ch
+            h, w = _conv_out(h), _conv_out(w)
+        self.conv = nn.Sequential(*layers)
+        self.head = nn.Sequential(nn.Linear(in_ch * h * w, feature_dim), nn.ReLU())
+
+    @property
+    def frame_shape(self) -> tuple[int, int, int]:
+        """The expected frame shape ``(3, H, W)``."""
+        return (NUM_RGB_CHANNELS, *self.image_size)
+
+    def check_frames(self, frames: torch.Tensor, name: str = "frames") -> None:
+        """Raise a ``ValueError`` if ``frames`` is not ``[*, 3, H, W]`` with the configured H, W."""
+        if frames.ndim < 3 or tuple(frames.shape[-3:]) != self.frame_shape:
+            raise ValueError(
+                f"{name} must have shape [*, {', '.join(map(str, self.frame_shape))}] "
+                f"(channels, height, width), got {tuple(frames.shape)}. "
+                "Set image_size to the env's frame size."
+            )
+
+    def forward(self, frames: torch.Tensor) -> torch.Tensor:
+        """Encode ``frames`` of shape ``[*, 3, H, W]`` into ``[*, feature_dim]``."""
+        self.check_frames(frames)
+        batch_shape = frames.shape[:-3]
+        x = frames.reshape(-1, *self.frame_shape)
+        if x.dtype == torch.uint8:
+            x = x.float() / PIXEL_MAX
+        elif not x.is_floating_point():
+            raise ValueError(f"frames must be uint8 or floating point, got dtype {x.dtype}.")
+        if x.shape[0] == 0:
+            out = x.new_zeros(0, self.feature_dim)
+        else:
+            out = self.head(self.conv(x).flatten(1))
+        return out.reshape(*batch_shape, self.feature_dim)

@@ -1,0 +1,216 @@
+"""Sparse visual memory of a demonstration (paper Sec. 3.2 eq. 1 and Sec. 4.1).
+
+The memory of an ``n``-step demonstration is ``SP(p) = {M, a, M*}``: ``l`` frames
+``M`` at indices ``M*`` evenly spaced over the demonstration, plus *all* ``n``
+demonstration actions ``a``. This file computes ``M*``, the memory size in bytes,
+and the memory features (the frames at ``M*`` passed through the encoder phi).
+"""
+from __future__ import annotations
+
+import logging
+import math
+import numbers
+
+import torch
+from torch import nn
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "MemoryEncoder",
+    "memory_bytes",
+    "memory_indices",
+    "memory_length",
+    "validate_sparsity",
+]
+
+#: Default frame shape (channels, height, width) used for byte budgets.
+DEFAULT_FRAME_SHAPE = (3, 64, 64)
+#: Bytes per uint8 pixel value.
+UINT8_BYTES = 1
+
+
+def validate_sparsity(sparsity: float) -> float:
+    """Check that ``sparsity`` is a real number in ``(0, 1]`` and return it as float."""
+    if (
+        isinstance(sparsity, bool)
+        or not isinstance(sparsity, numbers.Real)
+        or math.isnan(sparsity)
+        or not 0.0 < sparsity <= 1.0
+    ):
+        raise ValueError(
+            f"sparsity must be a number in the range (0, 1] (fraction of the demo frames kept), "
+            f"got {sparsity!r}."
+        )
+    return float(sparsity)
+
+
+def _validate_n(n: int) -> int:
+    if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1:
+        raise ValueError(
+            f"n (the demonstration length) must be a positive int, got {n!r}."
+        )
+    return int(n)
+
+
+def memory_length(n: int, sparsity: float) -> int:
+    """Number of memory frames ``l = max(1, round(sparsity * n))``.
+
+    ``round`` is Python's (half to even), as in the paper's "multiplying n with a sparsity".
+
+    Args:
+        n (int): demonstration length (number of frames), positive.
+        sparsity (float): fraction of frames kept, in ``(0, 1]``.
+
+    Examples:
+        >>> memory_length(30, 0.4)
+        12
+    """
+    n = _validate_n(n)
+    sparsity = validate_sparsity(sparsity)
+    return max(1, min(n, round(sparsity * n)))
+
+
+def memory_indices(n: int, sparsity: float) -> torch.LongTensor:
+    """0-based indices ``M*`` of the demonstration frames kept in memory.
+
+    ``l = memory_length(n, sparsity)`` indices evenly spaced over ``[0, n - 1]``:
+    ``torch.linspace(0, n - 1, l).round().long()`` (computed in float64, rounding
+    half to even). The first frame (0) is always included and, when ``l > 1``, the
+    last frame (``n - 1``) too. The indices are unique and sorted because the
+    spacing ``(n - 1) / (l - 1)`` is at least 1 when ``l <= n``.
+
+    How this differs from the paper (Sec. 4.1): the paper writes, 1-based,
+    ``M* = {floor(i * n / (l - 1)) | i = 1..l-1} U {1}``. For ``l = 1`` that divides
+    by zero, and when ``n / (l - 1) < 2`` the first term ``floor(n / (l - 1))`` is 1
+    and duplicates the frame ``{1}``, so the set holds fewer than ``l`` frames: with
+    ``n = 30, l = 30`` (sparsity 1.0) it keeps 29 frames and skips frame 29. The
+    paper's grid also starts one stride after the first frame. The form used here
+    always returns exactly ``l`` distinct frames spread symmetrically from the first
+    to the last frame.
+
+    Args:
+        n (int): demonstration length (number of frames), positive.
+        sparsity (float): fraction of frames kept, in ``(0, 1]``.
+
+    Returns:
+        torch.LongTensor: shape ``[l]``, sorted 0-based frame indices.
+
+    Examples:
+        >>> memory_indices(30, 0.2).tolist()
+        [0, 6, 12, 17, 23, 29]
+    """
+    length = memory_length(n, sparsity)
+    idx = torch.linspace(0, n - 1, length, dtype=torch.float64).round().long()
+    return idx
+
+
+def memory_bytes(
+    n: int,
+    sparsity: float,
+    frame_shape: tuple[int, ...] = DEFAULT_FRAME_SHAPE,
+    bytes_per_pixel: int = UINT8_BYTES,
+    bytes_per_action: int = UINT8_BYTES,
+) -> int:
+    """Size in bytes of a sparse memory: ``l`` raw frames plus all ``n`` actions.
+
+    Args:
+        n (int): demonstration length (number of frames), positive.
+        sparsity (float): fraction of frames kept, in ``(0, 1]``.
+        frame_shape (tuple of int, optional): shape of one frame, ``(channels, height,
+            width)`` in pixels. Defaults to ``(3, 64, 64)``.
+        bytes_per_pixel (int, optional): bytes per stored pixel value. Defaults to 1 (uint8).
+        bytes_per_action (int, optional): bytes per stored action. Defaults to 1.
+
+    Examples:
+        >>> memory_bytes(30, 0.4)  # 12 frames of 3*64*64 bytes + 30 actions
+        147486
+    """
+    length = memory_length(n, sparsity)
+    if any(int(s) < 1 for s in frame_shape):
+        raise ValueError(f"frame_shape must hold positive sizes, got {frame_shape!r}.")
+    if bytes_per_pixel < 0 or bytes_per_action < 0:
+        raise ValueError(
+            f"bytes_per_pixel and bytes_per_action must be >= 0, got {bytes_per_pixel!r}, {bytes_per_action!r}."
+        )
+    return int(length * math.prod(frame_shape) * bytes_per_pixel + n * bytes_per_action)
+
+
+class MemoryEncoder(nn.Module):
+    """Gathers the memory frames ``demo_frames[..., M*, :, :, :]`` and encodes them.
+
+    Args:
+        encoder (nn.Module): image encoder phi mapping ``[*, 3, H, W]`` to ``[*, D]``.
+        indices (torch.Tensor): 0-based memory indices ``M*`` of shape ``[l]``
+            (see :func:`memory_indices`).
+
+    Examples:
+        >>> import torch
+        >>> from spf_rl.modules import ImageEncoder, MemoryEncoder, memory_indices
+        >>> enc = ImageEncoder(feature_dim=8, image_size=(16, 16))
+        >>> mem = MemoryEncoder(enc, memory_indices(10, 0.4))
+        >>> demo = torch.randint(0, 256, (2, 10, 3, 16, 16), dtype=torch.uint8)
+        >>> mem(demo).shape
+        torch.Size([2, 4, 8])
+    """
+
+    def __init__(self, encoder: nn.Module, indices: torch.Tensor) -> None:
+        super().__init__()
+        indices = torch.as_tensor(indices, dtype=torch.long)
+        if indices.ndim != 1 or indices.numel() == 0 or (indices < 0).any():
+            raise ValueError(
+                f"indices must be a non-empty 1-d tensor of non-negative frame indices, got {indices!r}."
+            )
+        self.encoder = encoder
+        self.register_buffer("indices", indices, persistent=False)
+
+    @property
+    def num_frames(self) -> int:
+        """Number of memory frames ``l``."""
+        return int(self.indices.numel())
+
+    def gather(self, demo_frames: torch.Tensor) -> torch.Tensor:
+        """Select ``demo_frames[..., M*, :, :, :]``: ``[*, n, 3, H, W] -> [*, l, 3, H, W]``."""
+        self._check_length(demo_frames)
+        return demo_frames.index_select(-4, self.indices.to(demo_frames.device))
+
+    def forward(
+        self,
+        demo_frames: torch.Tensor,
+        batch_index: tuple[torch.Tensor, ...] | None = None,
+    ) -> torch.Tensor:
+        """Encode the memory frames.
+
+        Args:
+            demo_frames (torch.Tensor): ``[*, n, 3, H, W]`` demonstration frames (may be
+                an expanded view).
+            batch_index (tuple of torch.Tensor, optional): one 1-d index tensor per
+                leading batch dim of ``demo_frames``; only those rows are gathered and
+                encoded (without copying the other rows). Defaults to all rows.
+
+        Returns:
+            torch.Tensor: ``[*, l, D]``, or ``[K, l, D]`` with ``K`` rows picked by
+            ``batch_index``.
+        """
+        if batch_index is None:
+            return self.encoder(self.gather(demo_frames))
+        self._check_length(demo_frames, len(batch_index))
+        idx = self.indices.to(demo_frames.device)
+        index = tuple(i.unsqueeze(-1) for i in batch_index) + (idx.unsqueeze(0),)
+        return self.encoder(demo_frames[index])
+
+    def _check_length(self, demo_frames: torch.Tensor, batch_dims: int | None = None) -> None:
+        if demo_frames.ndim < 4 or (
+            batch_dims is not None and demo_frames.ndim != batch_dims + 4
+        ):
+            raise ValueError(
+                f"demo_frames must have shape [*, n, 3, H, W], got {tuple(demo_frames.shape)}."
+            )
+        num_demo = demo_frames.shape[-4]
+        largest = int(self.indices.max())
+        if num_demo <= largest:
+            raise ValueError(
+                f"The demonstration has {num_demo} frames but the memory needs frame index "
+                f"{largest} (memory longer than the demo): check demo_length / sparsity "
+                f"against the env's demo length."
+            )
