@@ -24,6 +24,9 @@ STEP_SIZE_M = 0.3
 SUCCESS_NUM_STEPS = 2
 #: Success radius as a fraction of the initial distance.
 SUCCESS_FRACTION = 0.1
+#: Tolerance on the success radius, in metres, so that float32 distances exactly on
+#: the radius (e.g. 0.6 m stored as 0.60000002) count as successes.
+DISTANCE_TOLERANCE_M = 1e-6
 DEFAULT_CONFIDENCE = 0.95
 DEFAULT_NUM_RESAMPLES = 2000
 
@@ -42,6 +45,8 @@ def success(
     fraction: float = SUCCESS_FRACTION,
 ) -> Any:
     """Success flag: ``final <= max(num_steps * step_size, fraction * initial)``.
+
+    The comparison allows ``DISTANCE_TOLERANCE_M`` (1 micrometre) for float rounding.
 
     Vectorised over tensors, arrays or scalars (returns a bool tensor / array).
 
@@ -64,9 +69,9 @@ def success(
         final = torch.as_tensor(final, dtype=torch.float64)
         initial = torch.as_tensor(initial, dtype=torch.float64)
         radius = torch.clamp(fraction * initial, min=fixed)
-        return final <= radius
+        return final <= radius + DISTANCE_TOLERANCE_M
     radius = np.maximum(fixed, fraction * initial)
-    return final <= radius
+    return final <= radius + DISTANCE_TOLERANCE_M
 
 
 def spl(success: Any, shortest_length_m: Any, path_length_m: Any) -> Any:
