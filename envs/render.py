@@ -1,0 +1,216 @@
+"""Headless MuJoCo rendering: GL back-end selection and a first-person renderer.
+
+The renderer draws a house model from a camera pose written straight into
+``MjData.cam_xpos``/``cam_xmat`` (the agent is kinematic, so no physics step is
+needed), with shadows, multisampling and skybox off: at 64x64 pixels this is
+about 0.25-0.5 ms a frame on one CPU core with Mesa llvmpipe (see
+``benchmarks/results/env.json``).
+
+The OpenGL context is created lazily, at the first render, so a process that
+only reads an environment's specs (a ``ParallelEnv`` parent, a collector
+building its buffers) never opens one.
+
+Back-end selection, done once per process before ``mujoco`` opens any context:
+
+* ``MUJOCO_GL`` set by the user is respected as it is;
+* otherwise ``egl`` when ``libEGL`` can be loaded (headless, Mesa or a GPU);
+* otherwise ``osmesa`` when ``libOSMesa`` can be loaded, with a warning;
+* otherwise :class:`RendererUnavailableError` naming the packages to install.
+"""
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import logging
+import os
+
+import numpy as np
+
+logger = logging.getLogger(__name__)
+
+#: GL back-ends this project knows how to use headless.
+SUPPORTED_GL_BACKENDS = ("egl", "osmesa", "glfw")
+
+_INSTALL_HINT = (
+    "Install Mesa's EGL (Debian/Ubuntu: `apt-get install libegl1 libgl1-mesa-dri`) "
+    "or OSMesa (`apt-get install libosmesa6`), or set MUJOCO_GL to one of "
+    f"{SUPPORTED_GL_BACKENDS}."
+)
+
+
+class RendererUnavailableError(RuntimeError):
+    """Raised when no headless OpenGL back-end can be used."""
+
+
+def _can_load(library: str) -> bool:
+    path = ctypes.util.find_library(library)
+    for candidate in (path, f"lib{library}.so", f"lib{library}.so.1", f"lib{library}.so.8"):
+        if not candidate:
+            continue
+        try:
+            ctypes.CDLL(candidate)
+            return True
+        except OSError:
+            continue
+    return False
+
+
+def select_gl_backend() -> str:
+    """Choose and export the MuJoCo GL back-end for this process.
+
+    Must run before ``mujoco`` creates a context; :mod:`envs` calls it at import.
+
+    Returns:
+        the back-end name written to ``MUJOCO_GL`` (and ``PYOPENGL_PLATFORM``).
+
+    Raises:
+        RendererUnavailableError: if ``MUJOCO_GL`` names an unknown back-end, or
+            neither EGL nor OSMesa can be loaded.
+    """
+    requested = os.environ.get("MUJOCO_GL")
+    if requested:
+        if requested not in SUPPORTED_GL_BACKENDS:
+            raise RendererUnavailableError(
+                f"MUJOCO_GL={requested!r} is not supported; allowed values are "
+                f"{SUPPORTED_GL_BACKENDS}."
+            )
+        backend = requested
+    elif _can_load("EGL"):
+        backend = "egl"
+    elif _can_load("OSMesa"):
+        logger.warning("libEGL not found: falling back to MUJOCO_GL=osmesa (slower). %s", _INSTALL_HINT)
+        backend = "osmesa"
+    else:
+        raise RendererUnavailableError(f"No headless OpenGL back-end found (EGL, OSMesa). {_INSTALL_HINT}")
+    os.environ["MUJOCO_GL"] = backend
+    if backend in ("egl", "osmesa"):
+        os.environ.setdefault("PYOPENGL_PLATFORM", backend)
+    # llvmpipe is fastest single-threaded for small frames (notes/rendering-measurements.md).
+    os.environ.setdefault("LP_NUM_THREADS", "0")
+    return backend
+
+
+def create_gl_context(width: int, height: int):
+    """Create and make current a MuJoCo GL context of at least ``width`` x ``height`` pixels.
+
+    Raises:
+        RendererUnavailableError: with the back-end tried and the packages to install.
+    """
+    import importlib
+
+    backend = os.environ.get("MUJOCO_GL", "egl")
+    try:
+        # import the back-end module explicitly: ``mujoco.GLContext`` is bound when
+        # ``mujoco`` is first imported, which may have happened before ``envs``.
+        gl_module = importlib.import_module(f"mujoco.{backend}") if backend != "glfw" else importlib.import_module("mujoco.glfw")
+        context = gl_module.GLContext(width, height)
+        context.make_current()
+    except Exception as err:  # noqa: BLE001 - re-raised with advice
+        alternative = "osmesa" if backend == "egl" else "egl"
+        raise RendererUnavailableError(
+            f"Could not create a MuJoCo OpenGL context with MUJOCO_GL={backend!r} ({err}). "
+            f"Try MUJOCO_GL={alternative}. {_INSTALL_HINT}"
+        ) from err
+    return context
+
+
+class FirstPersonRenderer:
+    """Renders RGB frames of MuJoCo models from a pose given in the xy plane.
+
+    One renderer owns one GL context; it keeps a :class:`mujoco.MjrContext` per model
+    (created on first use), so houses that differ are all drawn by the same context.
+
+    Args:
+        width: frame width in pixels.
+        height: frame height in pixels.
+
+    Examples:
+        >>> from envs.scenes import build_house
+        >>> house = build_house(seed=0)
+        >>> renderer = FirstPersonRenderer(64, 64)
+        >>> frame = renderer.render(house, np.array([house.spawn_xy[0], house.spawn_xy[1], 0.0]))
+        >>> frame.shape, frame.dtype
+        ((64, 64, 3), dtype('uint8'))
+    """
+
+    def __init__(self, width: int, height: int) -> None:
+        if width <= 0 or height <= 0:
+            raise ValueError(f"width and height must be positive pixel counts, got width={width}, height={height}.")
+        self.width = int(width)
+        self.height = int(height)
+        self._gl = None
+        self._per_model: dict[int, tuple] = {}
+        self._buffer = np.empty((self.height, self.width, 3), dtype=np.uint8)
+
+    def _model_state(self, house):
+        import mujoco
+
+        if self._gl is None:
+            self._gl = create_gl_context(self.width, self.height)
+        key = id(house.model)
+        state = self._per_model.get(key)
+        if state is None:
+            model = house.model
+            data = mujoco.MjData(model)
+            mujoco.mj_forward(model, data)  # place every geom before the first scene update
+            scene = mujoco.MjvScene(model, maxgeom=max(64, model.ngeom + 8))
+            context = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150)
+            mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, context)
+            camera = mujoco.MjvCamera()
+            camera.type = mujoco.mjtCamera.mjCAMERA_FIXED
+            camera.fixedcamid = 0
+            option = mujoco.MjvOption()
+            state = (model, data, scene, context, camera, option, house)
+            self._per_model[key] = state
+        return state
+
+    def render(self, house, pose: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """Render the first-person view at ``pose`` = (x metres, y metres, heading radians).
+
+        Returns:
+            an ``(height, width, 3)`` uint8 array (a new one unless ``out`` is given).
+        """
+        import mujoco
+
+        model, data, scene, context, camera, option, _ = self._model_state(house)
+        heading = float(pose[2])
+        data.cam_xpos[0] = (pose[0], pose[1], house.eye_height_m)
+        data.cam_xmat[0] = _camera_matrix(heading)
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, context)
+        mujoco.mjv_updateScene(model, data, option, None, camera, mujoco.mjtCatBit.mjCAT_ALL, scene)
+        viewport = mujoco.MjrRect(0, 0, self.width, self.height)
+        mujoco.mjr_render(viewport, scene, context)
+        mujoco.mjr_readPixels(self._buffer, None, viewport, context)
+        if out is None:
+            out = np.empty_like(self._buffer)
+        np.copyto(out, self._buffer[::-1])
+        return out
+
+    def release(self, house) -> None:
+        """Free the GL resources held for ``house``'s model."""
+        state = self._per_model.pop(id(house.model), None)
+        if state is not None:
+            state[3].free()
+
+    def close(self) -> None:
+        """Free every model's GL resources and the context."""
+        for state in self._per_model.values():
+            state[3].free()
+        self._per_model.clear()
+        if self._gl is not None:
+            self._gl.free()
+            self._gl = None
+
+
+def _camera_matrix(heading_rad: float) -> np.ndarray:
+    """Rotation (row-major 3x3, flattened) of a level camera looking along ``heading_rad``.
+
+    MuJoCo cameras look along their local -z with +y up; the agent looks along
+    (cos h, sin h, 0) with world +z up.
+    """
+    c, s = np.cos(heading_rad), np.sin(heading_rad)
+    forward = np.array([c, s, 0.0])
+    up = np.array([0.0, 0.0, 1.0])
+    right = np.cross(forward, up)
+    # columns: camera x (right), camera y (up), camera z (backwards)
+    return np.stack([right, up, -forward], axis=1).ravel()
