@@ -376,7 +376,7 @@ def test_loss_falls_on_synthetic_data():
     policy = SPFPolicy(CFG)
     B, T = 8, 5
     traj = _make_trajectory(B=B, T=T, inits=tuple((0,) for _ in range(B)))
-    # target: a colour class painted into the frame, or the demo action at t
+    # target: a colour class painted into the frame (learnable through the encoder)
     classes = torch.randint(0, 3, (B, T))
     traj["pixels"][:] = 0
     for c in range(3):
