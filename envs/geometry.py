@@ -16,6 +16,7 @@ Everything here works on a house's 2-D free-space map:
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -63,6 +64,7 @@ class OccupancyMap:
             ndimage.distance_transform_edt(~self.occupied) * self.resolution_m - 0.5 * self.resolution_m
         ).astype(np.float32)
         self.shape = self.occupied.shape
+        self._inverse_resolution = 1.0 / self.resolution_m
         self.extent_m = (self.shape[1] * self.resolution_m, self.shape[0] * self.resolution_m)
 
     def cell(self, xy: np.ndarray) -> tuple[int, int]:
@@ -81,31 +83,65 @@ class OccupancyMap:
         """Whether the agent's disc centred at ``xy`` touches no obstacle."""
         return self.clearance(xy) >= self.agent_radius_m
 
+    def clearance_many(self, xy: np.ndarray) -> np.ndarray:
+        """Vectorised :meth:`clearance` for an ``(..., 2)`` array of positions."""
+        cols = np.floor(xy[..., 0] * (1.0 / self.resolution_m)).astype(np.int64)
+        rows = np.floor(xy[..., 1] * (1.0 / self.resolution_m)).astype(np.int64)
+        inside = (cols >= 0) & (cols < self.shape[1]) & (rows >= 0) & (rows < self.shape[0])
+        values = self.clearance_m[np.minimum(np.maximum(rows, 0), self.shape[0] - 1), np.minimum(np.maximum(cols, 0), self.shape[1] - 1)]
+        return np.where(inside, values, -1.0)
+
     def move(self, xy: np.ndarray, displacement: np.ndarray) -> tuple[np.ndarray, float]:
         """Move the disc from ``xy`` by ``displacement`` (metres), sliding along obstacles.
+
+        The motion is split into sub-steps of at most ``MAX_SUBSTEP_M``. A sub-step
+        that would collide is retried along x alone, then along y alone (sliding);
+        if all three collide the disc stops there.
 
         Returns:
             the final position and the distance actually travelled (metres).
         """
-        length = float(np.hypot(displacement[0], displacement[1]))
+        x, y = float(xy[0]), float(xy[1])
+        dx, dy = float(displacement[0]), float(displacement[1])
+        length = math.hypot(dx, dy)
         if length == 0.0:
-            return xy.copy(), 0.0
-        num_substeps = max(1, int(np.ceil(length / MAX_SUBSTEP_M)))
-        step = displacement / num_substeps
-        position = xy.astype(np.float64).copy()
+            return np.array([x, y]), 0.0
+        num_substeps = max(1, math.ceil(length / MAX_SUBSTEP_M))
+        sx, sy = dx / num_substeps, dy / num_substeps
+        free = self._is_free_scalar
         travelled = 0.0
         for _ in range(num_substeps):
-            for candidate in (step, np.array([step[0], 0.0]), np.array([0.0, step[1]])):
-                if not candidate.any():
-                    continue
-                target = position + candidate
-                if self.is_free(target):
-                    position = target
-                    travelled += float(np.hypot(candidate[0], candidate[1]))
-                    break
+            if free(x + sx, y + sy):
+                x, y = x + sx, y + sy
+                travelled += length / num_substeps
+            elif sx and free(x + sx, y):
+                x += sx
+                travelled += abs(sx)
+            elif sy and free(x, y + sy):
+                y += sy
+                travelled += abs(sy)
             else:
-                break  # blocked in every direction: stay
-        return position, travelled
+                break
+        return np.array([x, y]), travelled
+
+    def move_many(self, xy: np.ndarray, displacement: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`move` for ``(N, 2)`` positions and displacements.
+
+        Returns:
+            ``(N, 2)`` final positions and ``(N,)`` distances travelled, metres.
+        """
+        positions = np.empty((len(xy), 2))
+        travelled = np.empty(len(xy))
+        for index in range(len(xy)):
+            positions[index], travelled[index] = self.move(xy[index], displacement[index])
+        return positions, travelled
+
+    def _is_free_scalar(self, x: float, y: float) -> bool:
+        col = int(x * self._inverse_resolution) if x >= 0 else -1
+        row = int(y * self._inverse_resolution) if y >= 0 else -1
+        if col < 0 or row < 0 or col >= self.shape[1] or row >= self.shape[0]:
+            return False
+        return self.clearance_m[row, col] >= self.agent_radius_m
 
 
 @dataclass
@@ -122,33 +158,40 @@ class DistanceField:
     node_distance_m: np.ndarray
     goal_xy: np.ndarray
 
+    def __post_init__(self) -> None:
+        # Non-navigable nodes (next to walls) take the best neighbour's distance plus the
+        # hop to it, so positions there still get a finite, consistent distance.
+        distances = self.node_distance_m
+        res = self.graph.resolution_m
+        padded = np.pad(distances, 1, constant_values=np.inf)
+        rows, cols = distances.shape
+        filled = distances.copy()
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                shifted = padded[1 + dr : 1 + dr + rows, 1 + dc : 1 + dc + cols] + res * math.hypot(dr, dc)
+                filled = np.minimum(filled, shifted)
+        self._filled = np.where(np.isfinite(distances), distances, filled)
+
     def at(self, xy: np.ndarray) -> float:
         """Geodesic distance (metres) from ``xy`` to the goal.
 
         The distance of the node containing ``xy`` plus the straight offset to its
-        centre; near walls, where that node may not be navigable, the best of its
-        3x3 neighbourhood.
+        centre. A node next to a wall, where the disc does not fit, takes its best
+        neighbour's distance plus the hop to it (``inf`` if none is reachable).
         """
-        graph = self.graph
-        res = graph.resolution_m
-        col = int(np.clip(xy[0] // res, 0, graph.shape[1] - 1))
-        row = int(np.clip(xy[1] // res, 0, graph.shape[0] - 1))
-        best = np.inf
-        for dr in (0, -1, 1):
-            for dc in (0, -1, 1):
-                r, c = row + dr, col + dc
-                if 0 <= r < graph.shape[0] and 0 <= c < graph.shape[1]:
-                    d = self.node_distance_m[r, c]
-                    if np.isfinite(d):
-                        centre_x, centre_y = (c + 0.5) * res, (r + 0.5) * res
-                        best = min(best, d + float(np.hypot(xy[0] - centre_x, xy[1] - centre_y)))
-            if dr == 0 and np.isfinite(best):
-                break
-        return float(best)
+        res = self.graph.resolution_m
+        rows, cols = self.graph.shape
+        col = min(max(int(xy[0] // res), 0), cols - 1)
+        row = min(max(int(xy[1] // res), 0), rows - 1)
+        return float(self._filled[row, col] + math.hypot(xy[0] - (col + 0.5) * res, xy[1] - (row + 0.5) * res))
 
     def at_many(self, xy: np.ndarray) -> np.ndarray:
-        """Vectorised :meth:`at` for an ``(N, 2)`` array of positions (nearest navigable node)."""
-        return np.array([self.at(p) for p in xy], dtype=np.float64)
+        """Vectorised :meth:`at` for an ``(N, 2)`` array of positions."""
+        res = self.graph.resolution_m
+        rows, cols = self.graph.shape
+        col = np.minimum(np.maximum((xy[:, 0] // res).astype(np.int64), 0), cols - 1)
+        row = np.minimum(np.maximum((xy[:, 1] // res).astype(np.int64), 0), rows - 1)
+        return self._filled[row, col] + np.hypot(xy[:, 0] - (col + 0.5) * res, xy[:, 1] - (row + 0.5) * res)
 
 
 class GeodesicGraph:

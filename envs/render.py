@@ -209,8 +209,70 @@ def _camera_matrix(heading_rad: float) -> np.ndarray:
     (cos h, sin h, 0) with world +z up.
     """
     c, s = np.cos(heading_rad), np.sin(heading_rad)
-    forward = np.array([c, s, 0.0])
-    up = np.array([0.0, 0.0, 1.0])
-    right = np.cross(forward, up)
-    # columns: camera x (right), camera y (up), camera z (backwards)
-    return np.stack([right, up, -forward], axis=1).ravel()
+    # columns: camera x = right (s, -c, 0), camera y = up (0, 0, 1), camera z = backwards (-c, -s, 0)
+    return np.array([s, 0.0, -c, -c, 0.0, -s, 0.0, 1.0, 0.0])
+
+
+#: Colour of walls and of furniture on top-down maps (RGB in [0, 1]).
+MAP_WALL_RGB = (0.15, 0.15, 0.18)
+MAP_FURNITURE_RGB = (0.45, 0.35, 0.25)
+
+
+def draw_top_down_map(house, paths=None, points=None, ax=None, title: str | None = None):
+    """Draw a house from above (rooms tinted, walls, furniture) with paths and points on it.
+
+    Args:
+        house: a :class:`~envs.scenes.House`.
+        paths: ``{label: (T, 2) or (T, 3) array}`` of positions (metres) drawn as lines.
+        points: ``{label: (K, 2) array}`` drawn as markers (e.g. memory frame positions).
+        ax: a matplotlib axis to draw on (a new figure otherwise).
+        title: optional axis title.
+
+    Returns:
+        the matplotlib axis.
+
+    Examples:
+        >>> import matplotlib
+        >>> matplotlib.use("Agg")
+        >>> from envs.scenes import build_house
+        >>> ax = draw_top_down_map(build_house(0), paths={"route": np.array([[1.5, 1.5], [3.5, 1.5]])})
+        >>> ax.get_xlim()
+        (0.0, 15.0)
+    """
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Circle, Rectangle
+
+    if ax is None:
+        _, ax = plt.subplots(figsize=(5, 5))
+    labels = house.room_labels
+    names = sorted({str(x) for x in np.unique(labels)})
+    palette = plt.get_cmap("Pastel1")
+    image = np.ones(labels.shape + (3,))
+    for index, name in enumerate(names):
+        image[labels == name] = palette(index % palette.N)[:3] if name != "." else (0.93, 0.93, 0.93)
+    image[house.walls] = MAP_WALL_RGB
+    width, depth = house.size_m
+    ax.imshow(image, origin="lower", extent=(0, width, 0, depth), interpolation="nearest")
+    for piece in house.furniture:
+        if piece.kind == "box":
+            hx, hy = piece.half_size_m
+            ax.add_patch(Rectangle(piece.centre_xy - (hx, hy), 2 * hx, 2 * hy, color=MAP_FURNITURE_RGB))
+        else:
+            ax.add_patch(Circle(piece.centre_xy, piece.half_size_m[0], color=MAP_FURNITURE_RGB))
+    for label, path in (paths or {}).items():
+        path = np.asarray(path)
+        ax.plot(path[:, 0], path[:, 1], "-", linewidth=2, label=label)
+        ax.plot(path[0, 0], path[0, 1], "o", color="black", markersize=4)
+    for label, xy in (points or {}).items():
+        xy = np.asarray(xy)
+        ax.plot(xy[:, 0], xy[:, 1], "*", markersize=9, label=label)
+    if paths or points:
+        ax.legend(loc="upper right", fontsize=7)
+    ax.set_xlim(0, width)
+    ax.set_ylim(0, depth)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    if title:
+        ax.set_title(title)
+    return ax

@@ -1,0 +1,160 @@
+"""Demonstrations: shortest routes driven by the noise-free expert, cropped to n steps.
+
+A demonstration is sampled from a seed: a start pose on the house's navigable
+space, a far goal at least ``n`` forward steps away along the geodesic, and the
+first ``n`` actions of the noise-free :class:`~envs.expert.GeodesicExpert` driving
+from the start towards that goal. The route's end (where the agent must arrive
+when following it) is the pose after those ``n`` actions. Frames are rendered by
+the environment along the recorded poses.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from envs.expert import FORWARD_STEP_M, TURN_ANGLE_DEG, GeodesicExpert
+from envs.geometry import DistanceField
+from envs.scenes import House
+
+#: Default demonstration length (the paper crops demonstrations to 30 steps).
+DEFAULT_DEMO_LENGTH = 30
+#: Extra clearance (metres) a start position keeps from obstacles.
+START_MARGIN_M = 0.1
+#: Attempts at finding a start with a far-enough goal before giving up.
+MAX_SAMPLING_ATTEMPTS = 50
+
+
+@dataclass
+class Demonstration:
+    """One demonstrated route.
+
+    Attributes:
+        house_seed: the house it was recorded in.
+        poses: ``(n + 1, 3)`` poses (x m, y m, heading rad) before each action, then the end pose.
+        actions: ``(n,)`` int64 actions.
+        end_field: geodesic distances to the route's end.
+        shortest_length_m: geodesic length from the start to the route's end.
+    """
+
+    house_seed: int
+    poses: np.ndarray
+    actions: np.ndarray
+    end_field: DistanceField
+    shortest_length_m: float
+
+    @property
+    def length(self) -> int:
+        return len(self.actions)
+
+    @property
+    def start_pose(self) -> np.ndarray:
+        return self.poses[0]
+
+    @property
+    def end_xy(self) -> np.ndarray:
+        return self.poses[-1, :2]
+
+
+def nominal_motion(action: int | np.ndarray) -> np.ndarray:
+    """Nominal (forward m, lateral m, rotation rad) of actions; STOP and unknown give 0."""
+    action = np.asarray(action)
+    motion = np.zeros(action.shape + (3,))
+    motion[..., 0] = np.where(action == 0, FORWARD_STEP_M, 0.0)
+    turn = np.deg2rad(TURN_ANGLE_DEG)
+    motion[..., 2] = np.where(action == 1, turn, np.where(action == 2, -turn, 0.0))
+    return motion
+
+
+def apply_motion(house: House, poses: np.ndarray, motion: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Apply agent-frame motions ``(N, 3)`` = (forward m, lateral m, rotation rad) to ``(N, 3)`` poses.
+
+    Translation first (along the current heading, lateral to the left), with
+    collision and sliding, then rotation.
+
+    Returns:
+        new poses ``(N, 3)`` and distances travelled ``(N,)``, metres.
+    """
+    heading = poses[:, 2]
+    c, s = np.cos(heading), np.sin(heading)
+    displacement = np.stack([c * motion[:, 0] - s * motion[:, 1], s * motion[:, 0] + c * motion[:, 1]], axis=1)
+    xy, travelled = house.occupancy.move_many(poses[:, :2], displacement)
+    new_heading = np.mod(heading + motion[:, 2] + np.pi, 2 * np.pi) - np.pi
+    return np.concatenate([xy, new_heading[:, None]], axis=1), travelled
+
+
+def sample_demonstration(
+    house: House,
+    rng: np.random.Generator,
+    length: int = DEFAULT_DEMO_LENGTH,
+    min_route_length_m: float = 0.0,
+) -> Demonstration:
+    """Sample a demonstration of ``length`` steps in ``house``.
+
+    Args:
+        house: the house.
+        rng: the generator that fixes start, heading and goal.
+        length: number of demonstrated steps n (> 0).
+        min_route_length_m: routes whose end is not farther than this (geodesic,
+            metres) from their start are re-drawn (e.g. a route of turns only).
+
+    Raises:
+        ValueError: on a non-positive ``length``.
+        RuntimeError: if the house has no pair of points far enough apart.
+
+    Examples:
+        >>> from envs.scenes import build_house
+        >>> demo = sample_demonstration(build_house(0), np.random.default_rng(0), length=10)
+        >>> demo.actions.shape, demo.poses.shape
+        ((10,), (11, 3))
+    """
+    if not isinstance(length, (int, np.integer)) or length <= 0:
+        raise ValueError(f"length must be a positive int (steps), got {length!r}.")
+    graph = house.graph
+    occupancy = house.occupancy
+    nodes = np.flatnonzero(graph.navigable.ravel())
+    node_xy = graph.node_xy(nodes)
+    roomy = occupancy.clearance_many(node_xy) >= occupancy.agent_radius_m + START_MARGIN_M
+    starts = nodes[roomy] if roomy.any() else nodes
+    for _ in range(MAX_SAMPLING_ATTEMPTS):
+        demo = _sample_route(house, rng, length, starts, nodes, node_xy)
+        if demo.shortest_length_m > min_route_length_m:
+            return demo
+    raise RuntimeError(
+        f"house {house.seed}: no route of {length} steps ends more than {min_route_length_m} m from its start."
+    )
+
+
+def _sample_route(
+    house: House, rng: np.random.Generator, length: int, starts: np.ndarray, nodes: np.ndarray, node_xy: np.ndarray
+) -> Demonstration:
+    graph = house.graph
+    occupancy = house.occupancy
+    min_goal_distance = length * FORWARD_STEP_M + 1.0
+    for _ in range(MAX_SAMPLING_ATTEMPTS):
+        start_xy = graph.node_xy(int(rng.choice(starts)))
+        # geodesic >= straight-line distance, so this needs no graph search
+        far = nodes[np.hypot(*(node_xy - start_xy).T) >= min_goal_distance]
+        if len(far):
+            break
+    else:
+        raise RuntimeError(
+            f"house {house.seed} has no two points {min_goal_distance:.1f} m apart; use a shorter demo length."
+        )
+    goal_xy = graph.node_xy(int(rng.choice(far)))
+    heading = rng.uniform(-np.pi, np.pi)
+    expert = GeodesicExpert(occupancy, graph.distance_field(goal_xy))
+    poses = np.zeros((length + 1, 3))
+    poses[0] = (start_xy[0], start_xy[1], heading)
+    actions = np.zeros(length, dtype=np.int64)
+    for step in range(length):
+        actions[step] = expert.action(poses[step])
+        poses[step + 1] = apply_motion(house, poses[step : step + 1], nominal_motion(actions[step : step + 1]))[0][0]
+    end_field = graph.distance_field(poses[-1, :2])
+    return Demonstration(
+        house_seed=house.seed,
+        poses=poses,
+        actions=actions,
+        end_field=end_field,
+        shortest_length_m=end_field.at(poses[0, :2]),
+    )

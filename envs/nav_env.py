@@ -1,0 +1,362 @@
+"""``PathFollowEnv``: follow a demonstrated route in a procedural house, as a TorchRL env.
+
+Each episode samples a house of the split and a demonstration in it (see
+:mod:`envs.demos`); the agent starts at the demonstration's first pose and must
+reach its end under actuation noise (:class:`~envs.transforms.ActuationNoise`),
+seeing only its first-person camera and the demonstration (frames and actions).
+
+Protocol (the paper's, Sec. 4.1): actions forward 0.3 m, turn left 20 deg, turn
+right 20 deg (and STOP when ``stop_action=True``); success means ending within
+``max(success_radius_m, success_fraction * initial distance)`` (geodesic) of the
+route's end; without STOP the episode terminates as soon as the agent is inside
+that radius, with STOP it terminates when the agent stops; episodes are truncated
+after ``max_steps``. The final step reports ``success``, ``spl`` (Anderson et al.
+2018), ``goal_distance`` and ``path_length``. The reward is dense: geodesic
+progress, a success bonus and a small step cost.
+
+Per-episode data (``demo_frames``, ``demo_actions``) is part of the observation
+spec and is emitted at every step, because ``ParallelEnv`` drops keys that only
+``_reset`` emits. ``pose``, ``goal_distance`` and ``expert_action`` are privileged
+keys for metrics, plotting and labelling; policies must not read them.
+
+With ``num_agents=N`` the env is batched (``batch_size=[N]``): N agents, each in
+its own episode and house, stepped and rendered in one process.
+"""
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from envs.demos import (
+    DEFAULT_DEMO_LENGTH,
+    Demonstration,
+    apply_motion,
+    nominal_motion,
+    sample_demonstration,
+)
+from envs.expert import FORWARD_STEP_M, STOP, GeodesicExpert
+from envs.render import FirstPersonRenderer
+from envs.scenes import House, build_house, split_seeds
+
+logger = logging.getLogger(__name__)
+
+#: Default first-person frame size, pixels.
+DEFAULT_IMAGE_SIZE = 64
+#: Default follow-episode limit, steps (the paper's 50).
+DEFAULT_MAX_STEPS = 50
+#: Success: within max(SUCCESS_RADIUS_M, SUCCESS_FRACTION x initial distance) of the end.
+SUCCESS_RADIUS_M = 2 * FORWARD_STEP_M
+SUCCESS_FRACTION = 0.1
+#: Dense reward terms: per metre of geodesic progress, on success, per step.
+PROGRESS_REWARD_PER_M = 1.0
+SUCCESS_REWARD = 2.5
+STEP_PENALTY = 0.01
+#: Routes must end at least this many success radii from their start (no trivial episodes).
+MIN_ROUTE_FACTOR = 2.0
+#: Number of demonstration action classes (forward, left, right).
+NUM_DEMO_ACTIONS = 3
+_MAX_EPISODE_SEED = 2**62
+
+
+class PathFollowEnv(EnvBase):
+    """Visual path following in procedural labmaze houses (MuJoCo, headless).
+
+    Args:
+        split: ``"train"``, ``"val"`` or ``"test"``: the house seeds to sample from.
+
+    Keyword Args:
+        num_houses: houses in the split (default 61 / 11 / 18); may be larger.
+        house_seeds: explicit house seeds (overrides ``split``/``num_houses``).
+        num_agents: ``None`` for an unbatched env (``batch_size=[]``, for
+            ``ParallelEnv`` workers) or N for a batched env of N agents.
+        demo_length: demonstration length n, steps.
+        max_steps: follow-episode limit, steps.
+        image_size: side of the square first-person frames, pixels.
+        stop_action: add a STOP action (index 3) that ends the episode.
+        with_expert: also emit ``expert_action``, the expert's action at every step.
+        render: render frames; ``False`` emits black frames and never opens an
+            OpenGL context (fast protocol statistics, expert labelling).
+        success_radius_m: minimum success radius, metres.
+        success_fraction: success radius as a fraction of the initial distance.
+        seed: optional seed (same as calling :meth:`set_seed`).
+        device: torch device of the outputs.
+
+    Examples:
+        >>> env = PathFollowEnv("train", num_houses=2, demo_length=10)
+        >>> env.set_seed(0)
+        0
+        >>> td = env.reset()
+        >>> td["pixels"].shape, td["demo_frames"].shape, td["demo_actions"].shape
+        (torch.Size([3, 64, 64]), torch.Size([10, 3, 64, 64]), torch.Size([10]))
+        >>> td = env.rand_step(td)
+        >>> td["next", "reward"].shape
+        torch.Size([1])
+    """
+
+    def __init__(
+        self,
+        split: str = "train",
+        *,
+        num_houses: int | None = None,
+        house_seeds: Sequence[int] | None = None,
+        num_agents: int | None = None,
+        demo_length: int = DEFAULT_DEMO_LENGTH,
+        max_steps: int = DEFAULT_MAX_STEPS,
+        image_size: int = DEFAULT_IMAGE_SIZE,
+        stop_action: bool = False,
+        with_expert: bool = False,
+        render: bool = True,
+        success_radius_m: float = SUCCESS_RADIUS_M,
+        success_fraction: float = SUCCESS_FRACTION,
+        seed: int | None = None,
+        device: torch.device | str = "cpu",
+    ) -> None:
+        _check_positive_int("demo_length", demo_length)
+        _check_positive_int("max_steps", max_steps)
+        _check_positive_int("image_size", image_size)
+        if num_agents is not None:
+            _check_positive_int("num_agents", num_agents)
+        if success_radius_m <= 0 or success_fraction < 0:
+            raise ValueError(
+                f"success_radius_m must be > 0 metres and success_fraction >= 0, got {success_radius_m}, {success_fraction}."
+            )
+        if house_seeds is not None:
+            house_seeds = [int(s) for s in house_seeds]
+            if not house_seeds or min(house_seeds) < 0:
+                raise ValueError(f"house_seeds must be a non-empty list of non-negative ints, got {house_seeds!r}.")
+        else:
+            house_seeds = split_seeds(split, num_houses)
+        batch_size = torch.Size([] if num_agents is None else [num_agents])
+        super().__init__(device=device, batch_size=batch_size)
+        self.split = split
+        self.house_seeds = house_seeds
+        self.num_agents = num_agents
+        self._count = 1 if num_agents is None else num_agents
+        self.demo_length = int(demo_length)
+        self.max_steps = int(max_steps)
+        self.image_size = int(image_size)
+        self.stop_action = bool(stop_action)
+        self.with_expert = bool(with_expert)
+        self.render_frames = bool(render)
+        self.success_radius_m = float(success_radius_m)
+        self.success_fraction = float(success_fraction)
+        self.num_actions = NUM_DEMO_ACTIONS + int(self.stop_action)
+        self._renderer: FirstPersonRenderer | None = None  # created at the first reset
+        self._rng = np.random.default_rng(seed)
+        self._make_specs()
+        self._init_state()
+
+    # ------------------------------------------------------------------ specs
+    def _make_specs(self) -> None:
+        shape = self.batch_size
+        size, n = self.image_size, self.demo_length
+        observation = {
+            "pixels": Bounded(0, 255, shape=(*shape, 3, size, size), dtype=torch.uint8, device=self.device),
+            "demo_frames": Bounded(0, 255, shape=(*shape, n, 3, size, size), dtype=torch.uint8, device=self.device),
+            "demo_actions": Categorical(NUM_DEMO_ACTIONS, shape=(*shape, n), dtype=torch.int64, device=self.device),
+            "step_count": Unbounded(shape=(*shape, 1), dtype=torch.int64, device=self.device),
+            "episode_seed": Unbounded(shape=(*shape, 1), dtype=torch.int64, device=self.device),
+            "pose": Unbounded(shape=(*shape, 3), dtype=torch.float32, device=self.device),
+            "goal_distance": Unbounded(shape=(*shape, 1), dtype=torch.float32, device=self.device),
+            "path_length": Unbounded(shape=(*shape, 1), dtype=torch.float32, device=self.device),
+            "shortest_path_length": Unbounded(shape=(*shape, 1), dtype=torch.float32, device=self.device),
+            "success": Categorical(2, shape=(*shape, 1), dtype=torch.bool, device=self.device),
+            "spl": Unbounded(shape=(*shape, 1), dtype=torch.float32, device=self.device),
+        }
+        if self.with_expert:
+            observation["expert_action"] = Categorical(self.num_actions, shape=shape, dtype=torch.int64, device=self.device)
+        self.observation_spec = Composite(observation, shape=shape, device=self.device)
+        self.action_spec = Categorical(self.num_actions, shape=shape, dtype=torch.int64, device=self.device)
+        self.reward_spec = Unbounded(shape=(*shape, 1), dtype=torch.float32, device=self.device)
+        self.done_spec = Composite(
+            {
+                key: Categorical(2, shape=(*shape, 1), dtype=torch.bool, device=self.device)
+                for key in ("done", "terminated", "truncated")
+            },
+            shape=shape,
+            device=self.device,
+        )
+
+    def _init_state(self) -> None:
+        count, n, size = self._count, self.demo_length, self.image_size
+        self._houses: list[House | None] = [None] * count
+        self._demos: list[Demonstration | None] = [None] * count
+        self._experts: list[GeodesicExpert | None] = [None] * count
+        self._pose = np.zeros((count, 3))
+        self._steps = np.zeros(count, dtype=np.int64)
+        self._path_length = np.zeros(count)
+        self._distance = np.zeros(count)
+        self._initial_distance = np.ones(count)
+        self._shortest = np.zeros(count)
+        self._episode_seed = np.zeros(count, dtype=np.int64)
+        self._success = np.zeros(count, dtype=bool)
+        self._spl = np.zeros(count)
+        self._demo_frames = torch.zeros((count, n, 3, size, size), dtype=torch.uint8)
+        self._demo_actions = torch.zeros((count, n), dtype=torch.int64)
+        self._pixels = torch.zeros((count, 3, size, size), dtype=torch.uint8)
+
+    # ---------------------------------------------------------------- seeding
+    def _set_seed(self, seed: int | None) -> None:
+        self._rng = np.random.default_rng(seed)
+
+    # ------------------------------------------------------------- rendering
+    @property
+    def renderer(self) -> FirstPersonRenderer:
+        if self._renderer is None:
+            self._renderer = FirstPersonRenderer(self.image_size, self.image_size)
+        return self._renderer
+
+    def _render(self, indices: Sequence[int], poses: np.ndarray | None = None) -> np.ndarray:
+        """Frames ``(len(indices), H, W, 3)`` of agents at their (or the given) poses."""
+        frames = np.zeros((len(indices), self.image_size, self.image_size, 3), dtype=np.uint8)
+        if not self.render_frames:
+            return frames
+        for row, index in enumerate(indices):
+            pose = self._pose[index] if poses is None else poses[row]
+            self.renderer.render(self._houses[index], pose, out=frames[row])
+        return frames
+
+    # ------------------------------------------------------------------ reset
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        if tensordict is not None and "_reset" in tensordict.keys():
+            mask = tensordict.get("_reset").reshape(self._count).cpu().numpy()
+        else:
+            mask = np.ones(self._count, dtype=bool)
+        indices = np.flatnonzero(mask)
+        if len(indices):
+            demo_frames = self._demo_frames.clone()  # returned tensors are never mutated later
+            demo_actions = self._demo_actions.clone()
+            pixels = self._pixels.clone()
+            for index in indices:
+                self._start_episode(int(index), demo_frames, demo_actions, pixels)
+            self._demo_frames, self._demo_actions, self._pixels = demo_frames, demo_actions, pixels
+        zeros = np.zeros(self._count, dtype=bool)
+        return self._observation(zeros, zeros, zeros, reward=None)
+
+    def _start_episode(self, index: int, demo_frames: torch.Tensor, demo_actions: torch.Tensor, pixels: torch.Tensor) -> None:
+        episode_seed = int(self._rng.integers(_MAX_EPISODE_SEED))
+        episode_rng = np.random.default_rng(episode_seed)
+        house = build_house(int(episode_rng.choice(self.house_seeds)))
+        demo = sample_demonstration(
+            house, episode_rng, self.demo_length, min_route_length_m=MIN_ROUTE_FACTOR * self.success_radius_m
+        )
+        self._houses[index] = house
+        self._demos[index] = demo
+        self._experts[index] = GeodesicExpert(
+            house.occupancy, demo.end_field, stop_radius_m=self._radius(demo.shortest_length_m) if self.stop_action else None
+        )
+        self._episode_seed[index] = episode_seed
+        self._pose[index] = demo.start_pose
+        self._steps[index] = 0
+        self._path_length[index] = 0.0
+        self._distance[index] = demo.end_field.at(demo.start_pose[:2])
+        self._initial_distance[index] = self._distance[index]
+        self._shortest[index] = demo.shortest_length_m
+        self._success[index] = False
+        self._spl[index] = 0.0
+        frames = self._render([index] * self.demo_length, demo.poses[: self.demo_length])
+        demo_frames[index] = torch.from_numpy(frames).permute(0, 3, 1, 2)
+        demo_actions[index] = torch.from_numpy(demo.actions)
+        pixels[index] = demo_frames[index, 0]  # the agent starts on the demo's first pose
+
+    def _radius(self, initial_distance_m: float | np.ndarray) -> float | np.ndarray:
+        return np.maximum(self.success_radius_m, self.success_fraction * initial_distance_m)
+
+    # ------------------------------------------------------------------- step
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict.get("action").reshape(self._count).cpu().numpy()
+        if action.dtype.kind not in "iu" or action.min() < 0 or action.max() >= self.num_actions:
+            raise ValueError(
+                f"action must be an integer in [0, {self.num_actions - 1}] "
+                f"(0 forward, 1 left, 2 right{', 3 stop' if self.stop_action else ''}), got {action.tolist()}."
+            )
+        if "actuation" in tensordict.keys():
+            motion = tensordict.get("actuation").reshape(self._count, 3).cpu().numpy().astype(np.float64)
+        else:
+            motion = nominal_motion(action)
+        previous = self._distance.copy()
+        for index in range(self._count):
+            pose, travelled = apply_motion(self._houses[index], self._pose[index : index + 1], motion[index : index + 1])
+            self._pose[index] = pose[0]
+            self._path_length[index] += travelled[0]
+            self._distance[index] = self._demos[index].end_field.at(pose[0])
+        self._steps += 1
+        inside = self._distance <= self._radius(self._initial_distance)
+        terminated = (action == STOP) if self.stop_action else inside
+        truncated = (self._steps >= self.max_steps) & ~terminated
+        done = terminated | truncated
+        self._success = done & inside
+        shortest = self._shortest
+        self._spl = np.where(self._success, shortest / np.maximum(np.maximum(self._path_length, shortest), 1e-9), 0.0)
+        reward = PROGRESS_REWARD_PER_M * (previous - self._distance) + SUCCESS_REWARD * self._success - STEP_PENALTY
+        self._pixels = torch.from_numpy(self._render(range(self._count))).permute(0, 3, 1, 2).contiguous()
+        return self._observation(terminated, truncated, done, reward=reward)
+
+    # ------------------------------------------------------------ observation
+    def _observation(
+        self, terminated: np.ndarray, truncated: np.ndarray, done: np.ndarray, reward: np.ndarray | None
+    ) -> TensorDictBase:
+        floats = [self._distance, self._path_length, self._shortest, self._spl]
+        if reward is not None:
+            floats.append(reward)
+        float_columns = torch.from_numpy(np.stack(floats, axis=1).astype(np.float32))
+        int_columns = torch.from_numpy(np.stack([self._steps, self._episode_seed], axis=1))
+        bool_columns = torch.from_numpy(np.stack([self._success, done, terminated, truncated], axis=1))
+        out = {
+            "pixels": self._pixels,
+            "demo_frames": self._demo_frames,
+            "demo_actions": self._demo_actions,
+            "step_count": int_columns[:, 0:1],
+            "episode_seed": int_columns[:, 1:2],
+            "pose": torch.from_numpy(self._pose.astype(np.float32)),
+            "goal_distance": float_columns[:, 0:1],
+            "path_length": float_columns[:, 1:2],
+            "shortest_path_length": float_columns[:, 2:3],
+            "spl": float_columns[:, 3:4],
+            "success": bool_columns[:, 0:1],
+            "done": bool_columns[:, 1:2],
+            "terminated": bool_columns[:, 2:3],
+            "truncated": bool_columns[:, 3:4],
+        }
+        if reward is not None:
+            out["reward"] = float_columns[:, 4:5]
+        if self.with_expert:
+            out["expert_action"] = torch.from_numpy(self.expert_actions())
+        if self.num_agents is None:
+            out = {key: value[0] for key, value in out.items()}
+        return TensorDict(out, batch_size=self.batch_size, device=self.device)
+
+    # ---------------------------------------------------------------- helpers
+    def expert_actions(self) -> np.ndarray:
+        """The expert's action for every agent at its current pose, ``(N,)``."""
+        return np.array(
+            [expert.action(self._pose[i]) if expert is not None else 0 for i, expert in enumerate(self._experts)],
+            dtype=np.int64,
+        )
+
+    @property
+    def demonstrations(self) -> list[Demonstration | None]:
+        """The current demonstration of each agent."""
+        return list(self._demos)
+
+    @property
+    def houses(self) -> list[House | None]:
+        """The current house of each agent."""
+        return list(self._houses)
+
+    def close(self, *, raise_if_closed: bool = True) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+        super().close(raise_if_closed=raise_if_closed)
+
+
+def _check_positive_int(name: str, value) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value <= 0:
+        raise ValueError(f"{name} must be a positive int, got {value!r}.")

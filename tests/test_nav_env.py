@@ -1,0 +1,154 @@
+"""Tests for envs.nav_env.PathFollowEnv: specs, determinism, protocol, bad input."""
+from __future__ import annotations
+
+from functools import partial
+
+import numpy as np
+import pytest
+import torch
+from torchrl.collectors import Collector
+from torchrl.envs import ParallelEnv, SerialEnv, TransformedEnv, check_env_specs
+
+from envs.expert import FORWARD, STOP, TURN_LEFT
+from envs.nav_env import PathFollowEnv
+from envs.scripted import ExpertPolicy
+from envs.transforms import ActuationNoise
+
+SMALL = dict(num_houses=2, demo_length=6, max_steps=10, image_size=32)
+
+
+def test_specs_single_and_batched():
+    env = PathFollowEnv(**SMALL)
+    env.set_seed(0)
+    check_env_specs(env)
+    batched = PathFollowEnv(num_agents=3, with_expert=True, **SMALL)
+    batched.set_seed(0)
+    check_env_specs(batched)
+    assert batched.batch_size == torch.Size([3])
+
+
+def test_specs_serial_and_parallel():
+    serial = SerialEnv(2, partial(PathFollowEnv, **SMALL))
+    serial.set_seed(0)
+    check_env_specs(serial)
+    serial.close()
+    parallel = ParallelEnv(2, partial(PathFollowEnv, **SMALL), mp_start_method="spawn")
+    parallel.set_seed(0)
+    check_env_specs(parallel)
+    rollout = parallel.rollout(4, break_when_any_done=False)
+    assert rollout["demo_frames"].shape == (2, 4, 6, 3, 32, 32)
+    parallel.close(raise_if_closed=False)
+
+
+def _rollout(seed, noise="paper", steps=12):
+    env = TransformedEnv(PathFollowEnv(**SMALL), ActuationNoise(noise))
+    env.set_seed(seed)
+    torch.manual_seed(0)
+    return env.rollout(steps, break_when_any_done=False)
+
+
+def test_same_seed_same_episodes():
+    a, b, c = _rollout(3), _rollout(3), _rollout(4)
+    for key in ("pixels", "demo_frames", "demo_actions", "pose", "episode_seed"):
+        assert torch.equal(a[key], b[key]), key
+    assert torch.equal(a["next", "pose"], b["next", "pose"])
+    assert not torch.equal(a["episode_seed"], c["episode_seed"])
+
+
+def test_first_view_is_first_demo_frame_and_frames_are_not_blank():
+    env = PathFollowEnv(**SMALL)
+    env.set_seed(1)
+    td = env.reset()
+    assert torch.equal(td["pixels"], td["demo_frames"][0])
+    assert td["demo_frames"].float().std() > 10
+
+
+def test_random_actions_under_strongest_noise_stay_in_free_space():
+    env = TransformedEnv(PathFollowEnv(num_houses=3, demo_length=6, max_steps=40, render=False, num_agents=8), ActuationNoise("paper_unclipped"))
+    env.set_seed(0)
+    rollout = env.rollout(120, break_when_any_done=False)
+    poses = rollout["next", "pose"].reshape(-1, 3).numpy()
+    seeds = rollout["episode_seed"].reshape(-1).numpy()
+    base = env.base_env
+    # re-derive each pose's house from its episode seed
+    from envs.scenes import build_house
+
+    for pose, seed in zip(poses, seeds):
+        house = build_house(int(np.random.default_rng(int(seed)).choice(base.house_seeds)))
+        assert house.occupancy.clearance(pose[:2]) >= house.occupancy.agent_radius_m
+        assert 0 < pose[0] < house.size_m[0] and 0 < pose[1] < house.size_m[1]
+
+
+def test_expert_episode_reports_success_and_spl():
+    env = PathFollowEnv(with_expert=True, render=False, **{**SMALL, "max_steps": 30})
+    env.set_seed(0)
+    rollout = env.rollout(30, ExpertPolicy())
+    final = rollout[-1]["next"]
+    assert final["done"].item() and final["terminated"].item() and not final["truncated"].item()
+    assert final["success"].item()
+    shortest, travelled = final["shortest_path_length"].item(), final["path_length"].item()
+    assert final["spl"].item() == pytest.approx(shortest / max(shortest, travelled), rel=1e-5)
+    assert final["goal_distance"].item() <= max(0.6, 0.1 * shortest)
+    assert rollout["next", "reward"].sum() > 0  # progress plus the success bonus
+    assert not rollout["next", "success"][:-1].any()  # success is reported on the final step only
+
+
+def test_truncation_and_failure():
+    env = PathFollowEnv(render=False, **SMALL)
+    env.set_seed(0)
+    td = env.reset()
+    for step in range(SMALL["max_steps"]):
+        td["action"] = torch.tensor(TURN_LEFT)  # spinning never gets anywhere
+        td = env.step(td)
+        if step < SMALL["max_steps"] - 1:
+            assert not td["next", "done"].item()
+        td = td["next"]
+    assert td["truncated"].item() and td["done"].item() and not td["terminated"].item()
+    assert not td["success"].item() and td["spl"].item() == 0.0
+
+
+def test_stop_action_ends_the_episode():
+    env = PathFollowEnv(stop_action=True, render=False, **SMALL)
+    env.set_seed(0)
+    assert env.action_spec.space.n == 4
+    td = env.reset()
+    td["action"] = torch.tensor(STOP)
+    out = env.step(td)["next"]
+    assert out["terminated"].item() and not out["success"].item()
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(split="validation"), "split must be one of"),
+        (dict(demo_length=0), "demo_length must be a positive int"),
+        (dict(max_steps=-1), "max_steps must be a positive int"),
+        (dict(image_size=0), "image_size must be a positive int"),
+        (dict(num_agents=0), "num_agents must be a positive int"),
+        (dict(num_houses=0), "num_houses"),
+        (dict(house_seeds=[]), "house_seeds"),
+    ],
+)
+def test_bad_arguments_are_refused(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        PathFollowEnv(**kwargs)
+
+
+@pytest.mark.parametrize("action", [3, -1, 7])
+def test_wrong_action_value_is_refused(action):
+    env = PathFollowEnv(render=False, **SMALL)
+    env.set_seed(0)
+    td = env.reset()
+    td["action"] = torch.tensor(action)
+    with pytest.raises(ValueError, match="action must be an integer in"):
+        env.step(td)
+
+
+def test_collector_over_batched_env():
+    env = TransformedEnv(PathFollowEnv(num_agents=2, **SMALL), ActuationNoise("paper"))
+    env.set_seed(0)
+    collector = Collector(env, None, frames_per_batch=20, total_frames=40)
+    batches = list(collector)
+    collector.shutdown()
+    assert len(batches) == 2 and batches[0].batch_size == torch.Size([2, 10])
+    assert batches[0]["pixels"].dtype == torch.uint8
