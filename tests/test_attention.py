@@ -5,8 +5,9 @@ import math
 
 import pytest
 import torch
+import torch.nn.functional as F
 
-from spf_rl.modules import PointerAttention, action_window, attention_weights
+from spf_rl.modules import PointerAttention, action_window, attention_weights, soft_action_memory
 
 
 def _onehot(a, c=3):
@@ -81,6 +82,45 @@ def test_action_only():
     w, win = att.weights_and_window(None, acts, eta)
     assert w is None
     torch.testing.assert_close(att(None, None, acts, eta), att.psi(win.flatten(-2)))
+
+
+def test_soft_action_memory_formula():
+    acts = torch.tensor([[2, 0, 1, 1, 0, 2], [0, 0, 0, 0, 0, 0]])  # n = 6
+    eta = torch.tensor([[1.5], [-2.0]])
+    out = soft_action_memory(acts, eta, 3)
+    assert out.shape == (2, 3)
+    expected = torch.zeros(2, 3)
+    for b in range(2):
+        for j in range(6):
+            expected[b, acts[b, j]] += math.exp(-abs(eta[b, 0].item() - j))
+    torch.testing.assert_close(out, expected)
+    # hand values, eta = 1.5: class 0 at j = 1, 4; class 1 at j = 2, 3; class 2 at j = 0, 5
+    e = math.exp
+    torch.testing.assert_close(
+        out[0], torch.tensor([e(-0.5) + e(-2.5), e(-0.5) + e(-1.5), e(-1.5) + e(-3.5)])
+    )
+    # un-normalised (same weights as eq. 2 with indices 0..n-1); 4 classes pads a zero column
+    torch.testing.assert_close(out, (attention_weights(eta, torch.arange(6)).unsqueeze(-1) * F.one_hot(acts, 3)).sum(1))
+    assert soft_action_memory(acts, eta, 4)[:, 3].abs().sum() == 0
+
+
+@pytest.mark.parametrize("action_only", [True, False])
+def test_psi_takes_soft_action_memory(action_only):
+    torch.manual_seed(0)
+    att = PointerAttention(feature_dim=4, out_dim=5, k=1, action_only=action_only, soft_action_memory=True)
+    assert att.psi.in_features == (0 if action_only else 4) + 3 * 3 + 3
+    mem = None if action_only else torch.randn(2, 3, 4)
+    idx = None if action_only else torch.tensor([0, 2, 4])
+    acts = torch.tensor([[0, 1, 2, 0, 1], [2, 2, 1, 0, 0]])
+    eta = torch.tensor([[1.5], [3.0]], requires_grad=True)
+    w, win = att.weights_and_window(idx, acts, eta)
+    parts = [] if action_only else [(w.unsqueeze(-1) * mem).sum(1)]
+    parts += [win.flatten(-2), soft_action_memory(acts, eta, 3)]
+    mu = att(mem, idx, acts, eta)
+    torch.testing.assert_close(mu, att.psi(torch.cat(parts, -1)))
+    # eta gets a gradient even without visual memory
+    mu.sum().backward()
+    assert eta.grad is not None and (eta.grad.abs() > 0).all()
 
 
 def test_gradient_wrt_eta_through_soft_weights():

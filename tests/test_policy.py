@@ -357,18 +357,43 @@ def test_sequence_memory_encodes_at_starts_only():
 def test_gradients_reach_every_parameter(name):
     torch.manual_seed(0)
     policy = FACTORIES[name](CFG)
+    assert policy.attention.soft_action_memory == (name == "action_only")
     traj = _make_trajectory(inits=((0,), (0,)), T=4)
     with set_recurrent_mode(True):
         out = policy(traj)
     target = torch.randint(0, 3, (2, 4))
     F.cross_entropy(out["logits"].reshape(-1, 3), target.reshape(-1)).backward()
     no_grad = [n for n, p in policy.named_parameters() if p.grad is None or p.grad.abs().sum() == 0]
-    if name == "action_only":
-        # Without visual memory the pointer only enters through floor(eta) (the hard
-        # window), so cross-entropy gives the pointer head no gradient (by design, eq. 2).
-        assert sorted(no_grad) == ["pointer_head.bias", "pointer_head.weight"]
-    else:
-        assert no_grad == []
+    # action_only: the pointer head learns through the soft action memory
+    assert no_grad == []
+
+
+def test_action_only_without_soft_action_memory_has_no_pointer_gradient():
+    """The hard window alone only sees floor(eta): why soft_action_memory defaults to True there."""
+    torch.manual_seed(0)
+    policy = make_action_only_policy(dataclasses.replace(CFG, soft_action_memory=False))
+    assert not policy.attention.soft_action_memory
+    traj = _make_trajectory(inits=((0,), (0,)), T=4)
+    with set_recurrent_mode(True):
+        out = policy(traj)
+    out["logits"].sum().backward()
+    no_grad = [n for n, p in policy.named_parameters() if p.grad is None or p.grad.abs().sum() == 0]
+    assert sorted(no_grad) == ["pointer_head.bias", "pointer_head.weight"]
+
+
+def test_soft_action_memory_config():
+    assert SPFConfig().use_soft_action_memory is False
+    assert SPFConfig(memory_mode="none").use_soft_action_memory is True
+    assert SPFConfig(memory_mode="none", soft_action_memory=False).use_soft_action_memory is False
+    # None is kept, so replace() re-resolves it for the new memory mode
+    assert make_action_only_policy(CFG).config.use_soft_action_memory is True
+    assert make_rpf_policy(dataclasses.replace(CFG, memory_mode="none")).config.use_soft_action_memory is False
+    # the flag works with visual memory too: psi takes D + window + C inputs
+    policy = make_spf_policy(dataclasses.replace(CFG, soft_action_memory=True))
+    assert policy.attention.psi.in_features == 16 + 5 * 3 + 3
+    assert policy(_random_td([2]))["logits"].shape == (2, 3)
+    with pytest.raises(ValueError, match="soft_action_memory"):
+        SPFConfig(soft_action_memory="yes")
 
 
 def test_loss_falls_on_synthetic_data():

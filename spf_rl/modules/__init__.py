@@ -1,7 +1,12 @@
 """TensorDict modules of the SPF path-following policy: encoder, memory, attention, policy."""
 from __future__ import annotations
 
-from spf_rl.modules.attention import PointerAttention, action_window, attention_weights
+from spf_rl.modules.attention import (
+    PointerAttention,
+    action_window,
+    attention_weights,
+    soft_action_memory,
+)
 from spf_rl.modules.encoder import ImageEncoder
 from spf_rl.modules.memory import (
     MemoryEncoder,
@@ -36,5 +41,6 @@ __all__ = [
     "memory_bytes",
     "memory_indices",
     "memory_length",
+    "soft_action_memory",
     "validate_sparsity",
 ]

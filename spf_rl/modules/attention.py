@@ -5,6 +5,13 @@ soft attention over the memory features with un-normalised weights that decay
 with the distance between the pointer ``eta_t`` and each memory frame's demo
 index, a hard window of one-hot demo actions around the pointer, and a linear
 fusion layer ``psi``. Indices and the pointer are 0-based here.
+
+Optionally ``psi`` also takes the *soft action memory*
+``sum_{j=0}^{n-1} exp(-|eta_t - j|) onehot(a_j)``: the same un-normalised weights
+as eq. 2, over all ``n`` demonstration actions (every action is in memory). It is
+differentiable in ``eta``, unlike the hard window (which only sees
+``floor(eta)``); this is how the action-only baseline's pointer gets a gradient,
+in the spirit of the action memory of RPF (Kumar et al. 2019).
 """
 from __future__ import annotations
 
@@ -16,7 +23,7 @@ from torch import nn
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["PointerAttention", "action_window", "attention_weights"]
+__all__ = ["PointerAttention", "action_window", "attention_weights", "soft_action_memory"]
 
 #: Default half-width k of the hard action window (window size 2k+1).
 DEFAULT_WINDOW_HALF_WIDTH = 2
@@ -64,8 +71,39 @@ def action_window(
     return onehot * valid.unsqueeze(-1).to(eta.dtype)
 
 
+def soft_action_memory(
+    demo_actions: torch.Tensor, eta: torch.Tensor, num_classes: int
+) -> torch.Tensor:
+    """Soft-attended action memory ``sum_j exp(-|eta - j|) onehot(a_j)`` over all ``n`` demo actions.
+
+    The weights are those of eq. 2 (un-normalised) with the memory indices
+    ``0 .. n-1``. Unlike :func:`action_window` it is differentiable in ``eta``.
+
+    Args:
+        demo_actions (torch.Tensor): int64 ``[*, n]`` demo actions.
+        eta (torch.Tensor): pointer ``[*, 1]`` (0-based, float).
+        num_classes (int): number of action classes (one-hot size).
+
+    Returns:
+        torch.Tensor: float tensor ``[*, num_classes]``.
+
+    Examples:
+        >>> import torch
+        >>> soft_action_memory(torch.tensor([[0, 1, 1]]), torch.tensor([[1.0]]), 2)
+        tensor([[0.3679, 1.3679]])
+    """
+    n = demo_actions.shape[-1]
+    positions = torch.arange(n, device=eta.device)
+    weights = attention_weights(eta, positions)  # [*, n]
+    onehot = F.one_hot(demo_actions.long(), num_classes).to(eta.dtype)  # [*, n, C]
+    return (weights.unsqueeze(-1) * onehot).sum(-2)
+
+
 class PointerAttention(nn.Module):
     """Soft attention over memory features + hard action window, fused by a linear ``psi``.
+
+    ``psi`` takes ``[attended memory (D, unless action_only), window ((2k+1) * C),
+    soft action memory (C, if soft_action_memory)]`` concatenated in that order.
 
     Args:
         feature_dim (int): size ``D`` of a memory feature (ignored when ``action_only``).
@@ -73,7 +111,10 @@ class PointerAttention(nn.Module):
         k (int, optional): half-width of the action window. Defaults to 2.
         num_action_classes (int, optional): one-hot size of a demo action. Defaults to 3.
         action_only (bool, optional): if ``True`` there is no visual memory and ``psi``
-            takes only the action window. Defaults to ``False``.
+            takes only the action part. Defaults to ``False``.
+        soft_action_memory (bool, optional): if ``True``, ``psi`` also takes the soft
+            action memory (:func:`soft_action_memory`, ``num_action_classes`` values),
+            concatenated after the action window. Defaults to ``False``.
 
     Examples:
         >>> import torch
@@ -96,6 +137,7 @@ class PointerAttention(nn.Module):
         k: int = DEFAULT_WINDOW_HALF_WIDTH,
         num_action_classes: int = DEFAULT_NUM_ACTION_CLASSES,
         action_only: bool = False,
+        soft_action_memory: bool = False,
     ) -> None:
         super().__init__()
         if not isinstance(k, int) or k < 0:
@@ -109,8 +151,13 @@ class PointerAttention(nn.Module):
         self.k = k
         self.num_action_classes = num_action_classes
         self.action_only = action_only
+        self.soft_action_memory = bool(soft_action_memory)
         self.window_dim = (2 * k + 1) * num_action_classes
-        in_dim = self.window_dim + (0 if action_only else feature_dim)
+        in_dim = (
+            self.window_dim
+            + (0 if action_only else feature_dim)
+            + (num_action_classes if self.soft_action_memory else 0)
+        )
         self.psi = nn.Linear(in_dim, out_dim)
 
     def weights_and_window(
@@ -160,5 +207,9 @@ class PointerAttention(nn.Module):
                 )
             parts.append((weights.unsqueeze(-1) * memory_features).sum(-2))
         parts.append(window.flatten(-2))
+        if self.soft_action_memory:
+            parts.append(
+                soft_action_memory(demo_actions.long(), eta, self.num_action_classes)
+            )
         mu = self.psi(torch.cat(parts, -1))
         return (mu, window) if return_window else mu

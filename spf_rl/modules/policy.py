@@ -2,7 +2,9 @@
 
 :class:`SPFPolicy` is a recurrent :class:`~tensordict.nn.TensorDictModuleBase`:
 
-* ``mu_t = psi( sum_j m_j exp(-|eta_t - M*(j)|), a[floor(eta_t)-k .. floor(eta_t)+k] )`` (eq. 2)
+* ``mu_t = psi( sum_j m_j exp(-|eta_t - M*(j)|), a[floor(eta_t)-k .. floor(eta_t)+k] )`` (eq. 2),
+  plus, with ``SPFConfig.soft_action_memory`` (default for the action-only
+  baseline), the soft action memory ``sum_{j<n} exp(-|eta_t - j|) onehot(a_j)``
 * ``h_{t+1}, b, a_t = pi(h_t, mu_t, phi(o_t), a_window)`` with ``pi`` a GRU cell (eq. 3)
 * ``eta_{t+1} = eta_t + tanh(b)`` (eq. 4, ``pointer_update="paper"``) or the RPF
   authors' ``min(eta_t + 1 + tanh(b), n - 1)`` (``pointer_update="rpf"``).
@@ -93,11 +95,25 @@ class SPFConfig:
             ``"full"`` (all ``n`` frames, RPF) or ``"none"`` (action only).
         image_size (tuple of int): frame ``(height, width)`` in pixels.
         mu_dim (int, optional): output size of psi; defaults to ``feature_dim``.
+        soft_action_memory (bool, optional): psi also takes the soft-attended action
+            memory ``sum_{j=0}^{n-1} exp(-|eta - j|) onehot(a_j)`` over all ``n`` demo
+            actions (the un-normalised weights of eq. 2; see
+            :func:`~spf_rl.modules.attention.soft_action_memory`). ``None`` (default)
+            means ``True`` for ``memory_mode="none"`` and ``False`` otherwise: without
+            visual memory the pointer would only enter through ``floor(eta)`` in the
+            hard window, get no gradient and never learn; with visual memory the soft
+            weights over the memory frames already make eta differentiable, and the
+            paper's eq. 2 has no such term. ``None`` is kept (so that
+            ``dataclasses.replace(cfg, memory_mode=...)`` re-resolves it); read the
+            resolved value from :attr:`use_soft_action_memory`. Not in the SPF paper:
+            it follows RPF's action memory.
 
     Examples:
         >>> cfg = SPFConfig(sparsity=0.4)
         >>> cfg.memory_length, cfg.memory_indices.tolist()[:4]
         (12, [0, 3, 5, 8])
+        >>> cfg.use_soft_action_memory, SPFConfig(memory_mode="none").use_soft_action_memory
+        (False, True)
     """
 
     num_actions: int = NUM_PAPER_ACTIONS
@@ -110,6 +126,7 @@ class SPFConfig:
     memory_mode: Literal["sparse", "full", "none"] = "sparse"
     image_size: tuple[int, int] = field(default=(64, 64))
     mu_dim: int | None = None
+    soft_action_memory: bool | None = None
 
     def __post_init__(self) -> None:
         if self.num_actions not in ALLOWED_NUM_ACTIONS:
@@ -136,6 +153,10 @@ class SPFConfig:
             raise ValueError(
                 f"memory_mode must be one of {MEMORY_MODES}, got {self.memory_mode!r}."
             )
+        if self.soft_action_memory is not None and not isinstance(self.soft_action_memory, bool):
+            raise ValueError(
+                f"soft_action_memory must be a bool or None (auto), got {self.soft_action_memory!r}."
+            )
         self.image_size = tuple(self.image_size)  # type: ignore[assignment]
         if len(self.image_size) != 2 or any(
             not isinstance(s, int) or s < 1 for s in self.image_size
@@ -143,6 +164,13 @@ class SPFConfig:
             raise ValueError(
                 f"image_size must be (height, width) in pixels, got {self.image_size!r}."
             )
+
+    @property
+    def use_soft_action_memory(self) -> bool:
+        """Resolved ``soft_action_memory``: the flag, or ``memory_mode == "none"`` when ``None``."""
+        if self.soft_action_memory is None:
+            return self.memory_mode == "none"
+        return bool(self.soft_action_memory)
 
     @property
     def effective_sparsity(self) -> float:
@@ -270,6 +298,7 @@ class SPFPolicy(TensorDictModuleBase):
             k=config.k,
             num_action_classes=config.num_actions,
             action_only=not self.use_memory,
+            soft_action_memory=config.use_soft_action_memory,
         )
         self.gru = nn.GRUCell(
             mu_dim + feature_dim + self.attention.window_dim, config.hidden_size
@@ -559,10 +588,13 @@ def make_rpf_policy(
 def make_action_only_policy(
     config: SPFConfig | None = None, encoder: nn.Module | None = None, **kwargs
 ) -> SPFPolicy:
-    """RPF action-only baseline: no frames in memory; psi sees only the action window.
+    """RPF action-only baseline: no frames in memory; psi sees only the demo actions.
 
-    Note that the pointer then only enters the network through ``floor(eta)``, so
-    cross-entropy training gives no gradient to the pointer head.
+    psi takes the hard action window and, unless ``config.soft_action_memory`` is
+    ``False``, the soft action memory ``sum_j exp(-|eta - j|) onehot(a_j)``, through
+    which the pointer gets a gradient (``soft_action_memory=None``, the default,
+    resolves to ``True`` here). With ``soft_action_memory=False`` the pointer
+    only enters through ``floor(eta)`` and the pointer head receives no gradient.
 
     Examples:
         >>> make_action_only_policy(SPFConfig(feature_dim=8, hidden_size=8)).memory_length
