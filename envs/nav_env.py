@@ -30,7 +30,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from envs.demos import (
@@ -148,7 +148,7 @@ class PathFollowEnv(EnvBase):
         self.success_fraction = float(success_fraction)
         self.num_actions = NUM_DEMO_ACTIONS + int(self.stop_action)
         self._renderer: FirstPersonRenderer | None = None  # created at the first reset
-        self._rng = np.random.default_rng(seed)
+        self._set_seed(seed)
         self._make_specs()
         self._init_state()
 
@@ -157,8 +157,11 @@ class PathFollowEnv(EnvBase):
         shape = self.batch_size
         size, n = self.image_size, self.demo_length
         observation = {
-            "pixels": Bounded(0, 255, shape=(*shape, 3, size, size), dtype=torch.uint8, device=self.device),
-            "demo_frames": Bounded(0, 255, shape=(*shape, n, 3, size, size), dtype=torch.uint8, device=self.device),
+            # uint8 frames (0-255). Unbounded rather than Bounded: a Bounded spec stores
+            # low/high tensors of the full frame-stack shape, which makes every spec
+            # copy and check slow for batched envs.
+            "pixels": Unbounded(shape=(*shape, 3, size, size), dtype=torch.uint8, device=self.device),
+            "demo_frames": Unbounded(shape=(*shape, n, 3, size, size), dtype=torch.uint8, device=self.device),
             "demo_actions": Categorical(NUM_DEMO_ACTIONS, shape=(*shape, n), dtype=torch.int64, device=self.device),
             "step_count": Unbounded(shape=(*shape, 1), dtype=torch.int64, device=self.device),
             "episode_seed": Unbounded(shape=(*shape, 1), dtype=torch.int64, device=self.device),
@@ -203,7 +206,10 @@ class PathFollowEnv(EnvBase):
 
     # ---------------------------------------------------------------- seeding
     def _set_seed(self, seed: int | None) -> None:
-        self._rng = np.random.default_rng(seed)
+        # one stream per agent: agent i's k-th episode depends only on (seed, i, k),
+        # not on when the other agents' episodes end.
+        entropy = np.random.SeedSequence(seed).entropy
+        self._agent_rngs = [np.random.default_rng([entropy, index]) for index in range(self._count)]
 
     # ------------------------------------------------------------- rendering
     @property
@@ -240,7 +246,7 @@ class PathFollowEnv(EnvBase):
         return self._observation(zeros, zeros, zeros, reward=None)
 
     def _start_episode(self, index: int, demo_frames: torch.Tensor, demo_actions: torch.Tensor, pixels: torch.Tensor) -> None:
-        episode_seed = int(self._rng.integers(_MAX_EPISODE_SEED))
+        episode_seed = int(self._agent_rngs[index].integers(_MAX_EPISODE_SEED))
         episode_rng = np.random.default_rng(episode_seed)
         house = build_house(int(episode_rng.choice(self.house_seeds)))
         demo = sample_demonstration(
@@ -261,7 +267,7 @@ class PathFollowEnv(EnvBase):
         self._success[index] = False
         self._spl[index] = 0.0
         frames = self._render([index] * self.demo_length, demo.poses[: self.demo_length])
-        demo_frames[index] = torch.from_numpy(frames).permute(0, 3, 1, 2)
+        demo_frames[index] = torch.from_numpy(np.ascontiguousarray(frames.transpose(0, 3, 1, 2)))
         demo_actions[index] = torch.from_numpy(demo.actions)
         pixels[index] = demo_frames[index, 0]  # the agent starts on the demo's first pose
 
@@ -295,7 +301,7 @@ class PathFollowEnv(EnvBase):
         shortest = self._shortest
         self._spl = np.where(self._success, shortest / np.maximum(np.maximum(self._path_length, shortest), 1e-9), 0.0)
         reward = PROGRESS_REWARD_PER_M * (previous - self._distance) + SUCCESS_REWARD * self._success - STEP_PENALTY
-        self._pixels = torch.from_numpy(self._render(range(self._count))).permute(0, 3, 1, 2).contiguous()
+        self._pixels = torch.from_numpy(np.ascontiguousarray(self._render(range(self._count)).transpose(0, 3, 1, 2)))
         return self._observation(terminated, truncated, done, reward=reward)
 
     # ------------------------------------------------------------ observation

@@ -73,36 +73,41 @@ class OpenLoopReplay(TensorDictModuleBase):
 
 
 def run_episodes(env, policy, num_episodes: int, progress: bool = False) -> list[dict]:
-    """Play ``num_episodes`` episodes with ``policy`` and record how each ended.
+    """Play a fixed set of episodes with ``policy`` and record how each ended.
+
+    Agent ``i`` of the batched env plays its first ``ceil(num_episodes / N)``
+    episodes (its k-th episode depends only on the env seed, ``i`` and ``k``), so
+    every policy is scored on the same episodes.
 
     Args:
-        env: a batched :class:`~envs.nav_env.PathFollowEnv` (``num_agents`` set),
-            possibly wrapped in transforms (e.g. actuation noise). It must be seeded.
+        env: a seeded batched :class:`~envs.nav_env.PathFollowEnv` (``num_agents`` set),
+            possibly wrapped in transforms (actuation noise, primers, ...).
         policy: a TensorDict policy writing ``"action"``.
-        num_episodes: number of episodes (> 0); the first ``num_episodes`` to end,
-            in agent order per step, are kept, so the result is deterministic.
+        num_episodes: number of episodes (> 0).
         progress: show a progress bar.
 
     Returns:
-        one dict per episode: success, spl, goal_distance, path_length,
-        shortest_path_length, steps, episode_seed.
+        one dict per episode, ordered by (agent, episode): success, spl,
+        goal_distance, path_length, shortest_path_length, steps, episode_seed.
     """
     if num_episodes <= 0:
         raise ValueError(f"num_episodes must be > 0, got {num_episodes}.")
     if len(env.batch_size) != 1:
         raise ValueError(f"run_episodes needs a batched env (batch_size [N]), got {list(env.batch_size)}.")
-    records: list[dict] = []
+    num_agents = env.batch_size[0]
+    quota = [len(range(agent, num_episodes, num_agents)) for agent in range(num_agents)]
+    per_agent: list[list[dict]] = [[] for _ in range(num_agents)]
     bar = tqdm(total=num_episodes, disable=not progress, desc="episodes")
     tensordict = env.reset()
     with torch.no_grad():
-        while len(records) < num_episodes:
+        while any(len(done) < q for done, q in zip(per_agent, quota)):
             tensordict, next_tensordict = env.step_and_maybe_reset(policy(tensordict))
             finished = tensordict.get(("next", "done")).reshape(-1)
             for index in torch.nonzero(finished).reshape(-1).tolist():
-                if len(records) == num_episodes:
-                    break
+                if len(per_agent[index]) >= quota[index]:
+                    continue
                 final = tensordict.get("next")[index]
-                records.append(
+                per_agent[index].append(
                     {
                         "success": bool(final["success"].item()),
                         "spl": float(final["spl"].item()),
@@ -116,7 +121,7 @@ def run_episodes(env, policy, num_episodes: int, progress: bool = False) -> list
                 bar.update(1)
             tensordict = next_tensordict
     bar.close()
-    return records
+    return [record for records in per_agent for record in records]
 
 
 __all__ = ["ExpertPolicy", "OpenLoopReplay", "run_episodes"]
