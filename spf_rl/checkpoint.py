@@ -1,0 +1,93 @@
+"""Atomic, ``weights_only``-loadable checkpoints of policies and training state.
+
+A checkpoint is a plain dict of tensors, numbers, strings, lists and dicts (so
+:func:`torch.load` can read it with ``weights_only=True``) with a fixed header:
+``format_version``, ``model_type`` (``"spf"``, ``"rpf"``, ``"action_only"``...)
+and ``model_config`` (the :class:`~spf_rl.modules.policy.SPFConfig` as a dict).
+It is written to a temporary file in the same directory, flushed and fsynced,
+then moved over the target with :func:`os.replace`, so a crash never leaves a
+half-written checkpoint behind.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from spf_rl.modules.policy import SPFConfig
+
+#: Version of the checkpoint layout.
+CHECKPOINT_FORMAT_VERSION = 1
+#: Model types a checkpoint may hold.
+MODEL_TYPES = ("spf", "rpf", "action_only")
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint is missing, corrupt, or holds another kind of model."""
+
+
+def save_checkpoint(path: str | os.PathLike, model_type: str, config: SPFConfig, state: dict[str, Any]) -> None:
+    """Write ``state`` (``model`` state dict plus anything weights-only-safe) atomically.
+
+    Args:
+        path: target file.
+        model_type: one of :data:`MODEL_TYPES`.
+        config: the policy configuration.
+        state: at least ``{"model": state_dict}``; may hold ``optimizer``, ``step``, metrics.
+    """
+    if model_type not in MODEL_TYPES:
+        raise ValueError(f"model_type must be one of {MODEL_TYPES}, got {model_type!r}.")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    config_dict = asdict(config)
+    config_dict["image_size"] = list(config_dict["image_size"])
+    payload = {
+        "format_version": CHECKPOINT_FORMAT_VERSION,
+        "model_type": model_type,
+        "model_config": config_dict,
+        **state,
+    }
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "wb") as handle:
+        torch.save(payload, handle)
+        handle.flush()
+        os.fsync(handle.fileno())
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: str | os.PathLike, expected_model_type: str | None = None) -> dict[str, Any]:
+    """Load a checkpoint with ``weights_only=True`` and check its header.
+
+    Args:
+        path: the checkpoint file.
+        expected_model_type: if given, refuse a checkpoint of another model type.
+
+    Returns:
+        the payload, with ``model_config`` turned back into an :class:`SPFConfig`.
+
+    Raises:
+        CheckpointError: missing or corrupt file, unknown format, wrong model type.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path} does not exist.")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # noqa: BLE001 - any unpickling failure means a bad file
+        raise CheckpointError(f"checkpoint {path} is corrupt or not a checkpoint ({type(err).__name__}: {err}).") from err
+    if not isinstance(payload, dict) or payload.get("format_version") != CHECKPOINT_FORMAT_VERSION:
+        raise CheckpointError(f"checkpoint {path} has an unknown format (expected version {CHECKPOINT_FORMAT_VERSION}).")
+    model_type = payload.get("model_type")
+    if model_type not in MODEL_TYPES:
+        raise CheckpointError(f"checkpoint {path} holds an unknown model type {model_type!r}; allowed: {MODEL_TYPES}.")
+    if expected_model_type is not None and model_type != expected_model_type:
+        raise CheckpointError(
+            f"checkpoint {path} holds a {model_type!r} model, but a {expected_model_type!r} model was asked for."
+        )
+    config = dict(payload["model_config"])
+    config["image_size"] = tuple(config["image_size"])
+    payload["model_config"] = SPFConfig(**config)
+    return payload

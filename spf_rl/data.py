@@ -1,0 +1,353 @@
+"""Episode datasets on disk: perturbed follow episodes labelled by the expert.
+
+A dataset is a directory holding one memory-mapped TensorDict of ``E`` episodes
+(TensorDict's memmap format, read back through TorchRL's
+:class:`~torchrl.data.TensorStorage`), plus two small JSON files::
+
+    <root>/meta.json        configuration, shapes, format version
+    <root>/progress.json    chunks written so far and their SHA-256 checksums
+    <root>/episodes/        the memory-mapped tensors
+
+Per episode it stores the demonstration once (``demo_frames [n, 3, H, W]``,
+``demo_actions [n]``) and the follow episode step by step (``steps`` with batch
+``[T]``: ``pixels``, the executed ``action``, the expert's ``expert_action``
+label, ``mask`` for valid steps and ``is_init``).
+
+Episodes are generated in chunks, in parallel worker processes; chunk ``c`` is a
+pure function of ``(seed, c)``, so an interrupted run resumes where it stopped
+and gives the same bytes as an uninterrupted one. ``progress.json`` is replaced
+atomically after each chunk; a chunk whose bytes do not match its checksum, a
+missing file or a shape that disagrees with ``meta.json`` raises
+:class:`DatasetError`.
+"""
+from __future__ import annotations
+
+import concurrent.futures
+import hashlib
+import json
+import logging
+import multiprocessing
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tensordict import TensorDict
+from torchrl.data import SamplerWithoutReplacement, TensorDictReplayBuffer, TensorStorage
+from torchrl.data.replay_buffers import ImmutableDatasetWriter
+from tqdm.auto import tqdm
+
+logger = logging.getLogger(__name__)
+
+#: Version of the on-disk layout; bumped when it changes.
+DATASET_FORMAT_VERSION = 1
+NUM_DEMO_ACTIONS = 3
+
+
+class DatasetError(RuntimeError):
+    """A dataset directory is missing, half-written, corrupt or of another configuration."""
+
+
+@dataclass
+class DatasetConfig:
+    """What a dataset holds and how it is generated.
+
+    Args:
+        num_episodes: number of follow episodes.
+        split: house split the episodes are drawn from.
+        num_houses: houses of the split (``None``: the split's default).
+        noise: actuation-noise preset of the follow episodes.
+        random_action_prob: probability that the behaviour policy takes a uniformly
+            random action instead of the expert's, so states off the route are seen
+            (labels are always the expert's action).
+        demo_length: demonstration length n, steps.
+        max_steps: follow-episode limit, steps.
+        image_size: frame side, pixels.
+        chunk_size: episodes generated together (one batched env of this many agents).
+        seed: dataset seed; chunk ``c`` uses ``(seed, c)``.
+    """
+
+    num_episodes: int = 2000
+    split: str = "train"
+    num_houses: int | None = None
+    noise: str = "paper"
+    random_action_prob: float = 0.2
+    demo_length: int = 30
+    max_steps: int = 50
+    image_size: int = 64
+    chunk_size: int = 16
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("num_episodes", "demo_length", "max_steps", "image_size", "chunk_size"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+                raise ValueError(f"{name} must be a positive int, got {value!r}.")
+        if not 0.0 <= self.random_action_prob <= 1.0:
+            raise ValueError(f"random_action_prob must be in [0, 1], got {self.random_action_prob!r}.")
+
+    @property
+    def num_chunks(self) -> int:
+        return -(-self.num_episodes // self.chunk_size)
+
+
+def _atomic_write_json(path: Path, payload: dict) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    with open(tmp, "w") as handle:
+        json.dump(payload, handle, indent=2, sort_keys=True)
+        handle.flush()
+        os.fsync(handle.fileno())
+    os.replace(tmp, path)
+
+
+def _empty_episodes(config: DatasetConfig) -> TensorDict:
+    e, t, n, s = config.num_episodes, config.max_steps, config.demo_length, config.image_size
+    steps = TensorDict(
+        {
+            "pixels": torch.zeros(e, t, 3, s, s, dtype=torch.uint8),
+            "action": torch.zeros(e, t, dtype=torch.int64),
+            "expert_action": torch.zeros(e, t, dtype=torch.int64),
+            "mask": torch.zeros(e, t, dtype=torch.bool),
+            "is_init": torch.zeros(e, t, 1, dtype=torch.bool),
+        },
+        batch_size=[e, t],
+    )
+    return TensorDict(
+        {
+            "steps": steps,
+            "demo_frames": torch.zeros(e, n, 3, s, s, dtype=torch.uint8),
+            "demo_actions": torch.zeros(e, n, dtype=torch.int64),
+            "episode_seed": torch.zeros(e, dtype=torch.int64),
+            "length": torch.zeros(e, dtype=torch.int64),
+            "success": torch.zeros(e, dtype=torch.bool),
+            "spl": torch.zeros(e, dtype=torch.float32),
+        },
+        batch_size=[e],
+    )
+
+
+def _checksum(chunk: TensorDict) -> str:
+    digest = hashlib.sha256()
+    for key in sorted(chunk.keys(include_nested=True, leaves_only=True), key=str):
+        digest.update(str(key).encode())
+        digest.update(chunk.get(key).contiguous().numpy().tobytes())
+    return digest.hexdigest()
+
+
+def generate_chunk(config: DatasetConfig, chunk: int) -> TensorDict:
+    """Generate chunk ``chunk`` of a dataset (a pure function of ``(config, chunk)``).
+
+    One batched env holds ``chunk_size`` agents; each plays exactly one episode
+    driven by the behaviour policy (expert, or a random action with probability
+    ``random_action_prob``), every step labelled with the expert's action.
+    """
+    first = chunk * config.chunk_size
+    count = min(config.chunk_size, config.num_episodes - first)
+    env = _chunk_env(config, count)
+    chunk_seed = int(np.random.SeedSequence([config.seed, chunk]).generate_state(1)[0])
+    env.set_seed(chunk_seed)
+    generator = torch.Generator().manual_seed(chunk_seed)
+    out = _empty_episodes(DatasetConfig(**{**asdict(config), "num_episodes": count}))
+    td = env.reset()
+    out["demo_frames"] = td["demo_frames"]
+    out["demo_actions"] = td["demo_actions"]
+    out["episode_seed"] = td["episode_seed"].reshape(count)
+    active = torch.ones(count, dtype=torch.bool)
+    with torch.no_grad():
+        for step in range(config.max_steps):
+            expert = td["expert_action"]
+            random_action = torch.randint(0, NUM_DEMO_ACTIONS, (count,), generator=generator)
+            take_random = torch.rand(count, generator=generator) < config.random_action_prob
+            td["action"] = torch.where(take_random, random_action, expert)
+            out["steps", "pixels"][:, step] = td["pixels"]
+            out["steps", "action"][:, step] = td["action"]
+            out["steps", "expert_action"][:, step] = expert
+            out["steps", "mask"][:, step] = active
+            out["steps", "is_init"][:, step] = step == 0
+            td = env.step(td)
+            done = td["next", "done"].reshape(count) & active
+            out["length"][done] = step + 1
+            out["success"][done] = td["next", "success"].reshape(count)[done]
+            out["spl"][done] = td["next", "spl"].reshape(count)[done]
+            active &= ~done
+            if not active.any():
+                break
+            td = td["next"]
+    return out
+
+
+_CHUNK_ENVS: dict[tuple, object] = {}
+
+
+def _chunk_env(config: DatasetConfig, count: int):
+    """The batched env of a worker process, reused across chunks (its GL context and
+    compiled houses are the expensive part); each chunk re-seeds it."""
+    from torchrl.envs import TransformedEnv
+
+    from envs.nav_env import PathFollowEnv
+    from envs.transforms import ActuationNoise
+
+    key = (config.split, config.num_houses, config.noise, config.demo_length, config.max_steps, config.image_size, count)
+    if key not in _CHUNK_ENVS:
+        _CHUNK_ENVS[key] = TransformedEnv(
+            PathFollowEnv(
+                config.split,
+                num_houses=config.num_houses,
+                num_agents=count,
+                demo_length=config.demo_length,
+                max_steps=config.max_steps,
+                image_size=config.image_size,
+                with_expert=True,
+            ),
+            ActuationNoise(config.noise),
+        )
+    return _CHUNK_ENVS[key]
+
+
+class EpisodeDataset:
+    """An episode dataset directory: create, resume, verify, and sample from it.
+
+    Args:
+        root: the dataset directory.
+
+    Examples:
+        >>> import tempfile
+        >>> root = tempfile.mkdtemp()
+        >>> config = DatasetConfig(num_episodes=2, num_houses=1, demo_length=5, max_steps=6, image_size=32, chunk_size=2)
+        >>> dataset = EpisodeDataset.build(root, config, num_workers=1, progress=False)
+        >>> dataset.episodes["steps", "pixels"].shape
+        torch.Size([2, 6, 3, 32, 32])
+    """
+
+    def __init__(self, root: str | os.PathLike, verify: bool = True) -> None:
+        self.root = Path(root)
+        self.config, self.progress = self._read_json()
+        if len(self.progress["chunks"]) != self.config.num_chunks:
+            missing = self.config.num_chunks - len(self.progress["chunks"])
+            raise DatasetError(
+                f"dataset {self.root} is half-written: {missing} of {self.config.num_chunks} chunks missing. "
+                "Run the generation again to resume it."
+            )
+        try:
+            self.episodes = TensorDict.load_memmap(self.root / "episodes")
+        except Exception as err:  # noqa: BLE001 - any failure to map means a damaged dataset
+            raise DatasetError(f"dataset {self.root}: cannot read the episode tensors ({err}).") from err
+        expected = _empty_episodes(self.config)
+        for key in expected.keys(include_nested=True, leaves_only=True):
+            if key not in self.episodes.keys(include_nested=True, leaves_only=True) or self.episodes.get(key).shape != expected.get(key).shape:
+                raise DatasetError(f"dataset {self.root}: tensor {key!r} is missing or has the wrong shape.")
+        if verify:
+            self.verify()
+
+    @staticmethod
+    def exists(root: str | os.PathLike) -> bool:
+        return (Path(root) / "meta.json").exists()
+
+    def _read_json(self) -> tuple[DatasetConfig, dict]:
+        try:
+            meta = json.loads((self.root / "meta.json").read_text())
+            progress = json.loads((self.root / "progress.json").read_text())
+        except FileNotFoundError as err:
+            raise DatasetError(f"{self.root} is not a dataset directory (missing {Path(err.filename).name}).") from err
+        except json.JSONDecodeError as err:
+            raise DatasetError(f"dataset {self.root}: corrupt metadata ({err}).") from err
+        if meta.get("format_version") != DATASET_FORMAT_VERSION:
+            raise DatasetError(
+                f"dataset {self.root}: format version {meta.get('format_version')} is not {DATASET_FORMAT_VERSION}."
+            )
+        return DatasetConfig(**meta["config"]), progress
+
+    def verify(self) -> None:
+        """Recompute every chunk's checksum; raise :class:`DatasetError` on a mismatch."""
+        size = self.config.chunk_size
+        for chunk, expected in sorted(self.progress["chunks"].items(), key=lambda kv: int(kv[0])):
+            start = int(chunk) * size
+            actual = _checksum(self.episodes[start : start + size])
+            if actual != expected:
+                raise DatasetError(
+                    f"dataset {self.root}: chunk {chunk} (episodes {start}-{start + size - 1}) is corrupt "
+                    "(checksum mismatch). Delete the dataset directory and generate it again."
+                )
+
+    @classmethod
+    def build(
+        cls,
+        root: str | os.PathLike,
+        config: DatasetConfig,
+        num_workers: int = 2,
+        progress: bool = True,
+    ) -> EpisodeDataset:
+        """Create the dataset at ``root``, or resume a partial one, then open it.
+
+        Raises:
+            DatasetError: if ``root`` holds a dataset of another configuration.
+        """
+        root = Path(root)
+        meta_path, progress_path = root / "meta.json", root / "progress.json"
+        if meta_path.exists():
+            try:
+                stored = json.loads(meta_path.read_text())
+            except json.JSONDecodeError as err:
+                raise DatasetError(f"dataset {root}: corrupt meta.json ({err}).") from err
+            if stored.get("config") != asdict(config):
+                raise DatasetError(
+                    f"dataset {root} was generated with another configuration ({stored.get('config')}); "
+                    "choose another directory or delete it."
+                )
+            done = json.loads(progress_path.read_text())["chunks"] if progress_path.exists() else {}
+            episodes = TensorDict.load_memmap(root / "episodes")
+        else:
+            root.mkdir(parents=True, exist_ok=True)
+            episodes = _empty_episodes(config).memmap_(root / "episodes")
+            done = {}
+            _atomic_write_json(progress_path, {"chunks": done})
+            _atomic_write_json(meta_path, {"format_version": DATASET_FORMAT_VERSION, "config": asdict(config)})
+        todo = [c for c in range(config.num_chunks) if str(c) not in done]
+        if todo:
+            logger.info("generating %d of %d chunks into %s", len(todo), config.num_chunks, root)
+        bar = tqdm(total=config.num_chunks, initial=config.num_chunks - len(todo), desc="dataset chunks", disable=not progress)
+
+        def store(chunk: int, data: TensorDict) -> None:
+            start = chunk * config.chunk_size
+            episodes[start : start + data.shape[0]].update_(data)
+            done[str(chunk)] = _checksum(data)
+            _atomic_write_json(progress_path, {"chunks": done})
+            bar.update(1)
+
+        if num_workers <= 1:
+            for chunk in todo:
+                store(chunk, generate_chunk(config, chunk))
+        else:
+            context = multiprocessing.get_context("spawn")
+            with concurrent.futures.ProcessPoolExecutor(num_workers, mp_context=context) as pool:
+                futures = {pool.submit(generate_chunk, config, chunk): chunk for chunk in todo}
+                for future in concurrent.futures.as_completed(futures):
+                    store(futures[future], future.result())
+        bar.close()
+        return cls(root, verify=False)
+
+    def __len__(self) -> int:
+        return self.config.num_episodes
+
+    def replay_buffer(self, batch_size: int, seed: int = 0, drop_last: bool = False) -> TensorDictReplayBuffer:
+        """A read-only TorchRL replay buffer over whole episodes (one epoch without replacement at a time)."""
+        buffer = TensorDictReplayBuffer(
+            storage=TensorStorage(self.episodes),
+            writer=ImmutableDatasetWriter(),
+            sampler=SamplerWithoutReplacement(drop_last=drop_last),
+            batch_size=batch_size,
+        )
+        buffer.set_rng(torch.Generator().manual_seed(seed))
+        return buffer
+
+    def statistics(self) -> dict:
+        """Episode count, behaviour-policy success rate and mean length."""
+        return {
+            "episodes": len(self),
+            "behaviour_success": float(self.episodes["success"].float().mean()),
+            "mean_length": float(self.episodes["length"].float().mean()),
+        }
+
+
+__all__ = ["DatasetConfig", "DatasetError", "EpisodeDataset", "generate_chunk"]

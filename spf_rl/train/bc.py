@@ -1,0 +1,262 @@
+"""Behaviour cloning of the SPF policy (and baselines) on expert-labelled follow episodes.
+
+The loop: build (or reuse) the episode dataset, train with cross-entropy between
+the policy's logits and the expert's action at every valid step of whole
+episodes (the policy runs in sequence mode), validate by rolling the policy out
+on the ``val`` split after each epoch, keep the best checkpoint, and finally
+evaluate the best checkpoint on the ``test`` split.
+
+Everything needed to resume is in ``<output_dir>/last.pt`` (written atomically
+after every epoch): an interrupted run started again with the same config
+continues after the last finished epoch.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from tensordict import TensorDict
+from torchrl.modules import set_recurrent_mode
+from torchrl.record.loggers import get_logger
+from tqdm.auto import tqdm
+
+from spf_rl.checkpoint import load_checkpoint, save_checkpoint
+from spf_rl.data import DatasetConfig, EpisodeDataset
+from spf_rl.modules.memory import memory_bytes
+from spf_rl.modules.policy import SPFPolicy
+from spf_rl.train.evaluation import EvalConfig, evaluate_policy
+from spf_rl.train.models import ModelConfig, build_policy, spf_config
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class OptimConfig:
+    """Optimiser settings.
+
+    Args:
+        lr: Adam learning rate.
+        weight_decay: Adam weight decay.
+        batch_size: episodes per gradient step.
+        epochs: passes over the dataset.
+        max_grad_norm: gradient-norm clip.
+    """
+
+    lr: float = 1e-3
+    weight_decay: float = 0.0
+    batch_size: int = 16
+    epochs: int = 8
+    max_grad_norm: float = 1.0
+
+
+@dataclass
+class BCConfig:
+    """A behaviour-cloning run.
+
+    Args:
+        seed: seed of initialisation, batching and (through the sub-configs) data.
+        output_dir: checkpoints, logs, results and figures.
+        data_dir: the dataset directory (default ``data/<split>-<episodes>-<noise>-s<seed>``).
+        num_workers: processes generating the dataset.
+        logger: torchrl logger backend (``"csv"``, ``"tensorboard"``, ...) or ``""`` for none.
+        progress: progress bars.
+        data: the dataset (:class:`~spf_rl.data.DatasetConfig`).
+        model: the policy (:class:`~spf_rl.train.models.ModelConfig`).
+        optim: the optimiser (:class:`OptimConfig`).
+        val: validation rollouts after each epoch.
+        test: final evaluation of the best checkpoint.
+    """
+
+    seed: int = 0
+    output_dir: str = "runs/bc"
+    data_dir: str | None = None
+    num_workers: int = 2
+    logger: str = "csv"
+    progress: bool = True
+    data: DatasetConfig = field(default_factory=DatasetConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    val: EvalConfig = field(default_factory=lambda: EvalConfig(split="val", num_episodes=100, seed=1))
+    test: EvalConfig = field(default_factory=lambda: EvalConfig(split="test", num_episodes=500, seed=2))
+
+    def resolved_data_dir(self) -> Path:
+        if self.data_dir:
+            return Path(self.data_dir)
+        d = self.data
+        return Path("data") / f"{d.split}-{d.num_episodes}ep-{d.noise}-rand{d.random_action_prob}-n{d.demo_length}-{d.image_size}px-s{d.seed}"
+
+
+def episodes_to_sequence(batch: TensorDict) -> TensorDict:
+    """Turn a batch of stored episodes ``[B]`` into the policy's sequence input ``[B, T]``.
+
+    Demonstration frames and actions are stored once per episode; here they are
+    broadcast over time as views (no copy). ``T`` is cut to the longest episode.
+    """
+    steps = batch.get("steps")
+    length = int(steps.get("mask").sum(-1).max())
+    steps = steps[:, :length]
+    b, t = steps.batch_size
+    demo_frames = batch.get("demo_frames")
+    demo_actions = batch.get("demo_actions")
+    return TensorDict(
+        {
+            "pixels": steps.get("pixels"),
+            "is_init": steps.get("is_init"),
+            "demo_frames": demo_frames.unsqueeze(1).expand(b, t, *demo_frames.shape[1:]),
+            "demo_actions": demo_actions.unsqueeze(1).expand(b, t, *demo_actions.shape[1:]),
+            "expert_action": steps.get("expert_action"),
+            "mask": steps.get("mask"),
+        },
+        batch_size=[b, t],
+    )
+
+
+def bc_loss(policy: SPFPolicy, batch: TensorDict) -> tuple[torch.Tensor, torch.Tensor]:
+    """Cross-entropy between the policy's logits and the expert's actions on valid steps.
+
+    Returns:
+        (loss, accuracy of the arg-max action).
+    """
+    sequence = episodes_to_sequence(batch)
+    with set_recurrent_mode(True):
+        sequence = policy(sequence)
+    mask = sequence.get("mask")
+    logits = sequence.get("logits")[mask]
+    labels = sequence.get("expert_action")[mask]
+    loss = F.cross_entropy(logits, labels)
+    accuracy = (logits.argmax(-1) == labels).float().mean()
+    return loss, accuracy
+
+
+def model_memory_bytes(model_type: str, demo_length: int, sparsity: float, image_size: int) -> int:
+    """Bytes the agent carries for one demonstration: memory frames (uint8) plus all actions."""
+    frame_shape = (3, image_size, image_size)
+    if model_type == "action_only":
+        return demo_length  # one byte per action, no frames
+    return memory_bytes(demo_length, 1.0 if model_type == "rpf" else sparsity, frame_shape)
+
+
+def train_bc(config: BCConfig) -> dict:
+    """Run (or resume) a behaviour-cloning run and return its results dict (also written to ``results.json``)."""
+    start_time = time.time()
+    output = Path(config.output_dir)
+    output.mkdir(parents=True, exist_ok=True)
+    (output / "config.json").write_text(json.dumps(asdict(config), indent=2, default=str))
+    torch.manual_seed(config.seed)
+    dataset = EpisodeDataset.build(config.resolved_data_dir(), config.data, config.num_workers, config.progress)
+    logger.info("dataset: %s", dataset.statistics())
+
+    model_type = config.model.name
+    policy_config = spf_config(config.model, config.data.demo_length, config.data.image_size)
+    policy = build_policy(model_type, policy_config)
+    optimizer = torch.optim.Adam(policy.parameters(), lr=config.optim.lr, weight_decay=config.optim.weight_decay)
+    history: list[dict] = []
+    best = {"success": -1.0, "spl": -1.0, "epoch": -1}
+    start_epoch = 0
+    last_path, best_path = output / "last.pt", output / "best.pt"
+    if last_path.exists():
+        payload = load_checkpoint(last_path, expected_model_type=model_type)
+        policy.load_state_dict(payload["model"])
+        optimizer.load_state_dict(payload["optimizer"])
+        start_epoch, history, best = payload["epoch"], payload["history"], payload["best"]
+        torch.set_rng_state(payload["torch_rng"])
+        logger.info("resuming %s after epoch %d", output, start_epoch)
+
+    run_logger = get_logger(config.logger, logger_name=str(output / "logs"), experiment_name="bc") if config.logger else None
+    val_config = dataclasses.replace(
+        config.val, demo_length=config.data.demo_length, max_steps=config.data.max_steps, image_size=config.data.image_size
+    )
+    batches_per_epoch = -(-len(dataset) // config.optim.batch_size)
+    step = start_epoch * batches_per_epoch
+    for epoch in range(start_epoch, config.optim.epochs):
+        policy.train()
+        buffer = dataset.replay_buffer(config.optim.batch_size, seed=config.seed * 1000 + epoch)
+        losses, accuracies, epoch_start = [], [], time.time()
+        bar = tqdm(range(batches_per_epoch), desc=f"epoch {epoch + 1}/{config.optim.epochs}", disable=not config.progress)
+        for _ in bar:
+            batch = buffer.sample()
+            loss, accuracy = bc_loss(policy, batch)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(policy.parameters(), config.optim.max_grad_norm)
+            optimizer.step()
+            step += 1
+            losses.append(loss.item())
+            accuracies.append(accuracy.item())
+            bar.set_postfix(loss=f"{losses[-1]:.3f}", acc=f"{accuracies[-1]:.2f}")
+            if run_logger is not None:
+                run_logger.log_scalar("train/loss", losses[-1], step=step)
+        train_seconds = time.time() - epoch_start
+        val, _ = evaluate_policy(policy, val_config, progress=False)
+        record = {
+            "epoch": epoch + 1,
+            "step": step,
+            "train_loss": sum(losses) / len(losses),
+            "train_accuracy": sum(accuracies) / len(accuracies),
+            "val_success": val["success"],
+            "val_spl": val["spl"],
+            "train_seconds": train_seconds,
+        }
+        history.append(record)
+        logger.info("epoch %d: %s", epoch + 1, record)
+        if run_logger is not None:
+            for key in ("train_accuracy", "val_success", "val_spl"):
+                run_logger.log_scalar(f"epoch/{key}", record[key], step=step)
+        if (val["success"], val["spl"]) > (best["success"], best["spl"]):
+            best = {"success": val["success"], "spl": val["spl"], "epoch": epoch + 1}
+            save_checkpoint(best_path, model_type, policy_config, {"model": policy.state_dict(), "epoch": epoch + 1, "val": val})
+        save_checkpoint(
+            last_path,
+            model_type,
+            policy_config,
+            {
+                "model": policy.state_dict(),
+                "optimizer": optimizer.state_dict(),
+                "epoch": epoch + 1,
+                "history": history,
+                "best": best,
+                "torch_rng": torch.get_rng_state(),
+            },
+        )
+    if run_logger is not None and hasattr(run_logger, "experiment"):
+        run_logger = None
+
+    payload = load_checkpoint(best_path, expected_model_type=model_type)
+    policy.load_state_dict(payload["model"])
+    test_config = dataclasses.replace(
+        config.test, demo_length=config.data.demo_length, max_steps=config.data.max_steps, image_size=config.data.image_size
+    )
+    test, records = evaluate_policy(policy, test_config, progress=config.progress)
+    results = {
+        "model": model_type,
+        "sparsity": policy_config.effective_sparsity,
+        "memory_frames": policy_config.memory_length,
+        "memory_bytes": model_memory_bytes(model_type, config.data.demo_length, config.model.sparsity, config.data.image_size),
+        "test": test,
+        "best_epoch": best["epoch"],
+        "val_best": best,
+        "history": history,
+        "dataset": dataset.statistics(),
+        "seed": config.seed,
+        "wall_seconds_this_run": time.time() - start_time,
+        "config": asdict(config),
+    }
+    _atomic_json(output / "results.json", results)
+    _atomic_json(output / "test_episodes.json", {"episodes": records})
+    from spf_rl.viz import plot_training_curves
+
+    plot_training_curves(history, output / "training_curves.png", title=f"BC {model_type}")
+    return results
+
+
+def _atomic_json(path: Path, payload: dict) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(payload, indent=2, default=str))
+    os.replace(tmp, path)
