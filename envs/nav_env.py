@@ -57,7 +57,8 @@ SUCCESS_FRACTION = 0.1
 PROGRESS_REWARD_PER_M = 1.0
 SUCCESS_REWARD = 2.5
 STEP_PENALTY = 0.01
-#: Routes must end at least this many success radii from their start (no trivial episodes).
+#: Routes must end this many success radii from their start (no trivial episodes); short
+#: demonstrations need only half their straight length, and never less than one radius.
 MIN_ROUTE_FACTOR = 2.0
 #: Number of demonstration action classes (forward, left, right).
 NUM_DEMO_ACTIONS = 3
@@ -147,6 +148,10 @@ class PathFollowEnv(EnvBase):
         self.success_radius_m = float(success_radius_m)
         self.success_fraction = float(success_fraction)
         self.num_actions = NUM_DEMO_ACTIONS + int(self.stop_action)
+        # routes must start outside the success radius; short demos cannot reach 2 radii
+        self._min_route_length_m = max(
+            self.success_radius_m, min(MIN_ROUTE_FACTOR * self.success_radius_m, 0.5 * self.demo_length * FORWARD_STEP_M)
+        )
         self._renderer: FirstPersonRenderer | None = None  # created at the first reset
         self._set_seed(seed)
         self._make_specs()
@@ -250,7 +255,7 @@ class PathFollowEnv(EnvBase):
         episode_rng = np.random.default_rng(episode_seed)
         house = build_house(int(episode_rng.choice(self.house_seeds)))
         demo = sample_demonstration(
-            house, episode_rng, self.demo_length, min_route_length_m=MIN_ROUTE_FACTOR * self.success_radius_m
+            house, episode_rng, self.demo_length, min_route_length_m=self._min_route_length_m
         )
         self._houses[index] = house
         self._demos[index] = demo

@@ -1,0 +1,71 @@
+"""End-to-end tests of spf_rl.train.bc on a tiny configuration: train, resume, results."""
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import pytest
+import torch
+
+from spf_rl.data import DatasetConfig, EpisodeDataset
+from spf_rl.train.bc import BCConfig, OptimConfig, bc_loss, train_bc
+from spf_rl.train.evaluation import EvalConfig
+from spf_rl.train.models import ModelConfig, build_policy, spf_config
+
+DATA = DatasetConfig(num_episodes=8, num_houses=1, demo_length=5, max_steps=8, image_size=32, chunk_size=4)
+
+
+def tiny_config(tmp_path, epochs: int, model: str = "spf") -> BCConfig:
+    evaluation = dict(num_episodes=2, num_agents=2, num_houses=1)
+    return BCConfig(
+        output_dir=str(tmp_path / "run"),
+        data_dir=str(tmp_path / "data"),
+        num_workers=1,
+        logger="csv",
+        progress=False,
+        data=DATA,
+        model=ModelConfig(name=model, sparsity=0.4, feature_dim=16, hidden_size=16),
+        optim=OptimConfig(batch_size=4, epochs=epochs, lr=3e-3),
+        val=EvalConfig(split="val", seed=1, **evaluation),
+        test=EvalConfig(split="test", seed=2, **evaluation),
+    )
+
+
+def test_loss_falls_on_a_tiny_dataset(tmp_path):
+    dataset = EpisodeDataset.build(tmp_path / "data", DATA, num_workers=1, progress=False)
+    policy = build_policy("spf", spf_config(ModelConfig(sparsity=0.4, feature_dim=16, hidden_size=16), 5, 32))
+    optimizer = torch.optim.Adam(policy.parameters(), lr=3e-3)
+    batch = dataset.episodes[:8]
+    first = None
+    for _ in range(40):
+        loss, _ = bc_loss(policy, batch)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        first = loss.item() if first is None else first
+    assert loss.item() < 0.6 * first
+
+
+def test_train_resume_and_results(tmp_path):
+    one = train_bc(tiny_config(tmp_path, epochs=1))
+    assert len(one["history"]) == 1
+    # run again with more epochs: resumes after epoch 1 instead of starting over
+    two = train_bc(tiny_config(tmp_path, epochs=2))
+    assert [h["epoch"] for h in two["history"]] == [1, 2]
+    assert two["history"][0] == one["history"][0]
+    run = tmp_path / "run"
+    results = json.loads((run / "results.json").read_text())
+    assert results["test"]["episodes"] == 2
+    low, high = results["test"]["success_ci"]
+    assert low <= results["test"]["success"] <= high
+    assert results["memory_bytes"] == 2 * 3 * 32 * 32 + 5  # l = round(0.4 * 5) = 2 frames + 5 actions
+    assert (run / "training_curves.png").stat().st_size > 1000
+    assert (run / "best.pt").exists() and (run / "last.pt").exists()
+
+
+def test_resume_refuses_another_model_type(tmp_path):
+    train_bc(tiny_config(tmp_path, epochs=1, model="action_only"))
+    from spf_rl.checkpoint import CheckpointError
+
+    with pytest.raises(CheckpointError, match="'action_only' model, but a 'spf' model"):
+        train_bc(dataclasses.replace(tiny_config(tmp_path, epochs=2, model="spf")))

@@ -1,0 +1,92 @@
+"""Tests for spf_rl.data: dataset generation, determinism, resume, corruption detection."""
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from spf_rl.data import DatasetConfig, DatasetError, EpisodeDataset, generate_chunk
+
+TINY = dict(num_episodes=6, num_houses=1, demo_length=5, max_steps=8, image_size=32, chunk_size=2)
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    root = tmp_path_factory.mktemp("ds") / "tiny"
+    return EpisodeDataset.build(root, DatasetConfig(**TINY), num_workers=1, progress=False)
+
+
+def test_layout_and_labels(built):
+    episodes = built.episodes
+    assert episodes.batch_size == torch.Size([6])
+    assert episodes["steps", "pixels"].shape == (6, 8, 3, 32, 32)
+    assert episodes["demo_frames"].shape == (6, 5, 3, 32, 32)  # stored once per episode
+    mask = episodes["steps", "mask"]
+    assert torch.equal(mask.sum(1), episodes["length"])
+    assert episodes["steps", "is_init"][:, 0].all() and not episodes["steps", "is_init"][:, 1:].any()
+    labels = episodes["steps", "expert_action"][mask]
+    assert labels.min() >= 0 and labels.max() <= 2
+    assert (episodes["steps", "pixels"][mask].float().std()) > 5
+
+
+def test_chunks_are_deterministic(built):
+    config = DatasetConfig(**TINY)
+    again = generate_chunk(config, 1)
+    assert torch.equal(again["steps", "pixels"], built.episodes[2:4]["steps", "pixels"])
+    assert torch.equal(again["steps", "expert_action"], built.episodes[2:4]["steps", "expert_action"])
+
+
+def test_interrupted_build_resumes_to_the_same_bytes(built, tmp_path):
+    root = tmp_path / "resumed"
+    shutil.copytree(built.root, root)
+    progress = json.loads((root / "progress.json").read_text())
+    del progress["chunks"]["2"]  # as if stopped before the last chunk was stored
+    (root / "progress.json").write_text(json.dumps(progress))
+    with pytest.raises(DatasetError, match="half-written"):
+        EpisodeDataset(root)
+    resumed = EpisodeDataset.build(root, DatasetConfig(**TINY), num_workers=1, progress=False)
+    assert torch.equal(resumed.episodes["steps", "pixels"], built.episodes["steps", "pixels"])
+    resumed.verify()
+
+
+def test_corruption_is_detected(built, tmp_path):
+    root = tmp_path / "corrupt"
+    shutil.copytree(built.root, root)
+    dataset = EpisodeDataset(root, verify=False)
+    dataset.episodes["steps", "expert_action"][3, 0] = (dataset.episodes["steps", "expert_action"][3, 0] + 1) % 3
+    with pytest.raises(DatasetError, match="chunk 1 .* corrupt"):
+        EpisodeDataset(root)
+
+
+def test_missing_and_mismatched_datasets(built, tmp_path):
+    with pytest.raises(DatasetError, match="not a dataset directory"):
+        EpisodeDataset(tmp_path / "nothing")
+    other = DatasetConfig(**{**TINY, "noise": "locobot"})
+    with pytest.raises(DatasetError, match="another configuration"):
+        EpisodeDataset.build(built.root, other, num_workers=1, progress=False)
+    root = tmp_path / "badmeta"
+    shutil.copytree(built.root, root)
+    (root / "meta.json").write_text("{not json")
+    with pytest.raises(DatasetError, match="corrupt"):
+        EpisodeDataset(root)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [(dict(num_episodes=0), "num_episodes"), (dict(chunk_size=-1), "chunk_size"), (dict(random_action_prob=1.5), "random_action_prob")],
+)
+def test_bad_config(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        DatasetConfig(**kwargs)
+
+
+def test_replay_buffer_yields_each_episode_once_per_epoch(built):
+    buffer = built.replay_buffer(batch_size=3, seed=0)
+    seeds = torch.cat([buffer.sample()["episode_seed"] for _ in range(2)])
+    assert sorted(seeds.tolist()) == sorted(built.episodes["episode_seed"].tolist())
+    with pytest.raises(RuntimeError):
+        buffer.extend(built.episodes[:1])  # read-only dataset
+    assert np.isfinite(built.statistics()["mean_length"])
