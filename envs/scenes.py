@@ -479,7 +479,8 @@ def _texture_png(path: str) -> bytes:
     """A labmaze texture downscaled to ``TEXTURE_SIZE_PX`` (PNG bytes)."""
     from PIL import Image
 
-    image = Image.open(path).convert("RGB").resize((TEXTURE_SIZE_PX, TEXTURE_SIZE_PX), Image.BILINEAR)
+    # RGBA first: some labmaze textures are palette images with transparency
+    image = Image.open(path).convert("RGBA").convert("RGB").resize((TEXTURE_SIZE_PX, TEXTURE_SIZE_PX), Image.BILINEAR)
     buffer = io.BytesIO()
     image.save(buffer, format="PNG")
     return buffer.getvalue()

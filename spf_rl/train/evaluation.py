@@ -6,6 +6,7 @@ scores are comparable across models and reproducible.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import torch
@@ -96,3 +97,41 @@ def evaluate_policy(policy: TensorDictModuleBase, config: EvalConfig, progress: 
     summary = summarize(records)
     summary["mean_goal_distance_m"] = float(sum(r["goal_distance"] for r in records) / len(records))
     return summary, records
+
+
+def record_rollout(policy: TensorDictModuleBase, config: EvalConfig) -> dict:
+    """Play one episode greedily and keep what the figures need.
+
+    Returns:
+        dict with ``frames`` (T, H, W, 3) uint8, ``poses`` (T + 1, 3), ``eta`` (T,)
+        (absent for policies without a pointer), ``demo_poses`` (n + 1, 3),
+        ``demo_frames`` (n, H, W, 3), ``house_seed``, ``success``, ``spl``.
+    """
+    config = dataclasses.replace(config, num_agents=1, num_episodes=1)
+    env = make_eval_env(config, policy)
+
+    def act(tensordict):
+        tensordict = policy(tensordict)
+        if "logits" in tensordict.keys() and "action" not in policy.out_keys:
+            tensordict.set("action", tensordict.get("logits").argmax(-1))
+        return tensordict
+
+    policy.eval()
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        rollout = env.rollout(config.max_steps, act, break_when_any_done=True)[0]
+    demo = env.base_env.demonstrations[0]
+    final = rollout[-1]["next"]
+    poses = torch.cat([rollout["pose"], final["pose"][None]]).numpy()
+    record = {
+        "frames": rollout["pixels"].permute(0, 2, 3, 1).numpy(),
+        "poses": poses,
+        "demo_poses": demo.poses,
+        "demo_frames": rollout[0]["demo_frames"].permute(0, 2, 3, 1).numpy(),
+        "house_seed": demo.house_seed,
+        "success": bool(final["success"].item()),
+        "spl": float(final["spl"].item()),
+    }
+    if "eta_used" in rollout.keys():
+        record["eta"] = rollout["eta_used"].reshape(-1).numpy()
+    env.close()
+    return record

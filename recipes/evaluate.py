@@ -1,0 +1,110 @@
+"""Evaluate trained checkpoints (or the open-loop baseline) on a split, with a fixed seed.
+
+Every model evaluated with the same ``--split``, ``--episodes`` and ``--seed``
+plays the same episodes. Writes one JSON per model: success, SPL, 95% bootstrap
+confidence intervals, mean distance to goal, memory bytes, per-episode records.
+
+Usage::
+
+    python recipes/evaluate.py runs/bc/spf-s0.8-seed0/best.pt
+    python recipes/evaluate.py checkpoints/ --split test --episodes 500 --noise paper --out results/eval
+    python recipes/evaluate.py open_loop --split test
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+from pathlib import Path
+
+
+def evaluate_path(path: str, args: argparse.Namespace) -> dict:
+    """Evaluate one checkpoint file (or ``open_loop``) and return its results dict."""
+    import envs  # noqa: F401
+    from spf_rl.checkpoint import load_checkpoint
+    from spf_rl.modules.policy import OpenLoopPolicy
+    from spf_rl.train.bc import model_memory_bytes
+    from spf_rl.train.evaluation import EvalConfig, evaluate_policy
+    from spf_rl.train.models import build_policy
+
+    if path == "open_loop":
+        policy, model_type, demo_length, image_size, sparsity = OpenLoopPolicy(), "open_loop", args.demo_length, args.image_size, 0.0
+        memory = demo_length
+    else:
+        payload = load_checkpoint(path, expected_model_type=args.model_type)
+        config = payload["model_config"]
+        model_type = payload["model_type"]
+        policy = build_policy(model_type, config)
+        policy.load_state_dict(payload["model"])
+        demo_length, image_size, sparsity = config.demo_length, config.image_size[0], config.effective_sparsity
+        memory = model_memory_bytes(model_type, demo_length, config.sparsity, image_size)
+    eval_config = EvalConfig(
+        split=args.split,
+        num_episodes=args.episodes,
+        noise=args.noise,
+        seed=args.seed,
+        num_agents=args.num_agents,
+        demo_length=demo_length,
+        max_steps=args.max_steps,
+        image_size=image_size,
+    )
+    summary, records = evaluate_policy(policy, eval_config, progress=not args.no_progress)
+    return {
+        "checkpoint": path,
+        "model": model_type,
+        "sparsity": sparsity,
+        "memory_bytes": memory,
+        **summary,
+        "eval": vars(eval_config),
+        "episodes_records": records,
+    }
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("paths", nargs="+", help="checkpoint files, directories of *.pt, or 'open_loop'")
+    parser.add_argument("--split", default="test", help="train | val | test (default: test)")
+    parser.add_argument("--episodes", type=int, default=500)
+    parser.add_argument("--noise", default="paper")
+    parser.add_argument("--seed", type=int, default=2)
+    parser.add_argument("--num-agents", type=int, default=25)
+    parser.add_argument("--max-steps", type=int, default=50)
+    parser.add_argument("--demo-length", type=int, default=30, help="for open_loop only")
+    parser.add_argument("--image-size", type=int, default=64, help="for open_loop only")
+    parser.add_argument("--model-type", default=None, help="refuse checkpoints of another model type")
+    parser.add_argument("--out", default="results/eval", help="output directory for the JSON files")
+    parser.add_argument("--no-progress", action="store_true")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    if args.episodes <= 0:
+        parser.error(f"--episodes must be > 0, got {args.episodes}")
+
+    targets: list[str] = []
+    for path in args.paths:
+        if path == "open_loop":
+            targets.append(path)
+        elif Path(path).is_dir():
+            found = sorted(str(p) for p in Path(path).rglob("*.pt"))
+            if not found:
+                parser.error(f"directory {path} holds no *.pt checkpoint")
+            targets += found
+        else:
+            targets.append(path)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    results = []
+    for target in targets:
+        result = evaluate_path(target, args)
+        name = "open_loop" if target == "open_loop" else Path(target).with_suffix("").as_posix().replace("/", "_").strip("_.")
+        destination = out / f"{name}-{args.split}-{args.noise}-seed{args.seed}.json"
+        tmp = destination.with_name(f".{destination.name}.tmp")
+        tmp.write_text(json.dumps(result, indent=2))
+        os.replace(tmp, destination)
+        print(f"{target}: success {result['success']:.3f} {result['success_ci']}  SPL {result['spl']:.3f} -> {destination}")
+        results.append(result)
+    return results
+
+
+if __name__ == "__main__":
+    main()
