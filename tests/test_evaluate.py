@@ -1,0 +1,55 @@
+"""Tests for recipes/evaluate.py: reproducible JSON, confidence intervals, model-type checks."""
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+from spf_rl.checkpoint import CheckpointError, save_checkpoint
+from spf_rl.modules.policy import SPFConfig
+from spf_rl.train.models import build_policy
+
+RECIPE = Path(__file__).resolve().parents[1] / "recipes" / "evaluate.py"
+CONFIG = SPFConfig(demo_length=6, sparsity=0.5, feature_dim=8, hidden_size=8, image_size=(32, 32))
+
+
+def _evaluate_module():
+    spec = importlib.util.spec_from_file_location("evaluate_recipe", RECIPE)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture()
+def checkpoint(tmp_path):
+    path = tmp_path / "spf.pt"
+    save_checkpoint(path, "spf", CONFIG, {"model": build_policy("spf", CONFIG).state_dict()})
+    return path
+
+
+def _run(module, checkpoint, out, *extra):
+    args = [str(checkpoint), "--split", "val", "--episodes", "4", "--num-agents", "2", "--max-steps", "8", "--seed", "5", "--out", str(out), "--no-progress", *extra]
+    return module.main(args)
+
+
+def test_same_seed_gives_identical_json(checkpoint, tmp_path):
+    module = _evaluate_module()
+    _run(module, checkpoint, tmp_path / "a")
+    _run(module, checkpoint, tmp_path / "b")
+    (first,) = list((tmp_path / "a").glob("*.json"))
+    (second,) = list((tmp_path / "b").glob("*.json"))
+    a, b = json.loads(first.read_text()), json.loads(second.read_text())
+    assert a == b
+    assert len(a["episodes_records"]) == 4
+    for metric in ("success", "spl"):
+        low, high = a[f"{metric}_ci"]
+        assert low <= a[metric] <= high
+    assert a["memory_bytes"] == 3 * 3 * 32 * 32 + 6
+
+
+def test_other_model_type_is_refused(checkpoint, tmp_path):
+    module = _evaluate_module()
+    with pytest.raises(CheckpointError, match="holds a 'spf' model, but a 'rpf' model"):
+        _run(module, checkpoint, tmp_path / "c", "--model-type", "rpf")
