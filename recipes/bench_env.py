@@ -1,0 +1,396 @@
+"""Benchmark: frames/s of the first-person render loop, the env and TorchRL collectors.
+
+Writes ``benchmarks/results/env.json`` and prints a table. Every figure is a
+median over timed chunks, after a warm-up (house compilation and GL context
+creation happen once per process and are not counted; for multi-process
+collectors the first batch is discarded). Frames are 64x64 (``--image-size``),
+actions are uniformly random over forward/left/right (no STOP), actuation noise
+is the ``paper`` preset, and a small house set (``--num-houses``, default 4) is
+used so that per-process house compilation does not dominate.
+
+Configurations, each reported with its ratio to the raw loop measured in the
+same run:
+
+a. ``raw``: pose update + :class:`~envs.render.FirstPersonRenderer` + torch
+   uint8 tensor, one house, no TorchRL;
+b. ``env_step``: one unbatched env stepped with ``step_and_maybe_reset``;
+c. ``collector_single``: the same env through :class:`torchrl.collectors.Collector`;
+d. ``collector_batched8``: a batched env (``num_agents=8``) through ``Collector``;
+e. ``collector_parallel2``: ``ParallelEnv(2, make_env)`` through ``Collector``;
+f. ``multisync_2x_batched8``: ``MultiSyncCollector`` over two batched envs.
+
+Each env episode starts with a newly sampled demonstration whose frames are
+rendered at reset (``demo_length`` frames plus route planning), so each config
+also reports ``rendered_fps`` (g): collected frames plus demonstration frames
+per second, and the profile section reports the reset cost in ms.
+
+Usage::
+
+    python recipes/bench_env.py            # about 4-5 minutes
+    python recipes/bench_env.py --quick    # about 1 minute
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import platform
+import statistics
+import sys
+import time
+from functools import partial
+from pathlib import Path
+from typing import Any, Callable
+
+if __package__ in (None, ""):  # run as a script: make the repository importable
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import envs  # noqa: E402,F401  (selects the GL back-end and LP_NUM_THREADS before mujoco)
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from envs.demos import apply_motion, nominal_motion  # noqa: E402
+from envs.factory import make_path_follow_env  # noqa: E402
+from envs.render import FirstPersonRenderer  # noqa: E402
+from envs.scenes import build_house  # noqa: E402
+
+logger = logging.getLogger("bench_env")
+
+RESULTS_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "results" / "env.json"
+
+
+def make_bench_env(**kwargs: Any):
+    """``make_path_follow_env`` with the split's house models compiled up front.
+
+    Module-level (picklable under ``spawn``); the GL context is still created
+    lazily at the first render.
+    """
+    torch.set_num_threads(1)
+    env = make_path_follow_env(**kwargs)
+    for seed in env.base_env.house_seeds:
+        build_house(seed).model  # noqa: B018  (compile once per process, outside the timed chunks)
+    return env
+
+
+def _median_fps(frames: list[int], seconds: list[float]) -> float:
+    return float(statistics.median(f / s for f, s in zip(frames, seconds)))
+
+
+# --------------------------------------------------------------------- (a) raw
+def bench_raw(house_seed: int, image_size: int, chunks: int, chunk_frames: int, warmup: int, seed: int) -> dict:
+    """Pose update (nominal motion with collisions) + render + uint8 CHW tensor, one house."""
+    house = build_house(house_seed)
+    renderer = FirstPersonRenderer(image_size, image_size)
+    rng = np.random.default_rng(seed)
+    pose = np.array([[*house.spawn_xy, 0.0]])
+
+    def run(count: int) -> float:
+        nonlocal pose
+        actions = rng.integers(0, 3, size=count)
+        start = time.perf_counter()
+        for action in actions:
+            pose, _ = apply_motion(house, pose, nominal_motion(action)[None])
+            frame = renderer.render(house, pose[0])
+            torch.from_numpy(frame).permute(2, 0, 1).contiguous()
+        return time.perf_counter() - start
+
+    run(warmup)
+    seconds = [run(chunk_frames) for _ in range(chunks)]
+    renderer.close()
+    fps = _median_fps([chunk_frames] * chunks, seconds)
+    return {"fps": fps, "frames": chunk_frames * chunks, "seconds": sum(seconds), "render_ms_per_frame": 1e3 / fps}
+
+
+# ----------------------------------------------------------------- (b) env.step
+class _Timer:
+    """Accumulates the time spent in a wrapped bound method."""
+
+    def __init__(self, owner: Any, name: str) -> None:
+        self.seconds = 0.0
+        self.calls = 0
+        method = getattr(owner, name)
+
+        def wrapped(*args, **kwargs):
+            start = time.perf_counter()
+            try:
+                return method(*args, **kwargs)
+            finally:
+                self.seconds += time.perf_counter() - start
+                self.calls += 1
+
+        setattr(owner, name, wrapped)
+
+    def reset(self) -> None:
+        self.seconds, self.calls = 0.0, 0
+
+
+def bench_env_step(env_kwargs: dict, chunks: int, chunk_frames: int, warmup: int, seed: int) -> tuple[dict, dict]:
+    """One unbatched env in a ``step_and_maybe_reset`` loop, with a time breakdown."""
+    env = make_bench_env(**env_kwargs)
+    env.set_seed(seed)
+    generator = torch.Generator().manual_seed(seed)
+    base = env.base_env
+    timers = {name: _Timer(base, name) for name in ("_step", "_reset", "_render", "_observation")}
+    noise_timer = _Timer(env.transform[0], "_inv_call")
+    demo_length = base.demo_length
+    tensordict = env.reset()
+
+    def run(count: int) -> tuple[float, int]:
+        nonlocal tensordict
+        actions = torch.randint(0, 3, (count,), generator=generator)
+        resets = 0
+        start = time.perf_counter()
+        for action in actions:
+            tensordict.set("action", action)
+            tensordict, next_tensordict = env.step_and_maybe_reset(tensordict)
+            resets += int(tensordict.get(("next", "done")))
+            tensordict = next_tensordict
+        return time.perf_counter() - start, resets
+
+    run(warmup)
+    for timer in (*timers.values(), noise_timer):
+        timer.reset()
+    results = [run(chunk_frames) for _ in range(chunks)]
+    seconds = [r[0] for r in results]
+    resets = sum(r[1] for r in results)
+    frames = chunk_frames * chunks
+    total = sum(seconds)
+    # _render is called once per step and once per reset (demo frames), _observation likewise
+    reset_ms = 1e3 * timers["_reset"].seconds / max(timers["_reset"].calls, 1)
+    step_ms = 1e3 * timers["_step"].seconds / frames
+    render_calls = timers["_render"].calls
+    profile = {
+        "steps": frames,
+        "resets": resets,
+        "steps_per_episode": frames / max(resets, 1),
+        "ms_per_step_total": 1e3 * total / frames,
+        "ms_per_reset": reset_ms,
+        "reset_ms_per_step_amortised": 1e3 * timers["_reset"].seconds / frames,
+        "base_env_step_ms": step_ms,
+        "render_ms_per_call_in_env": 1e3 * timers["_render"].seconds / max(render_calls, 1),
+        "observation_ms_per_call": 1e3 * timers["_observation"].seconds / max(timers["_observation"].calls, 1),
+        "actuation_noise_ms_per_step": 1e3 * noise_timer.seconds / frames,
+        "torchrl_overhead_ms_per_step": 1e3 * (total - timers["_step"].seconds - timers["_reset"].seconds - noise_timer.seconds)
+        / frames,
+    }
+    env.close(raise_if_closed=False)
+    fps = _median_fps([chunk_frames] * chunks, seconds)
+    result = {
+        "fps": fps,
+        "frames": frames,
+        "seconds": total,
+        "demo_frames": resets * demo_length,
+        "rendered_fps": (frames + resets * demo_length) / total,
+    }
+    return result, profile
+
+
+# ---------------------------------------------------------------- collectors
+def bench_collector(
+    make_collector: Callable[[], Any], demo_length: int, chunks: int, warmup_batches: int
+) -> dict:
+    """Median frames/s over ``chunks`` batches after discarding ``warmup_batches``."""
+    collector = make_collector()
+    frames, seconds, demo_frames = [], [], 0
+    iterator = iter(collector)
+    try:
+        for _ in range(warmup_batches):
+            next(iterator)
+        start = time.perf_counter()
+        for _ in range(chunks):
+            batch = next(iterator)
+            now = time.perf_counter()
+            frames.append(batch.numel())
+            seconds.append(now - start)
+            demo_frames += int(batch.get(("next", "done")).sum()) * demo_length
+            start = now
+    finally:
+        collector.shutdown()
+    total_frames, total_seconds = sum(frames), sum(seconds)
+    return {
+        "fps": _median_fps(frames, seconds),
+        "frames": total_frames,
+        "seconds": total_seconds,
+        "frames_per_batch": frames[0],
+        "demo_frames": demo_frames,
+        "rendered_fps": (total_frames + demo_frames) / total_seconds,
+    }
+
+
+def machine_info() -> dict:
+    import mujoco
+    import tensordict
+    import torchrl
+
+    cpu_model = platform.processor()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu_model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {
+        "cpu_count": os.cpu_count(),
+        "cpu_model": cpu_model,
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "torchrl": torchrl.__version__,
+        "tensordict": tensordict.__version__,
+        "mujoco": mujoco.__version__,
+        "MUJOCO_GL": os.environ.get("MUJOCO_GL"),
+        "LP_NUM_THREADS": os.environ.get("LP_NUM_THREADS"),
+        "torch_num_threads": torch.get_num_threads(),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="about 1 minute instead of about 5")
+    parser.add_argument("--image-size", type=int, default=64)
+    parser.add_argument("--num-houses", type=int, default=4)
+    parser.add_argument("--demo-length", type=int, default=30)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--only", nargs="*", default=None, help="subset of configs (raw env_step collector_single ...)")
+    parser.add_argument("--output", type=Path, default=RESULTS_PATH)
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    torch.set_num_threads(1)
+
+    chunks = 3 if args.quick else 5
+    scale = 0.4 if args.quick else 1.0
+    env_kwargs = {
+        "noise": "paper",
+        "split": "train",
+        "num_houses": args.num_houses,
+        "demo_length": args.demo_length,
+        "image_size": args.image_size,
+    }
+    make_single = partial(make_bench_env, **env_kwargs)
+    make_batched = partial(make_bench_env, num_agents=8, **env_kwargs)
+    demo_length = args.demo_length
+
+    def collector_single():
+        from torchrl.collectors import Collector
+
+        return Collector(make_single, None, frames_per_batch=int(500 * scale), total_frames=-1)
+
+    def collector_batched():
+        from torchrl.collectors import Collector
+
+        return Collector(make_batched, None, frames_per_batch=int(1600 * scale), total_frames=-1)
+
+    def collector_parallel():
+        from torchrl.collectors import Collector
+        from torchrl.envs import ParallelEnv
+
+        return Collector(
+            ParallelEnv(2, make_single, metadata_from_workers=True), None, frames_per_batch=int(800 * scale), total_frames=-1
+        )
+
+    def multisync():
+        from torchrl.collectors import MultiSyncCollector
+
+        return MultiSyncCollector([make_batched] * 2, None, frames_per_batch=int(3200 * scale), total_frames=-1)
+
+    house_seed = make_single().base_env.house_seeds[0]
+    configs: dict[str, Callable[[], dict]] = {
+        "raw": lambda: bench_raw(house_seed, args.image_size, chunks, int(2000 * scale), 300, args.seed),
+        "collector_single": lambda: bench_collector(collector_single, demo_length, chunks, 2),
+        "collector_batched8": lambda: bench_collector(collector_batched, demo_length, chunks, 1),
+        "collector_parallel2": lambda: bench_collector(collector_parallel, demo_length, chunks, 2),
+        "multisync_2x_batched8": lambda: bench_collector(multisync, demo_length, chunks, 1),
+    }
+    descriptions = {
+        "raw": "(a) pose update + FirstPersonRenderer.render + torch uint8 CHW tensor, one house, no torchrl",
+        "env_step": "(b) one unbatched env (ActuationNoise paper + InitTracker), step_and_maybe_reset loop",
+        "collector_single": "(c) Collector(single env), random policy",
+        "collector_batched8": "(d) Collector(batched env, num_agents=8)",
+        "collector_parallel2": "(e) Collector(ParallelEnv(2, single env), spawn)",
+        "multisync_2x_batched8": "(f) MultiSyncCollector([batched env num_agents=8] * 2), spawn",
+    }
+    wanted = set(args.only) if args.only else set(descriptions)
+    results: dict[str, dict] = {}
+    profile: dict = {}
+    for name in descriptions:
+        if name not in wanted:
+            continue
+        logger.info("running %s", name)
+        if name == "env_step":
+            results[name], profile = bench_env_step(
+                env_kwargs, chunks, int(600 * scale), 300, args.seed
+            )
+        else:
+            results[name] = configs[name]()
+        results[name]["description"] = descriptions[name]
+        logger.info("%s: %.0f frames/s", name, results[name]["fps"])
+
+    raw_fps = results.get("raw", {}).get("fps")
+    for result in results.values():
+        if raw_fps:
+            result["ratio_to_raw"] = result["fps"] / raw_fps
+            if "rendered_fps" in result:
+                result["rendered_ratio_to_raw"] = result["rendered_fps"] / raw_fps
+
+    collectors = {k: v for k, v in results.items() if k != "raw"}
+    best_name = max(collectors, key=lambda k: collectors[k]["fps"]) if collectors else None
+    targets = {"fps": 3000, "ratio_to_raw": 1.0}
+    notes = []
+    if best_name is not None and raw_fps:
+        best = collectors[best_name]
+        reached = best["fps"] >= targets["fps"] and best["ratio_to_raw"] >= targets["ratio_to_raw"]
+        notes.append(
+            f"Best collection path: {best_name} at {best['fps']:.0f} frames/s = {best['ratio_to_raw']:.2f}x the raw loop "
+            f"({raw_fps:.0f} frames/s, {1e3 / raw_fps:.2f} ms/frame); counting demonstration frames rendered at reset "
+            f"{best['rendered_fps']:.0f} frames/s = {best['rendered_ratio_to_raw']:.2f}x. "
+            f"Targets (>= {targets['fps']} frames/s and >= {targets['ratio_to_raw']}x raw): "
+            f"{'reached' if reached else 'NOT reached'}."
+        )
+        if not reached:
+            notes.append(
+                f"Rendering alone caps 2 processes at about {2 * raw_fps:.0f} frames/s, and every episode of about "
+                f"{profile.get('steps_per_episode', float('nan')):.0f} steps also renders {demo_length} demonstration "
+                "frames and plans a route at reset (ms_per_reset in profile), so the collected frame rate is bounded "
+                f"by about 2 x raw x steps/(steps + {demo_length}) even with zero Python/TorchRL overhead. The houses "
+                "have one textured mesh per room (about 15 draw calls with texture switches), which is why a frame "
+                "costs more than the 0.25 ms of the single-mesh prototype in notes/rendering-measurements.md."
+            )
+    output = {
+        "benchmark": "recipes/bench_env.py" + (" --quick" if args.quick else ""),
+        "machine": machine_info(),
+        "setup": {
+            "image_size": args.image_size,
+            "num_houses": args.num_houses,
+            "house_set": "train split, first num_houses seeds (small so per-process compilation does not dominate)",
+            "demo_length": demo_length,
+            "noise": "paper",
+            "actions": "uniform over forward/left/right, no STOP (episodes end on success or after max_steps=50)",
+            "statistic": f"median frames/s over {chunks} timed chunks after warm-up (>= 300 frames, or the first "
+            "batches for collectors; multi-process collectors discard their first batch)",
+            "frames": "collected env steps; rendered_fps adds the demonstration frames rendered at each reset (g)",
+        },
+        "results": results,
+        "profile_single_env": profile,
+        "targets": targets,
+        "notes": notes,
+    }
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(json.dumps(output, indent=2) + "\n")
+
+    print(f"\n{'config':<24} {'frames/s':>9} {'x raw':>6} {'+demo f/s':>10} {'x raw':>6} {'frames':>7}")
+    for name, result in results.items():
+        print(
+            f"{name:<24} {result['fps']:>9.0f} {result.get('ratio_to_raw', float('nan')):>6.2f} "
+            f"{result.get('rendered_fps', result['fps']):>10.0f} "
+            f"{result.get('rendered_ratio_to_raw', result.get('ratio_to_raw', float('nan'))):>6.2f} {result['frames']:>7}"
+        )
+    if profile:
+        print("profile (single env): " + ", ".join(f"{k}={v:.3g}" for k, v in profile.items()))
+    for note in notes:
+        print("note:", note)
+    print(f"wrote {args.output}")
+
+
+if __name__ == "__main__":
+    main()
