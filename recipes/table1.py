@@ -1,0 +1,157 @@
+"""Reproduce the paper's Table 1: SPF at sparsity 0.4 / 0.6 / 0.8, RPF (full memory),
+RPF action-only, and open-loop replay, under ``paper`` noise on the test split.
+
+Trains each missing model with ``recipes/bc.py``'s pipeline (all rows share one
+dataset), evaluates every row on the same test episodes, copies each row's best
+checkpoint to ``checkpoints/`` and writes:
+
+* ``results/table1.md`` and ``results/table1.json``: ours beside the paper's numbers;
+* ``results/table1.png``: success and SPL against sparsity and against memory bytes.
+
+Usage::
+
+    python recipes/table1.py                      # trains what is missing (hours on 2 CPU cores)
+    python recipes/table1.py --from-checkpoints   # only evaluates the shipped checkpoints
+    python recipes/table1.py optim.epochs=4 data.num_episodes=1500
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import shutil
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from config_utils import load_config  # noqa: E402
+
+#: (row label, model name, sparsity, paper success, paper SPL); paper: Table 1 (Habitat, MP3D).
+ROWS = [
+    ("SPF sparsity 0.4", "spf", 0.4, 0.782, 0.683),
+    ("SPF sparsity 0.6", "spf", 0.6, 0.803, 0.724),
+    ("SPF sparsity 0.8", "spf", 0.8, 0.819, 0.737),
+    ("RPF action only", "action_only", 0.0, 0.782, 0.648),
+    ("RPF (full memory)", "rpf", 1.0, 0.833, 0.752),
+    ("open-loop replay", "open_loop", 0.0, None, None),
+]
+
+
+def checkpoint_name(model: str, sparsity: float) -> str:
+    return f"{model}-s{sparsity:g}.pt"
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--from-checkpoints", action="store_true", help="evaluate checkpoints/ without training")
+    parser.add_argument("--checkpoints", default="checkpoints")
+    parser.add_argument("--out", default="results")
+    parser.add_argument("overrides", nargs="*", help="key=value overrides applied to every row (as for bc.py)")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+
+    import envs  # noqa: F401
+    from spf_rl.checkpoint import load_checkpoint
+    from spf_rl.modules.policy import OpenLoopPolicy
+    from spf_rl.train.bc import BCConfig, model_memory_bytes, train_bc
+    from spf_rl.train.evaluation import evaluate_policy
+    from spf_rl.train.models import build_policy
+
+    base = load_config(BCConfig, "bc", args.overrides, preset="table1")
+    checkpoints, out = Path(args.checkpoints), Path(args.out)
+    checkpoints.mkdir(parents=True, exist_ok=True)
+    out.mkdir(parents=True, exist_ok=True)
+    test_config = dataclasses.replace(
+        base.test, demo_length=base.data.demo_length, max_steps=base.data.max_steps, image_size=base.data.image_size
+    )
+    rows = []
+    for label, model, sparsity, paper_success, paper_spl in ROWS:
+        if model == "open_loop":
+            policy, memory = OpenLoopPolicy(), base.data.demo_length
+        else:
+            shipped = checkpoints / checkpoint_name(model, sparsity)
+            if not args.from_checkpoints and not shipped.exists():
+                config = dataclasses.replace(
+                    base,
+                    model=dataclasses.replace(base.model, name=model, sparsity=sparsity if model == "spf" else base.model.sparsity),
+                    output_dir=f"runs/table1/{model}-s{sparsity:g}",
+                )
+                train_bc(config)
+                shutil.copyfile(Path(config.output_dir) / "best.pt", shipped)
+            payload = load_checkpoint(shipped, expected_model_type=model)
+            policy = build_policy(model, payload["model_config"])
+            policy.load_state_dict(payload["model"])
+            memory = model_memory_bytes(model, base.data.demo_length, sparsity, base.data.image_size)
+        summary, _ = evaluate_policy(policy, test_config, progress=base.progress)
+        rows.append(
+            {
+                "row": label,
+                "model": model,
+                "sparsity": sparsity,
+                "memory_bytes": memory,
+                "paper_success": paper_success,
+                "paper_spl": paper_spl,
+                **summary,
+            }
+        )
+        logging.info("%s: success %.3f SPL %.3f", label, summary["success"], summary["spl"])
+    (out / "table1.json").write_text(json.dumps({"rows": rows, "test": dataclasses.asdict(test_config)}, indent=2))
+    (out / "table1.md").write_text(markdown_table(rows, test_config))
+    plot_rows(rows, out / "table1.png")
+    print(markdown_table(rows, test_config))
+    return rows
+
+
+def markdown_table(rows: list[dict], test_config) -> str:
+    def fmt(value):
+        return "-" if value is None else f"{value:.3f}"
+
+    lines = [
+        f"Test split, {test_config.num_episodes} episodes, `{test_config.noise}` noise, seed {test_config.seed}. "
+        "95% bootstrap confidence intervals in brackets. Paper: Habitat / Matterport3D.",
+        "",
+        "| model | memory (bytes) | success | SPL | paper success | paper SPL |",
+        "|---|---|---|---|---|---|",
+    ]
+    for row in rows:
+        s_low, s_high = row["success_ci"]
+        p_low, p_high = row["spl_ci"]
+        lines.append(
+            f"| {row['row']} | {row['memory_bytes']:,} | {row['success']:.3f} [{s_low:.3f}, {s_high:.3f}] "
+            f"| {row['spl']:.3f} [{p_low:.3f}, {p_high:.3f}] | {fmt(row['paper_success'])} | {fmt(row['paper_spl'])} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def plot_rows(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (by_sparsity, by_bytes) = plt.subplots(1, 2, figsize=(10, 4))
+    learned = [r for r in rows if r["model"] != "open_loop"]
+    for metric, marker in (("success", "o"), ("spl", "s")):
+        xs = [r["sparsity"] for r in learned]
+        by_sparsity.plot(xs, [r[metric] for r in learned], marker, label=f"ours {metric}")
+        paper = [(r["sparsity"], r[f"paper_{metric}"]) for r in learned if r[f"paper_{metric}"] is not None]
+        by_sparsity.plot(*zip(*paper), marker, mfc="none", label=f"paper {metric}")
+        by_bytes.plot([r["memory_bytes"] for r in learned], [r[metric] for r in learned], marker, label=metric)
+    open_loop = [r for r in rows if r["model"] == "open_loop"]
+    if open_loop:
+        by_sparsity.axhline(open_loop[0]["success"], color="grey", linestyle="--", label="open-loop success")
+    by_sparsity.set_xlabel("memory sparsity (0 = action only)")
+    by_bytes.set_xlabel("memory per demonstration (bytes)")
+    by_bytes.set_xscale("symlog")
+    for ax in (by_sparsity, by_bytes):
+        ax.set_ylim(0, 1)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()
