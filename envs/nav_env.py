@@ -153,6 +153,7 @@ class PathFollowEnv(EnvBase):
             self.success_radius_m, min(MIN_ROUTE_FACTOR * self.success_radius_m, 0.5 * self.demo_length * FORWARD_STEP_M)
         )
         self._renderer: FirstPersonRenderer | None = None  # created at the first reset
+        self._cpu = self.device is not None and torch.device(self.device).type == "cpu"
         self._set_seed(seed)
         self._make_specs()
         self._init_state()
@@ -292,11 +293,20 @@ class PathFollowEnv(EnvBase):
         else:
             motion = nominal_motion(action)
         previous = self._distance.copy()
+        # apply_motion for every agent at once (same float64 operations, element by element),
+        # with each agent's collision check in its own house
+        heading = self._pose[:, 2]
+        c, s = np.cos(heading), np.sin(heading)
+        dx = c * motion[:, 0] - s * motion[:, 1]
+        dy = s * motion[:, 0] + c * motion[:, 1]
+        new_heading = np.mod(heading + motion[:, 2] + np.pi, 2 * np.pi) - np.pi
+        travelled = np.empty(self._count)
         for index in range(self._count):
-            pose, travelled = apply_motion(self._houses[index], self._pose[index : index + 1], motion[index : index + 1])
-            self._pose[index] = pose[0]
-            self._path_length[index] += travelled[0]
-            self._distance[index] = self._demos[index].end_field.at(pose[0])
+            xy, travelled[index] = self._houses[index].occupancy.move(self._pose[index, :2], (dx[index], dy[index]))
+            self._pose[index, :2] = xy
+            self._pose[index, 2] = new_heading[index]
+            self._distance[index] = self._demos[index].end_field.at(self._pose[index])
+        self._path_length += travelled
         self._steps += 1
         inside = self._distance <= self._radius(self._initial_distance)
         terminated = (action == STOP) if self.stop_action else inside
@@ -313,34 +323,53 @@ class PathFollowEnv(EnvBase):
     def _observation(
         self, terminated: np.ndarray, truncated: np.ndarray, done: np.ndarray, reward: np.ndarray | None
     ) -> TensorDictBase:
-        floats = [self._distance, self._path_length, self._shortest, self._spl]
+        count = self._count
+        # one array per dtype; every key is a view of one of them (casts as ``astype`` would)
+        floats = np.empty((count, 8 if reward is not None else 7), dtype=np.float32)
+        floats[:, 0] = self._distance
+        floats[:, 1] = self._path_length
+        floats[:, 2] = self._shortest
+        floats[:, 3] = self._spl
+        floats[:, 4:7] = self._pose
         if reward is not None:
-            floats.append(reward)
-        float_columns = torch.from_numpy(np.stack(floats, axis=1).astype(np.float32))
-        int_columns = torch.from_numpy(np.stack([self._steps, self._episode_seed], axis=1))
-        bool_columns = torch.from_numpy(np.stack([self._success, done, terminated, truncated], axis=1))
+            floats[:, 7] = reward
+        ints = np.empty((count, 2), dtype=np.int64)
+        ints[:, 0] = self._steps
+        ints[:, 1] = self._episode_seed
+        bools = np.empty((count, 4), dtype=bool)
+        bools[:, 0] = self._success
+        bools[:, 1] = done
+        bools[:, 2] = terminated
+        bools[:, 3] = truncated
+        float_columns, int_columns, bool_columns = torch.from_numpy(floats), torch.from_numpy(ints), torch.from_numpy(bools)
+        pixels, demo_frames, demo_actions = self._pixels, self._demo_frames, self._demo_actions
+        if self.num_agents is None:
+            float_columns, int_columns, bool_columns = float_columns[0], int_columns[0], bool_columns[0]
+            pixels, demo_frames, demo_actions = pixels[0], demo_frames[0], demo_actions[0]
         out = {
-            "pixels": self._pixels,
-            "demo_frames": self._demo_frames,
-            "demo_actions": self._demo_actions,
-            "step_count": int_columns[:, 0:1],
-            "episode_seed": int_columns[:, 1:2],
-            "pose": torch.from_numpy(self._pose.astype(np.float32)),
-            "goal_distance": float_columns[:, 0:1],
-            "path_length": float_columns[:, 1:2],
-            "shortest_path_length": float_columns[:, 2:3],
-            "spl": float_columns[:, 3:4],
-            "success": bool_columns[:, 0:1],
-            "done": bool_columns[:, 1:2],
-            "terminated": bool_columns[:, 2:3],
-            "truncated": bool_columns[:, 3:4],
+            "pixels": pixels,
+            "demo_frames": demo_frames,
+            "demo_actions": demo_actions,
+            "step_count": int_columns[..., 0:1],
+            "episode_seed": int_columns[..., 1:2],
+            "pose": float_columns[..., 4:7],
+            "goal_distance": float_columns[..., 0:1],
+            "path_length": float_columns[..., 1:2],
+            "shortest_path_length": float_columns[..., 2:3],
+            "spl": float_columns[..., 3:4],
+            "success": bool_columns[..., 0:1],
+            "done": bool_columns[..., 1:2],
+            "terminated": bool_columns[..., 2:3],
+            "truncated": bool_columns[..., 3:4],
         }
         if reward is not None:
-            out["reward"] = float_columns[:, 4:5]
+            out["reward"] = float_columns[..., 7:8]
         if self.with_expert:
-            out["expert_action"] = torch.from_numpy(self.expert_actions())
-        if self.num_agents is None:
-            out = {key: value[0] for key, value in out.items()}
+            expert = torch.from_numpy(self.expert_actions())
+            out["expert_action"] = expert if self.num_agents is not None else expert[0]
+        if self._cpu:
+            # every value is already a CPU tensor of the right shape: skip TensorDict's checks
+            return TensorDict._new_unsafe(out, batch_size=self.batch_size, device=self.device)
         return TensorDict(out, batch_size=self.batch_size, device=self.device)
 
     # ---------------------------------------------------------------- helpers
