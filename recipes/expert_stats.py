@@ -45,6 +45,19 @@ DEFAULT_RUNS = (
 )
 
 
+#: Caveats written into the JSON with the numbers.
+NOTES = (
+    "SPL saturates at 1 for near-optimal agents: without STOP the episode ends as soon as the agent is within "
+    "max(0.6 m, 10% of the initial geodesic distance) of the route's end, while SPL compares the path taken with the "
+    "full start-to-end geodesic length (mean_path_length_m is below mean_shortest_path_length_m). A detour shorter "
+    "than the success radius costs no SPL, so expert SPL = 1.000 does not mean the expert's paths are optimal.",
+    "Open-loop replay without noise succeeds by construction: the demonstration is replayed from its own start pose "
+    "with the nominal motion that produced it, so it reaches the goal.",
+    "Episodes whose agents finish their quota early keep stepping (their extra episodes are discarded), so 'seconds' "
+    "is not a per-episode cost.",
+)
+
+
 def bootstrap_ci(values: np.ndarray, rng: np.random.Generator, resamples: int = 10_000, level: float = 0.95) -> tuple[float, float]:
     """Percentile bootstrap confidence interval of the mean."""
     values = np.asarray(values, dtype=np.float64)
@@ -73,6 +86,22 @@ def score(records: list[dict], seed: int, resamples: int) -> dict:
     }
 
 
+def run_one(split: str, policy_name: str, noise: str, episodes: int, env_kwargs: dict, seed: int, resamples: int, progress: bool) -> dict:
+    """Score one (split, policy, noise) run; module-level so worker processes can run it."""
+    torch.set_num_threads(1)
+    env = make_path_follow_env(noise, split=split, **env_kwargs)
+    env.set_seed(seed)
+    policy = ExpertPolicy() if policy_name == "expert" else OpenLoopReplay()
+    start = time.perf_counter()
+    records = run_episodes(env, policy, episodes, progress=progress)
+    elapsed = time.perf_counter() - start
+    env.close(raise_if_closed=False)
+    row = {"split": split, "policy": policy_name, "noise": noise, **score(records, seed, resamples)}
+    row["seconds"] = elapsed
+    row["episode_seeds_checksum"] = int(sum(r["episode_seed"] % 1_000_003 for r in records))
+    return row
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--episodes", type=int, default=500, help="episodes per (split, policy, noise)")
@@ -81,6 +110,10 @@ def main() -> None:
     parser.add_argument("--demo-length", type=int, default=None, help="default: the env's")
     parser.add_argument("--seed", type=int, default=0, help="env seed (fixes the episodes) and bootstrap seed")
     parser.add_argument("--resamples", type=int, default=10_000, help="bootstrap resamples")
+    parser.add_argument(
+        "--runs", nargs="+", default=[f"{p}:{n}" for p, n in DEFAULT_RUNS], help="policy:noise pairs (expert|open_loop)"
+    )
+    parser.add_argument("--jobs", type=int, default=1, help="worker processes (runs are independent)")
     parser.add_argument("--output", type=Path, default=RESULTS_PATH)
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
@@ -107,6 +140,7 @@ def main() -> None:
             "episode_seeds_checksum is equal within a split)",
             "open_loop": "replays the demonstration's actions, then turns left after the demonstration",
         },
+        "notes": list(NOTES),
         "results": results,
     }
 
@@ -114,23 +148,24 @@ def main() -> None:
         args.output.parent.mkdir(parents=True, exist_ok=True)
         args.output.write_text(json.dumps(output, indent=2) + "\n")
 
-    for split in args.splits:
-        for policy_name, noise in DEFAULT_RUNS:
-            env = make_path_follow_env(noise, split=split, **env_kwargs)
-            env.set_seed(args.seed)
-            policy = ExpertPolicy() if policy_name == "expert" else OpenLoopReplay()
-            start = time.perf_counter()
-            records = run_episodes(env, policy, args.episodes, progress=True)
-            elapsed = time.perf_counter() - start
-            row = {"split": split, "policy": policy_name, "noise": noise, **score(records, args.seed, args.resamples)}
-            row["seconds"] = elapsed
-            row["episode_seeds_checksum"] = int(sum(r["episode_seed"] % 1_000_003 for r in records))
+    tasks = [(split, *run.split(":")) for split in args.splits for run in args.runs]
+    common = (args.episodes, env_kwargs, args.seed, args.resamples)
+    def collect(rows) -> None:
+        for row in rows:  # in task order
             results.append(row)
             logger.info(
-                "%s %s %s: success %.3f, SPL %.3f (%.0f s)", split, policy_name, noise, row["success"], row["spl"], elapsed
+                "%s %s %s: success %.3f, SPL %.3f (%.0f s)",
+                row["split"], row["policy"], row["noise"], row["success"], row["spl"], row["seconds"],
             )
-            env.close(raise_if_closed=False)
             save()
+
+    if args.jobs <= 1:
+        collect(run_one(*task, *common, True) for task in tasks)
+    else:
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(args.jobs) as pool:
+            collect(pool.map(run_one, *zip(*[(*task, *common, False) for task in tasks])))
 
     print("\n| split | policy | noise | success [95% CI] | SPL [95% CI] | mean steps |")
     print("|---|---|---|---|---|---|")
