@@ -159,7 +159,7 @@ def bench_env_step(env_kwargs: dict, chunks: int, chunk_frames: int, warmup: int
     # _render is called once per step and once per reset (demo frames), _observation likewise
     reset_ms = 1e3 * timers["_reset"].seconds / max(timers["_reset"].calls, 1)
     step_ms = 1e3 * timers["_step"].seconds / frames
-    render_calls = timers["_render"].calls
+    frames_rendered = frames + timers["_reset"].calls * demo_length  # step frames + demo frames at reset
     profile = {
         "steps": frames,
         "resets": resets,
@@ -168,7 +168,7 @@ def bench_env_step(env_kwargs: dict, chunks: int, chunk_frames: int, warmup: int
         "ms_per_reset": reset_ms,
         "reset_ms_per_step_amortised": 1e3 * timers["_reset"].seconds / frames,
         "base_env_step_ms": step_ms,
-        "render_ms_per_call_in_env": 1e3 * timers["_render"].seconds / max(render_calls, 1),
+        "render_ms_per_frame_in_env": 1e3 * timers["_render"].seconds / frames_rendered,
         "observation_ms_per_call": 1e3 * timers["_observation"].seconds / max(timers["_observation"].calls, 1),
         "actuation_noise_ms_per_step": 1e3 * noise_timer.seconds / frames,
         "torchrl_overhead_ms_per_step": 1e3 * (total - timers["_step"].seconds - timers["_reset"].seconds - noise_timer.seconds)
@@ -218,6 +218,30 @@ def bench_collector(
     }
 
 
+def make_bench_env_without_demo_frames(**kwargs: Any):
+    """Diagnostic only: :func:`make_bench_env` with ``demo_frames`` excluded from the outputs."""
+    from torchrl.envs import ExcludeTransform
+
+    return make_bench_env(**kwargs).append_transform(ExcludeTransform("demo_frames"))
+
+
+def _other_processes_cpu_seconds() -> dict[int, tuple[str, float]]:
+    """CPU seconds used so far by every other process (Linux ``/proc``), by pid."""
+    ticks = os.sysconf("SC_CLK_TCK")
+    usage: dict[int, tuple[str, float]] = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit() or int(entry.name) == os.getpid():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            command = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace").strip()
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2 :].split()
+        usage[int(entry.name)] = (command[:80], (int(fields[11]) + int(fields[12])) / ticks)
+    return usage
+
+
 def machine_info() -> dict:
     import mujoco
     import tensordict
@@ -242,6 +266,7 @@ def machine_info() -> dict:
         "MUJOCO_GL": os.environ.get("MUJOCO_GL"),
         "LP_NUM_THREADS": os.environ.get("LP_NUM_THREADS"),
         "torch_num_threads": torch.get_num_threads(),
+        "load_average_1_5_15": [round(x, 2) for x in os.getloadavg()],
     }
 
 
@@ -286,13 +311,19 @@ def main() -> None:
         from torchrl.envs import ParallelEnv
 
         return Collector(
-            ParallelEnv(2, make_single, metadata_from_workers=True), None, frames_per_batch=int(800 * scale), total_frames=-1
+            ParallelEnv(2, make_single, metadata_from_workers=True), None, frames_per_batch=int(250 * scale), total_frames=-1
         )
 
     def multisync():
         from torchrl.collectors import MultiSyncCollector
 
         return MultiSyncCollector([make_batched] * 2, None, frames_per_batch=int(3200 * scale), total_frames=-1)
+
+    def collector_batched_without_demo_frames():
+        from torchrl.collectors import Collector
+
+        make = partial(make_bench_env_without_demo_frames, num_agents=8, **env_kwargs)
+        return Collector(make, None, frames_per_batch=int(1600 * scale), total_frames=-1)
 
     house_seed = make_single().base_env.house_seeds[0]
     configs: dict[str, Callable[[], dict]] = {
@@ -301,6 +332,7 @@ def main() -> None:
         "collector_batched8": lambda: bench_collector(collector_batched, demo_length, chunks, 1),
         "collector_parallel2": lambda: bench_collector(collector_parallel, demo_length, chunks, 2),
         "multisync_2x_batched8": lambda: bench_collector(multisync, demo_length, chunks, 1),
+        "diag_batched8_no_demo_frames": lambda: bench_collector(collector_batched_without_demo_frames, demo_length, chunks, 1),
     }
     descriptions = {
         "raw": "(a) pose update + FirstPersonRenderer.render + torch uint8 CHW tensor, one house, no torchrl",
@@ -309,8 +341,13 @@ def main() -> None:
         "collector_batched8": "(d) Collector(batched env, num_agents=8)",
         "collector_parallel2": "(e) Collector(ParallelEnv(2, single env), spawn)",
         "multisync_2x_batched8": "(f) MultiSyncCollector([batched env num_agents=8] * 2), spawn",
+        "diag_batched8_no_demo_frames": "diagnostic, not a usable config: (d) with demo_frames excluded "
+        "(ExcludeTransform), to show what carrying 30 demo frames in every step's output costs",
     }
     wanted = set(args.only) if args.only else set(descriptions)
+    machine = machine_info()  # load average before the run
+    others_before = _other_processes_cpu_seconds() if Path("/proc").exists() else {}
+    wall_start = time.perf_counter()
     results: dict[str, dict] = {}
     profile: dict = {}
     for name in descriptions:
@@ -333,7 +370,7 @@ def main() -> None:
             if "rendered_fps" in result:
                 result["rendered_ratio_to_raw"] = result["rendered_fps"] / raw_fps
 
-    collectors = {k: v for k, v in results.items() if k != "raw"}
+    collectors = {k: v for k, v in results.items() if k != "raw" and not k.startswith("diag")}
     best_name = max(collectors, key=lambda k: collectors[k]["fps"]) if collectors else None
     targets = {"fps": 3000, "ratio_to_raw": 1.0}
     notes = []
@@ -356,9 +393,44 @@ def main() -> None:
                 "have one textured mesh per room (about 15 draw calls with texture switches), which is why a frame "
                 "costs more than the 0.25 ms of the single-mesh prototype in notes/rendering-measurements.md."
             )
+    if profile:
+        render_ms = profile["render_ms_per_frame_in_env"]
+        notes.append(
+            "Where a single env's step goes (ms per step, profile_single_env): total "
+            f"{profile['ms_per_step_total']:.2f} = base env _step {profile['base_env_step_ms']:.2f} (of which rendering "
+            f"about {render_ms:.2f}) + resets amortised {profile['reset_ms_per_step_amortised']:.2f} "
+            f"({profile['ms_per_reset']:.1f} ms per reset: {demo_length} demo frames + route planning + expert set-up) + "
+            f"ActuationNoise {profile['actuation_noise_ms_per_step']:.2f} (a new Philox generator per agent per step) + "
+            f"TorchRL {profile['torchrl_overhead_ms_per_step']:.2f}."
+        )
+    if "diag_batched8_no_demo_frames" in results and "collector_batched8" in results:
+        with_frames = results["collector_batched8"]["fps"]
+        without = results["diag_batched8_no_demo_frames"]["fps"]
+        notes.append(
+            f"Every step's output carries the episode's demo_frames ({demo_length}x3x{args.image_size}x{args.image_size} "
+            f"uint8 = {demo_length * 3 * args.image_size ** 2 / 1024:.0f} KiB per agent, 30x the frame itself), which "
+            "collectors copy into every batch (and step_and_maybe_reset passes through torch.where on resets); "
+            f"excluding it (diagnostic) changes Collector(batched 8) from {with_frames:.0f} to {without:.0f} frames/s."
+        )
+    load_after = [round(x, 2) for x in os.getloadavg()]
+    wall = time.perf_counter() - wall_start
+    others_after = _other_processes_cpu_seconds() if others_before else {}
+    busy = {
+        others_before[pid][0]: others_after[pid][1] - others_before[pid][1]
+        for pid in others_before.keys() & others_after.keys()
+        if others_after[pid][1] - others_before[pid][1] > 0.05 * wall
+    }
+    machine["other_processes_cpu_share"] = {command: round(cpu / wall, 2) for command, cpu in busy.items()}
+    if busy:
+        notes.append(
+            "The machine was shared while this ran: processes started before the benchmark used "
+            f"{sum(busy.values()) / wall:.2f} of the {os.cpu_count()} cores on average "
+            f"({', '.join(f'{c!r}: {v / wall:.2f}' for c, v in busy.items())}), so the figures (multi-process ones "
+            "most) are lower than on an idle machine."
+        )
     output = {
         "benchmark": "recipes/bench_env.py" + (" --quick" if args.quick else ""),
-        "machine": machine_info(),
+        "machine": {**machine, "load_average_at_end": load_after},
         "setup": {
             "image_size": args.image_size,
             "num_houses": args.num_houses,
