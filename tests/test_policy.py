@@ -504,3 +504,21 @@ def test_open_loop_after_demo():
 
 if __name__ == "__main__":
     pytest.main([__file__, "--capture", "no", "--exitfirst"])
+
+
+def test_initial_pointer_step_sets_the_untrained_increment():
+    import math
+
+    import pytest as _pytest
+
+    from spf_rl.modules.policy import SPFConfig as _Config, SPFPolicy as _Policy
+
+    policy = _Policy(_Config(demo_length=6, feature_dim=8, hidden_size=8, image_size=(16, 16), initial_pointer_step=0.9))
+    hidden = torch.randn(4, 8)
+    b = policy.pointer_head(hidden)
+    assert torch.allclose(torch.tanh(b), torch.full_like(b, 0.9), atol=1e-6)
+    eta = policy.update_pointer(torch.zeros(4, 1), b)
+    assert torch.allclose(eta, torch.full_like(eta, 0.9), atol=1e-6)
+    assert math.isclose(float(policy.pointer_head.bias), math.atanh(0.9), rel_tol=1e-6)
+    with _pytest.raises(ValueError, match="initial_pointer_step must be in"):
+        _Config(initial_pointer_step=1.0)

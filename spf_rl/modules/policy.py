@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -107,6 +108,11 @@ class SPFConfig:
             ``dataclasses.replace(cfg, memory_mode=...)`` re-resolves it); read the
             resolved value from :attr:`use_soft_action_memory`. Not in the SPF paper:
             it follows RPF's action memory.
+        initial_pointer_step (float): pointer increment ``tanh(b)`` of the untrained
+            network (the pointer head's bias is set to ``atanh`` of it), in ``(-1, 1)``.
+            0 (default) is PyTorch's usual initialisation; a value near 1 starts the
+            pointer moving along the demonstration about one index per step, as the
+            RPF code's rule does. The paper does not say how b is initialised.
 
     Examples:
         >>> cfg = SPFConfig(sparsity=0.4)
@@ -127,6 +133,7 @@ class SPFConfig:
     image_size: tuple[int, int] = field(default=(64, 64))
     mu_dim: int | None = None
     soft_action_memory: bool | None = None
+    initial_pointer_step: float = 0.0
 
     def __post_init__(self) -> None:
         if self.num_actions not in ALLOWED_NUM_ACTIONS:
@@ -145,6 +152,8 @@ class SPFConfig:
                 raise ValueError(f"{name} must be a positive int, got {value!r}.")
         if self.mu_dim is not None and (not isinstance(self.mu_dim, int) or self.mu_dim < 1):
             raise ValueError(f"mu_dim must be a positive int or None, got {self.mu_dim!r}.")
+        if not -1.0 < float(self.initial_pointer_step) < 1.0:
+            raise ValueError(f"initial_pointer_step must be in (-1, 1), got {self.initial_pointer_step!r}.")
         if self.pointer_update not in POINTER_UPDATES:
             raise ValueError(
                 f"pointer_update must be one of {POINTER_UPDATES}, got {self.pointer_update!r}."
@@ -305,6 +314,9 @@ class SPFPolicy(TensorDictModuleBase):
         )
         self.logits_head = nn.Linear(config.hidden_size, config.num_actions)
         self.pointer_head = nn.Linear(config.hidden_size, 1)
+        if config.initial_pointer_step:
+            nn.init.zeros_(self.pointer_head.weight)
+            nn.init.constant_(self.pointer_head.bias, math.atanh(config.initial_pointer_step))
 
         self.pixels_key = pixels_key
         self.demo_frames_key = demo_frames_key

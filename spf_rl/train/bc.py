@@ -47,6 +47,8 @@ class OptimConfig:
         batch_size: episodes per gradient step.
         epochs: passes over the dataset.
         max_grad_norm: gradient-norm clip.
+        cosine_schedule: decay the learning rate to 0 over the run (cosine), which
+            steadies the final checkpoints.
     """
 
     lr: float = 1e-3
@@ -54,6 +56,7 @@ class OptimConfig:
     batch_size: int = 16
     epochs: int = 8
     max_grad_norm: float = 1.0
+    cosine_schedule: bool = True
 
 
 @dataclass
@@ -157,6 +160,13 @@ def train_bc(config: BCConfig) -> dict:
     policy_config = spf_config(config.model, config.data.demo_length, config.data.image_size)
     policy = build_policy(model_type, policy_config)
     optimizer = torch.optim.Adam(policy.parameters(), lr=config.optim.lr, weight_decay=config.optim.weight_decay)
+    batches_per_epoch = -(-len(dataset) // config.optim.batch_size)
+    total_steps = batches_per_epoch * config.optim.epochs
+    scheduler = (
+        torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=total_steps)
+        if config.optim.cosine_schedule
+        else torch.optim.lr_scheduler.LambdaLR(optimizer, lambda _: 1.0)
+    )
     history: list[dict] = []
     best = {"success": -1.0, "spl": -1.0, "epoch": -1}
     start_epoch = 0
@@ -165,6 +175,8 @@ def train_bc(config: BCConfig) -> dict:
         payload = load_checkpoint(last_path, expected_model_type=model_type)
         policy.load_state_dict(payload["model"])
         optimizer.load_state_dict(payload["optimizer"])
+        if "scheduler" in payload:
+            scheduler.load_state_dict(payload["scheduler"])
         start_epoch, history, best = payload["epoch"], payload["history"], payload["best"]
         torch.set_rng_state(payload["torch_rng"])
         logger.info("resuming %s after epoch %d", output, start_epoch)
@@ -173,7 +185,6 @@ def train_bc(config: BCConfig) -> dict:
     val_config = dataclasses.replace(
         config.val, demo_length=config.data.demo_length, max_steps=config.data.max_steps, image_size=config.data.image_size
     )
-    batches_per_epoch = -(-len(dataset) // config.optim.batch_size)
     step = start_epoch * batches_per_epoch
     for epoch in range(start_epoch, config.optim.epochs):
         policy.train()
@@ -187,6 +198,7 @@ def train_bc(config: BCConfig) -> dict:
             loss.backward()
             torch.nn.utils.clip_grad_norm_(policy.parameters(), config.optim.max_grad_norm)
             optimizer.step()
+            scheduler.step()
             step += 1
             losses.append(loss.item())
             accuracies.append(accuracy.item())
@@ -219,6 +231,7 @@ def train_bc(config: BCConfig) -> dict:
             {
                 "model": policy.state_dict(),
                 "optimizer": optimizer.state_dict(),
+                "scheduler": scheduler.state_dict(),
                 "epoch": epoch + 1,
                 "history": history,
                 "best": best,

@@ -27,6 +27,7 @@ class ModelConfig:
         k: half-width of the hard action window.
         feature_dim: image feature size.
         hidden_size: GRU hidden size.
+        initial_pointer_step: untrained pointer increment tanh(b) (see :class:`SPFConfig`).
     """
 
     name: str = "spf"
@@ -35,6 +36,7 @@ class ModelConfig:
     k: int = 2
     feature_dim: int = 128
     hidden_size: int = 128
+    initial_pointer_step: float = 0.0
 
     def __post_init__(self) -> None:
         if self.name not in MODEL_NAMES:
@@ -51,6 +53,7 @@ def spf_config(model: ModelConfig, demo_length: int, image_size: int, num_action
         feature_dim=model.feature_dim,
         hidden_size=model.hidden_size,
         pointer_update=model.pointer_update,
+        initial_pointer_step=model.initial_pointer_step,
         image_size=(image_size, image_size),
     )
 
