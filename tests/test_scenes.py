@@ -52,6 +52,39 @@ def test_house_has_rooms_furniture_and_one_navigable_component():
     assert house.model.ngeom <= 2 * (len(rooms) + 2) + 2
 
 
+def test_house_is_one_textured_mesh_and_model_matches_its_mjcf():
+    import mujoco
+
+    house = build_house(3)
+    model = house.model
+    assert model.ngeom == 1 and model.ntex == 1 and model.nmat == 1
+    xml, assets = house_mjcf(house)
+    reference = mujoco.MjModel.from_xml_string(xml, assets)  # through the atlas PNG
+    for name in ("tex_data", "tex_width", "tex_height", "mesh_vert", "mesh_texcoord", "mesh_face"):
+        assert np.array_equal(getattr(model, name), getattr(reference, name)), name
+
+
+def test_atlas_quads_stay_inside_their_cells():
+    """Every wall and floor quad samples one atlas cell (no GL_REPEAT across tiles)."""
+    from envs import scenes
+
+    house = build_house(0)
+    height_tiles = house.wall_height_m / scenes.TEXTURE_TILE_M
+    for quads in scenes._wall_quads(house).values():
+        uv = np.stack([quad[:, 3:] for quad, _ in quads])
+        assert uv[..., 0].min() >= 0 and uv[..., 0].max() <= scenes.ATLAS_WALL_REPEATS + 1e-9
+        assert uv[..., 1].min() >= 0 and uv[..., 1].max() <= height_tiles + 1e-9
+    floor_cells = 0
+    for quads in scenes._floor_quads(house).values():
+        uv = np.stack([quad[:, 3:] for quad in quads])
+        assert uv.min() >= 0 and uv.max() <= scenes.ATLAS_FLOOR_REPEATS + 1e-9
+        floor_cells += sum(np.prod(quad[2, :2] - quad[0, :2]) for quad in quads)
+    assert floor_cells == pytest.approx((~house.walls).sum() * house.cell_size_m**2)  # the floor is covered once
+    atlas = scenes._house_atlas(house)
+    pixels = np.concatenate([polygon[:, 3:] for polygon in scenes.house_polygons(house, atlas)]) * atlas.pixels.shape[1::-1]
+    assert pixels.min() >= 0 and (pixels <= atlas.pixels.shape[1::-1]).all()
+
+
 def test_frames_from_two_rooms_differ():
     house = build_house(0)
     renderer = FirstPersonRenderer(64, 64)
