@@ -8,8 +8,16 @@ executes instead of the nominal step. The stored ``"action"`` stays the one the
 policy chose.
 
 The noise of a step is a pure function of ``(episode_seed, step_count, action)``
-drawn with a counter-based Philox generator, so a seed fixes the realised noise
-whatever the batching (single env, batched env, ``SerialEnv``/``ParallelEnv``).
+drawn with the counter-based Philox4x64-10 generator, so a seed fixes the realised
+noise whatever the batching (single env, batched env, ``SerialEnv``/``ParallelEnv``):
+the three uniforms of a step are the first three 64-bit words of the Philox block
+with key ``(episode_seed mod 2**64, NOISE_STREAM_SALT)`` and counter
+``step_count * COUNTER_BLOCKS_PER_STEP + 1``, each word ``w`` turned into the double
+``(w >> 11) * 2**-53`` (0 replaced by the smallest positive double). These are
+exactly the draws of ``np.random.Generator(np.random.Philox(key=..., counter=step *
+COUNTER_BLOCKS_PER_STEP)).uniform(tiny, 1, 3)``; :func:`philox_uniforms` computes
+them for a batch by resetting one cached bit generator per row (about 5 us a row)
+instead of building a generator per agent per step.
 Put the transform inside each worker's factory when using ``ParallelEnv``: the
 ``"actuation"`` key is not part of the batched env's input spec.
 
@@ -27,6 +35,7 @@ Presets (:data:`NOISE_PRESETS`):
 """
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -107,20 +116,44 @@ class NoiseModel:
     def sample(self, action: np.ndarray, episode_seed: np.ndarray, step_count: np.ndarray) -> np.ndarray:
         """Realised (forward m, lateral m, rotation rad) for ``(N,)`` actions.
 
-        Deterministic in ``(episode_seed, step_count, action)``.
+        Deterministic in ``(episode_seed, step_count, action)``, row by row.
         """
         action = np.asarray(action).reshape(-1)
-        nominal = nominal_motion(action)
-        uniforms = np.stack(
-            [_philox_uniforms(int(seed), int(step), 3) for seed, step in zip(np.ravel(episode_seed), np.ravel(step_count))]
-        ) if len(action) else np.zeros((0, 3))
-        is_forward = action == FORWARD
-        is_turn = (action == 1) | (action == 2)
-        mean = np.where(is_forward[:, None], self.linear.mean, self.rotational.mean)
-        std = np.where(is_forward[:, None], self.linear.std, self.rotational.std)
+        # per-action constants (row 4: STOP and unknown actions, which get no noise)
+        row = np.where((action >= 0) & (action < 4), action, 4)
+        tables = self._tables()
+        nominal = tables["nominal"][row]
+        uniforms = philox_uniforms(episode_seed, step_count, 3)
+        mean, std = tables["mean"][row], tables["std"][row]
         if self.truncation_sigma is None:
             noise = mean + std * special.ndtri(uniforms)
         else:
+            lo_cdf, hi_cdf = tables["lo_cdf"][row], tables["hi_cdf"][row]
+            noise = mean + std * special.ndtri(lo_cdf + uniforms * (hi_cdf - lo_cdf))
+        if self.sign_follows_turn:
+            noise[:, 2] *= tables["turn_sign"][row]
+        realised = nominal + noise
+        if self.clip_fraction is not None:
+            bounds = tables["clip"][row]
+            clipped = np.zeros_like(realised)
+            clipped[:, 0] = np.minimum(np.maximum(realised[:, 0], bounds[:, 0]), bounds[:, 1])
+            clipped[:, 2] = np.minimum(np.maximum(realised[:, 2], bounds[:, 2]), bounds[:, 3])
+            realised = clipped
+        return realised
+
+    def _tables(self) -> dict[str, np.ndarray]:
+        """Per-action constants of :meth:`sample`, rows: forward, left, right, STOP/unknown (twice)."""
+        tables = self.__dict__.get("_cached_tables")
+        if tables is not None:
+            return tables
+        action = np.arange(5)  # 3 (STOP) and 4 (unknown) both get no noise
+        nominal = nominal_motion(action)
+        is_forward = action == FORWARD
+        active = (action == FORWARD) | (action == 1) | (action == 2)
+        mean = np.where(is_forward[:, None], self.linear.mean, self.rotational.mean)
+        std = np.where(is_forward[:, None], self.linear.std, self.rotational.std)
+        tables = {"nominal": nominal}
+        if self.truncation_sigma is not None:
             low = np.full_like(mean, -self.truncation_sigma)
             high = np.full_like(mean, self.truncation_sigma)
             # never reverse the commanded motion: forward >= -95% of the step, turns likewise
@@ -130,25 +163,72 @@ class NoiseModel:
             safe_std = np.where(std[rows, commanded] > 0, std[rows, commanded], 1.0)
             floor = (-LOCOBOT_MIN_FRACTION * magnitude - mean[rows, commanded]) / safe_std
             low[rows, commanded] = np.where(magnitude > 0, np.maximum(low[rows, commanded], floor), low[rows, commanded])
-            lo_cdf, hi_cdf = special.ndtr(low), special.ndtr(high)
-            noise = mean + std * special.ndtri(lo_cdf + uniforms * (hi_cdf - lo_cdf))
-        if self.sign_follows_turn:
-            noise[:, 2] *= np.where(action == 2, -1.0, 1.0)
-        active = is_forward | is_turn
-        realised = nominal + np.where(active[:, None], noise, 0.0)
+            tables["lo_cdf"], tables["hi_cdf"] = special.ndtr(low), special.ndtr(high)
+        tables["mean"] = np.where(active[:, None], mean, 0.0)
+        tables["std"] = np.where(active[:, None], std, 0.0)
+        tables["turn_sign"] = np.where(action == 2, -1.0, 1.0)
         if self.clip_fraction is not None:
             f = self.clip_fraction
-            forward = np.clip(realised[:, 0], nominal[:, 0] * (1 - f), nominal[:, 0] * (1 + f))
-            low_turn = np.minimum(nominal[:, 2] * (1 - f), nominal[:, 2] * (1 + f))
-            high_turn = np.maximum(nominal[:, 2] * (1 - f), nominal[:, 2] * (1 + f))
-            rotation = np.clip(realised[:, 2], low_turn, high_turn)
-            realised = np.stack([forward, np.zeros_like(forward), rotation], axis=1)
-        return realised
+            tables["clip"] = np.stack(
+                [
+                    nominal[:, 0] * (1 - f),
+                    nominal[:, 0] * (1 + f),
+                    np.minimum(nominal[:, 2] * (1 - f), nominal[:, 2] * (1 + f)),
+                    np.maximum(nominal[:, 2] * (1 - f), nominal[:, 2] * (1 + f)),
+                ],
+                axis=1,
+            )
+        for value in tables.values():
+            value.setflags(write=False)
+        object.__setattr__(self, "_cached_tables", tables)  # frozen dataclass: not a field
+        return tables
+
+
+#: 2**-53: the spacing of the doubles numpy draws in [0, 1).
+_DOUBLE_UNIT = 1.0 / 9007199254740992.0
+_TINY = np.finfo(np.float64).tiny
+_UINT64_MASK = 0xFFFF_FFFF_FFFF_FFFF
+_thread_state = threading.local()
+
+
+def philox_uniforms(episode_seed: np.ndarray, step: np.ndarray, count: int = 3) -> np.ndarray:
+    """``(N, count)`` uniforms in (0, 1) from the Philox streams of ``(episode_seed[i], step[i])``.
+
+    Row ``i`` depends only on ``(episode_seed[i], step[i])`` (see the module
+    docstring for the exact function), so batching does not change the draws.
+    ``count`` must be at most ``4 * COUNTER_BLOCKS_PER_STEP`` (the words reserved
+    per step).
+    """
+    if count > 4 * COUNTER_BLOCKS_PER_STEP:
+        raise ValueError(f"count must be <= {4 * COUNTER_BLOCKS_PER_STEP}, got {count}.")
+    bit_generator = getattr(_thread_state, "philox", None)
+    if bit_generator is None:
+        bit_generator = _thread_state.philox = np.random.Philox(0)
+    seeds = np.asarray(episode_seed).reshape(-1).tolist()
+    steps = np.asarray(step).reshape(-1).tolist()
+    words = np.empty((len(seeds), count), dtype=np.uint64)
+    empty_buffer = np.zeros(4, dtype=np.uint64)
+    for row, (seed, index) in enumerate(zip(seeds, steps)):
+        # buffer_pos 4: the buffer is spent, so the next draw increments the counter first
+        bit_generator.state = {
+            "bit_generator": "Philox",
+            "state": {
+                "counter": np.array([index * COUNTER_BLOCKS_PER_STEP, 0, 0, 0], dtype=np.uint64),
+                "key": np.array([int(seed) & _UINT64_MASK, NOISE_STREAM_SALT], dtype=np.uint64),
+            },
+            "buffer": empty_buffer,
+            "buffer_pos": 4,
+            "has_uint32": 0,
+            "uinteger": 0,
+        }
+        words[row] = bit_generator.random_raw(count)
+    doubles = (words >> np.uint64(11)).astype(np.float64) * _DOUBLE_UNIT
+    return np.where(doubles > 0.0, doubles, _TINY)
 
 
 def _philox_uniforms(episode_seed: int, step: int, count: int) -> np.ndarray:
-    """``count`` uniforms in (0, 1) from the Philox stream of (episode, step)."""
-    key = (episode_seed & 0xFFFF_FFFF_FFFF_FFFF) | (NOISE_STREAM_SALT << 64)
+    """Reference (slow) definition of :func:`philox_uniforms` for one ``(episode, step)``."""
+    key = (episode_seed & _UINT64_MASK) | (NOISE_STREAM_SALT << 64)
     generator = np.random.Generator(np.random.Philox(key=key, counter=step * COUNTER_BLOCKS_PER_STEP))
     return generator.uniform(np.finfo(np.float64).tiny, 1.0, size=count)
 
@@ -215,7 +295,7 @@ class ActuationNoise(Transform):
             tensordict.get("episode_seed").reshape(-1).cpu().numpy(),
             tensordict.get("step_count").reshape(-1).cpu().numpy(),
         )
-        tensordict.set("actuation", torch.as_tensor(realised, dtype=torch.float32).reshape(*batch_shape, 3))
+        tensordict.set("actuation", torch.from_numpy(realised.astype(np.float32)).reshape(*batch_shape, 3))
         return tensordict
 
     def __repr__(self) -> str:

@@ -77,6 +77,41 @@ def test_noise_is_a_function_of_seed_step_and_action():
     assert len({tuple(row) for row in a}) == 3
 
 
+def test_philox_draws_match_the_reference_generator():
+    from envs.transforms import _philox_uniforms, philox_uniforms
+
+    rng = np.random.default_rng(0)
+    seeds = np.concatenate([[0, 1, 2**62 - 1], rng.integers(0, 2**62, size=50)])
+    steps = np.concatenate([[0, 0, 49], rng.integers(0, 1000, size=50)])
+    fast = philox_uniforms(seeds, steps, 3)
+    reference = np.stack([_philox_uniforms(int(s), int(k), 3) for s, k in zip(seeds, steps)])
+    assert np.array_equal(fast, reference)
+    assert fast.min() > 0 and fast.max() < 1
+
+
+@pytest.mark.parametrize("preset", sorted(NOISE_PRESETS))
+def test_batch_of_agents_draws_as_one_agent_at_a_time(preset):
+    rng = np.random.default_rng(1)
+    actions = rng.integers(0, 4, size=40)
+    seeds = rng.integers(0, 2**62, size=40)
+    steps = rng.integers(0, 60, size=40)
+    model = make_noise_model(preset)
+    batch = model.sample(actions, seeds, steps)
+    one_by_one = np.concatenate([model.sample(actions[i : i + 1], seeds[i : i + 1], steps[i : i + 1]) for i in range(40)])
+    assert np.array_equal(batch, one_by_one)
+    shuffled = rng.permutation(40)
+    assert np.array_equal(model.sample(actions[shuffled], seeds[shuffled], steps[shuffled]), batch[shuffled])
+    # the same draws through the transform, batched or not
+    transform = ActuationNoise(preset)
+    td = TensorDict(
+        action=torch.as_tensor(actions), episode_seed=torch.as_tensor(seeds)[:, None], step_count=torch.as_tensor(steps)[:, None], batch_size=[40]
+    )
+    batched = transform.inv(td)["actuation"]
+    single = torch.stack([transform.inv(td[i])["actuation"] for i in range(40)])
+    assert torch.equal(batched, single)
+    assert torch.equal(batched, torch.as_tensor(batch, dtype=torch.float32))
+
+
 def test_transform_no_env_and_inverse():
     transform = ActuationNoise("paper")
     td = TensorDict(
