@@ -67,6 +67,7 @@ class GeodesicExpert:
         half = NUM_HEADINGS // 2
         # candidate turn counts ordered by |k| then left first: 0, 1, -1, 2, -2, ...
         self._turns = np.array(sorted(range(-half + 1, half + 1), key=lambda k: (abs(k), -k)))
+        self._turn_offsets = self._turns * self.turn_angle_rad
 
     def action(self, pose: np.ndarray) -> int:
         """The expert action at ``pose`` = (x metres, y metres, heading radians)."""
@@ -79,26 +80,27 @@ class GeodesicExpert:
 
     def _action(self, pose: np.ndarray) -> int:
         turns = self._turns
-        headings = pose[2] + turns * self.turn_angle_rad
-        displacement = self.forward_step_m * np.stack([np.cos(headings), np.sin(headings)], axis=-1)
         now = self.field.at(pose[:2])
         if self.stop_radius_m is not None and now <= self.stop_radius_m:
             return STOP
+        headings = pose[2] + self._turn_offsets
+        displacement = np.empty((len(turns), 2))
+        np.cos(headings, out=displacement[:, 0])
+        np.sin(headings, out=displacement[:, 1])
+        displacement *= self.forward_step_m
         # cheap ranking: distance at each straight end point, ignoring collisions
         predicted = self.field.at_many(pose[None, :2] + displacement)
         order = np.argsort(predicted, kind="stable")  # ties: smallest |k|, left first
         # verify the best few with the simulator's own motion (collisions, sliding)
         candidates = order[:VERIFIED_CANDIDATES]
-        if 0 not in candidates:
+        if 0 not in candidates.tolist():
             candidates = np.append(candidates, 0)
-        end, _ = self.occupancy.move_many(np.repeat(pose[None, :2], len(candidates), axis=0), displacement[candidates])
-        real = self.field.at_many(end)
+        real = self._real_distances(pose, displacement, candidates)
         valid = real <= predicted[candidates] + FORWARD_TOLERANCE_M
-        if not valid[np.flatnonzero(candidates != 0)].any() and not valid[candidates == 0].any():
+        if not valid[candidates != 0].any() and not valid[candidates == 0].any():
             # every cheap guess collides: evaluate all headings with the real motion
             candidates = np.arange(len(turns))
-            end, _ = self.occupancy.move_many(np.repeat(pose[None, :2], len(turns), axis=0), displacement)
-            real = self.field.at_many(end)
+            real = self._real_distances(pose, displacement, candidates)
             valid = np.ones(len(turns), dtype=bool)
         score = np.where(valid, real, np.inf)
         best = candidates[int(np.argmin(score))]
@@ -108,3 +110,12 @@ class GeodesicExpert:
         if turns[best] == 0:
             return FORWARD if score.min() < now else TURN_LEFT
         return TURN_LEFT if turns[best] > 0 else TURN_RIGHT
+
+    def _real_distances(self, pose: np.ndarray, displacement: np.ndarray, candidates: np.ndarray) -> np.ndarray:
+        """Distances to the goal after really moving one step along each candidate heading."""
+        end = np.empty((len(candidates), 2))
+        move = self.occupancy.move
+        start = pose[:2]
+        for row, candidate in enumerate(candidates.tolist()):
+            end[row], _ = move(start, displacement[candidate])
+        return self.field.at_many(end)

@@ -224,15 +224,21 @@ class PathFollowEnv(EnvBase):
             self._renderer = FirstPersonRenderer(self.image_size, self.image_size)
         return self._renderer
 
-    def _render(self, indices: Sequence[int], poses: np.ndarray | None = None) -> np.ndarray:
-        """Frames ``(len(indices), H, W, 3)`` of agents at their (or the given) poses."""
-        frames = np.zeros((len(indices), self.image_size, self.image_size, 3), dtype=np.uint8)
+    def _render(self, indices: Sequence[int], poses: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
+        """Frames ``(len(indices), H, W, 3)`` of agents at their (or the given) poses.
+
+        ``out`` may be any ``(len(indices), H, W, 3)`` uint8 view, e.g. a CHW tensor's
+        array transposed, so that frames land in their final layout with one copy.
+        """
+        if out is None:
+            out = np.zeros((len(indices), self.image_size, self.image_size, 3), dtype=np.uint8)
         if not self.render_frames:
-            return frames
+            out[...] = 0
+            return out
         for row, index in enumerate(indices):
             pose = self._pose[index] if poses is None else poses[row]
-            self.renderer.render(self._houses[index], pose, out=frames[row])
-        return frames
+            self.renderer.render(self._houses[index], pose, out=out[row])
+        return out
 
     # ------------------------------------------------------------------ reset
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
@@ -242,9 +248,15 @@ class PathFollowEnv(EnvBase):
             mask = np.ones(self._count, dtype=bool)
         indices = np.flatnonzero(mask)
         if len(indices):
-            demo_frames = self._demo_frames.clone()  # returned tensors are never mutated later
-            demo_actions = self._demo_actions.clone()
-            pixels = self._pixels.clone()
+            # returned tensors are never mutated later: new ones, holding the other agents' data
+            if len(indices) == self._count:
+                demo_frames = torch.empty_like(self._demo_frames)
+                demo_actions = torch.empty_like(self._demo_actions)
+                pixels = torch.empty_like(self._pixels)
+            else:
+                demo_frames = self._demo_frames.clone()
+                demo_actions = self._demo_actions.clone()
+                pixels = self._pixels.clone()
             for index in indices:
                 self._start_episode(int(index), demo_frames, demo_actions, pixels)
             self._demo_frames, self._demo_actions, self._pixels = demo_frames, demo_actions, pixels
@@ -272,8 +284,8 @@ class PathFollowEnv(EnvBase):
         self._shortest[index] = demo.shortest_length_m
         self._success[index] = False
         self._spl[index] = 0.0
-        frames = self._render([index] * self.demo_length, demo.poses[: self.demo_length])
-        demo_frames[index] = torch.from_numpy(np.ascontiguousarray(frames.transpose(0, 3, 1, 2)))
+        # rendered straight into the (n, 3, H, W) tensor, seen as (n, H, W, 3)
+        self._render([index] * self.demo_length, demo.poses[: self.demo_length], out=demo_frames[index].numpy().transpose(0, 2, 3, 1))
         demo_actions[index] = torch.from_numpy(demo.actions)
         pixels[index] = demo_frames[index, 0]  # the agent starts on the demo's first pose
 
@@ -316,7 +328,9 @@ class PathFollowEnv(EnvBase):
         shortest = self._shortest
         self._spl = np.where(self._success, shortest / np.maximum(np.maximum(self._path_length, shortest), 1e-9), 0.0)
         reward = PROGRESS_REWARD_PER_M * (previous - self._distance) + SUCCESS_REWARD * self._success - STEP_PENALTY
-        self._pixels = torch.from_numpy(np.ascontiguousarray(self._render(range(self._count)).transpose(0, 3, 1, 2)))
+        pixels = torch.empty((self._count, 3, self.image_size, self.image_size), dtype=torch.uint8)
+        self._render(range(self._count), out=pixels.numpy().transpose(0, 2, 3, 1))
+        self._pixels = pixels
         return self._observation(terminated, truncated, done, reward=reward)
 
     # ------------------------------------------------------------ observation
