@@ -65,6 +65,8 @@ class OccupancyMap:
         ).astype(np.float32)
         self.shape = self.occupied.shape
         self._inverse_resolution = 1.0 / self.resolution_m
+        # row-major bytes, 1 where the disc fits (the same comparison as _is_free_scalar)
+        self._free_cells = (self.clearance_m >= self.agent_radius_m).astype(np.uint8).tobytes()
         self.extent_m = (self.shape[1] * self.resolution_m, self.shape[0] * self.resolution_m)
 
     def cell(self, xy: np.ndarray) -> tuple[int, int]:
@@ -108,7 +110,14 @@ class OccupancyMap:
             return np.array([x, y]), 0.0
         num_substeps = max(1, math.ceil(length / MAX_SUBSTEP_M))
         sx, sy = dx / num_substeps, dy / num_substeps
-        free = self._is_free_scalar
+        # _is_free_scalar inlined (the hot loop of every step and of the expert)
+        free_cells, inverse, rows, cols = self._free_cells, self._inverse_resolution, self.shape[0], self.shape[1]
+
+        def free(px: float, py: float) -> bool:
+            col = int(px * inverse) if px >= 0 else -1
+            row = int(py * inverse) if py >= 0 else -1
+            return 0 <= col < cols and 0 <= row < rows and free_cells[row * cols + col] == 1
+
         travelled = 0.0
         for _ in range(num_substeps):
             if free(x + sx, y + sy):
