@@ -110,12 +110,7 @@ def sample_demonstration(
     """
     if not isinstance(length, (int, np.integer)) or length <= 0:
         raise ValueError(f"length must be a positive int (steps), got {length!r}.")
-    graph = house.graph
-    occupancy = house.occupancy
-    nodes = np.flatnonzero(graph.navigable.ravel())
-    node_xy = graph.node_xy(nodes)
-    roomy = occupancy.clearance_many(node_xy) >= occupancy.agent_radius_m + START_MARGIN_M
-    starts = nodes[roomy] if roomy.any() else nodes
+    starts, nodes, node_xy = _route_candidates(house)
     for _ in range(MAX_SAMPLING_ATTEMPTS):
         demo = _sample_route(house, rng, length, starts, nodes, node_xy)
         if demo.shortest_length_m > min_route_length_m:
@@ -123,6 +118,23 @@ def sample_demonstration(
     raise RuntimeError(
         f"house {house.seed}: no route of {length} steps ends more than {min_route_length_m} m from its start."
     )
+
+
+def _route_candidates(house: House) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(start nodes, navigable nodes, their positions) of a house, computed once per house object."""
+    cached = getattr(house, "_route_candidates", None)
+    if cached is None:
+        graph = house.graph
+        occupancy = house.occupancy
+        nodes = np.flatnonzero(graph.navigable.ravel())
+        node_xy = graph.node_xy(nodes)
+        roomy = occupancy.clearance_many(node_xy) >= occupancy.agent_radius_m + START_MARGIN_M
+        starts = nodes[roomy] if roomy.any() else nodes
+        for array in (starts, nodes, node_xy):
+            array.setflags(write=False)
+        cached = (starts, nodes, node_xy)
+        house._route_candidates = cached  # a plain attribute on the (cached) House
+    return cached
 
 
 def _sample_route(
