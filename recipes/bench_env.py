@@ -310,9 +310,11 @@ def main() -> None:
         from torchrl.collectors import Collector
         from torchrl.envs import ParallelEnv
 
-        return Collector(
-            ParallelEnv(2, make_single, metadata_from_workers=True), None, frames_per_batch=int(250 * scale), total_frames=-1
-        )
+        # Shared-memory buffers (torchrl's default). metadata_from_workers=True would force
+        # use_buffers=False: then every step_and_maybe_reset sends (td, next_td) through the
+        # worker's pipe unconsolidated, i.e. ~32 tensors pickled as shared-memory file
+        # descriptors, which ran at about 59 frames/s on this machine.
+        return Collector(ParallelEnv(2, make_single), None, frames_per_batch=int(250 * scale), total_frames=-1)
 
     def multisync():
         from torchrl.collectors import MultiSyncCollector
@@ -339,7 +341,7 @@ def main() -> None:
         "env_step": "(b) one unbatched env (ActuationNoise paper + InitTracker), step_and_maybe_reset loop",
         "collector_single": "(c) Collector(single env), random policy",
         "collector_batched8": "(d) Collector(batched env, num_agents=8)",
-        "collector_parallel2": "(e) Collector(ParallelEnv(2, single env), spawn)",
+        "collector_parallel2": "(e) Collector(ParallelEnv(2, single env), spawn, shared-memory buffers)",
         "multisync_2x_batched8": "(f) MultiSyncCollector([batched env num_agents=8] * 2), spawn",
         "diag_batched8_no_demo_frames": "diagnostic, not a usable config: (d) with demo_frames excluded "
         "(ExcludeTransform), to show what carrying 30 demo frames in every step's output costs",
@@ -389,9 +391,9 @@ def main() -> None:
                 f"Rendering alone caps 2 processes at about {2 * raw_fps:.0f} frames/s, and every episode of about "
                 f"{profile.get('steps_per_episode', float('nan')):.0f} steps also renders {demo_length} demonstration "
                 "frames and plans a route at reset (ms_per_reset in profile), so the collected frame rate is bounded "
-                f"by about 2 x raw x steps/(steps + {demo_length}) even with zero Python/TorchRL overhead. The houses "
-                "have one textured mesh per room (about 15 draw calls with texture switches), which is why a frame "
-                "costs more than the 0.25 ms of the single-mesh prototype in notes/rendering-measurements.md."
+                f"by about 2 x raw x steps/(steps + {demo_length}) even with zero Python/TorchRL overhead. A house is one "
+                "textured mesh with a texture atlas (one draw call); most of a frame's cost is llvmpipe's per-fragment "
+                "texturing and the ~500 triangles of walls, floors and furniture."
             )
     if profile:
         render_ms = profile["render_ms_per_frame_in_env"]
@@ -400,8 +402,17 @@ def main() -> None:
             f"{profile['ms_per_step_total']:.2f} = base env _step {profile['base_env_step_ms']:.2f} (of which rendering "
             f"about {render_ms:.2f}) + resets amortised {profile['reset_ms_per_step_amortised']:.2f} "
             f"({profile['ms_per_reset']:.1f} ms per reset: {demo_length} demo frames + route planning + expert set-up) + "
-            f"ActuationNoise {profile['actuation_noise_ms_per_step']:.2f} (a new Philox generator per agent per step) + "
+            f"ActuationNoise {profile['actuation_noise_ms_per_step']:.2f} + "
             f"TorchRL {profile['torchrl_overhead_ms_per_step']:.2f}."
+        )
+    if "collector_parallel2" in results:
+        notes.append(
+            "ParallelEnv (e): with shared-memory buffers the parent busy-polls the workers' done flags while they "
+            "step (torchrl 0.14 ParallelEnv._wait_for_workers), so 2 workers + the parent are 3 busy processes on "
+            "2 cores, and every step is a parent-worker round trip; with metadata_from_workers=True (pipes, the "
+            "previous setting of this benchmark) step_and_maybe_reset pickles ~32 unconsolidated tensors per worker "
+            "per step as shared-memory file descriptors, about 59 frames/s. Torch threads are not the cause "
+            "(parent and workers run 1 thread). MultiSyncCollector has no per-step round trip."
         )
     if "diag_batched8_no_demo_frames" in results and "collector_batched8" in results:
         with_frames = results["collector_batched8"]["fps"]
