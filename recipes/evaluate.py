@@ -48,6 +48,7 @@ def evaluate_path(path: str, args: argparse.Namespace) -> dict:
         demo_length=demo_length,
         max_steps=args.max_steps,
         image_size=image_size,
+        render=path != "open_loop",
     )
     summary, records = evaluate_policy(policy, eval_config, progress=not args.no_progress)
     return {

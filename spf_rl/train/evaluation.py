@@ -34,6 +34,8 @@ class EvalConfig:
         max_steps: episode limit.
         image_size: frame side, pixels.
         num_houses: houses of the split (``None``: its default).
+        render: render frames (policies that ignore the camera, like open-loop
+            replay, can skip it; the episodes are the same).
     """
 
     split: str = "test"
@@ -45,6 +47,7 @@ class EvalConfig:
     max_steps: int = 50
     image_size: int = 64
     num_houses: int | None = None
+    render: bool = True
 
 
 def make_eval_env(config: EvalConfig, policy: TensorDictModuleBase | None = None) -> TransformedEnv:
@@ -60,6 +63,7 @@ def make_eval_env(config: EvalConfig, policy: TensorDictModuleBase | None = None
             demo_length=config.demo_length,
             max_steps=config.max_steps,
             image_size=config.image_size,
+            render=config.render,
         ),
         Compose(*transforms),
     )
