@@ -426,11 +426,13 @@ def main() -> None:
     load_after = [round(x, 2) for x in os.getloadavg()]
     wall = time.perf_counter() - wall_start
     others_after = _other_processes_cpu_seconds() if others_before else {}
-    busy = {
-        others_before[pid][0]: others_after[pid][1] - others_before[pid][1]
-        for pid in others_before.keys() & others_after.keys()
-        if others_after[pid][1] - others_before[pid][1] > 0.05 * wall
+    # processes alive at the end: CPU used during the run (all of it for those started after the
+    # benchmark began); the benchmark's own workers have exited by then
+    used = {
+        pid: (command, cpu - (others_before[pid][1] if pid in others_before else 0.0))
+        for pid, (command, cpu) in others_after.items()
     }
+    busy = {command: cpu for command, cpu in used.values() if cpu > 0.05 * wall}
     machine["other_processes_cpu_share"] = {command: round(cpu / wall, 2) for command, cpu in busy.items()}
     if busy:
         notes.append(
