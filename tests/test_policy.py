@@ -519,6 +519,6 @@ def test_initial_pointer_step_sets_the_untrained_increment():
     assert torch.allclose(torch.tanh(b), torch.full_like(b, 0.9), atol=1e-6)
     eta = policy.update_pointer(torch.zeros(4, 1), b)
     assert torch.allclose(eta, torch.full_like(eta, 0.9), atol=1e-6)
-    assert math.isclose(float(policy.pointer_head.bias), math.atanh(0.9), rel_tol=1e-6)
+    assert math.isclose(policy.pointer_head.bias.item(), math.atanh(0.9), rel_tol=1e-6)
     with _pytest.raises(ValueError, match="initial_pointer_step must be in"):
         _Config(initial_pointer_step=1.0)
