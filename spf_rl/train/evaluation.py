@@ -50,6 +50,19 @@ class EvalConfig:
     render: bool = True
 
 
+def greedy(policy: TensorDictModuleBase):
+    """Wrap ``policy`` so that it writes the arg-max of its ``"logits"`` as ``"action"``
+    (policies that write ``"action"`` themselves are left as they are)."""
+
+    def act(tensordict):
+        tensordict = policy(tensordict)
+        if "logits" in tensordict.keys() and "action" not in policy.out_keys:
+            tensordict.set("action", tensordict.get("logits").argmax(-1))
+        return tensordict
+
+    return act
+
+
 def make_eval_env(config: EvalConfig, policy: TensorDictModuleBase | None = None) -> TransformedEnv:
     """Batched env with noise, ``is_init`` and the policy's recurrent-state primer."""
     transforms = [ActuationNoise(config.noise), InitTracker()]
@@ -84,12 +97,7 @@ def evaluate_policy(policy: TensorDictModuleBase, config: EvalConfig, progress: 
     """
     env = make_eval_env(config, policy)
 
-    def act(tensordict):
-        tensordict = policy(tensordict)
-        if "logits" in tensordict.keys() and "action" not in policy.out_keys:
-            tensordict.set("action", tensordict.get("logits").argmax(-1))
-        return tensordict
-
+    act = greedy(policy)
     was_training = policy.training
     policy.eval()
     try:
@@ -114,12 +122,7 @@ def record_rollout(policy: TensorDictModuleBase, config: EvalConfig) -> dict:
     config = dataclasses.replace(config, num_agents=1, num_episodes=1)
     env = make_eval_env(config, policy)
 
-    def act(tensordict):
-        tensordict = policy(tensordict)
-        if "logits" in tensordict.keys() and "action" not in policy.out_keys:
-            tensordict.set("action", tensordict.get("logits").argmax(-1))
-        return tensordict
-
+    act = greedy(policy)
     policy.eval()
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         rollout = env.rollout(config.max_steps, act, break_when_any_done=True)[0]
