@@ -1,0 +1,39 @@
+"""Tests for the recipes' configuration loading (YAML + preset + key=value overrides)."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
+
+from config_utils import load_config  # noqa: E402
+
+from spf_rl.train.bc import BCConfig  # noqa: E402
+
+
+def test_default_and_quick_presets_load():
+    default = load_config(BCConfig, "bc", [])
+    assert default.model.name == "spf" and default.model.sparsity == 0.8
+    assert default.test.split == "test" and default.test.num_episodes == 500
+    quick = load_config(BCConfig, "bc", [], preset="bc_quick")
+    assert quick.data.num_episodes < default.data.num_episodes
+    assert quick.output_dir.startswith("runs/bc_quick/spf-s0.8")
+
+
+def test_shorthands_and_dotted_overrides():
+    config = load_config(BCConfig, "bc", ["model=rpf", "noise=locobot", "optim.epochs=3", "sparsity=0.4"])
+    assert config.model.name == "rpf" and config.model.sparsity == 0.4
+    assert config.data.noise == config.val.noise == config.test.noise == "locobot"
+    assert config.optim.epochs == 3
+    assert config.output_dir == "runs/bc/rpf-s0.4-seed0"
+
+
+@pytest.mark.parametrize(
+    "override, match",
+    [("modle.name=spf", "modle"), ("model=transformer", "model name must be one of"), ("epochs", "key=value"), ("optim.epochs=many", "epochs")],
+)
+def test_bad_overrides_are_refused(override, match):
+    with pytest.raises(ValueError, match=match):
+        load_config(BCConfig, "bc", [override])
