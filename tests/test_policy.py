@@ -15,6 +15,7 @@ from torchrl.envs.utils import ExplorationType, check_env_specs, set_exploration
 from torchrl.modules import set_recurrent_mode
 from torchrl.modules.utils import get_primers_from_module
 
+from conftest import CountingEncoder
 from spf_rl.modules import (
     ImageEncoder,
     OpenLoopPolicy,
@@ -37,19 +38,6 @@ FACTORIES = {
 
 
 # --------------------------------------------------------------------- helpers
-class CountingEncoder(nn.Module):
-    """Wraps an encoder and counts the frames it encodes."""
-
-    def __init__(self, encoder: ImageEncoder):
-        super().__init__()
-        self.inner = encoder
-        self.feature_dim = encoder.feature_dim
-        self.frames = 0
-
-    def forward(self, x):
-        self.frames += x.reshape(-1, *x.shape[-3:]).shape[0]
-        return self.inner(x)
-
 
 class DemoEnv(EnvBase):
     """Tiny unbatched env emitting the SPF contract keys with random content."""

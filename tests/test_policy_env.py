@@ -19,6 +19,7 @@ from torchrl.envs.utils import check_env_specs
 from torchrl.modules import set_recurrent_mode
 
 from envs.factory import make_path_follow_env
+from conftest import CountingEncoder
 from spf_rl.modules import (
     ImageEncoder,
     OpenLoopPolicy,
@@ -45,22 +46,6 @@ FACTORIES = {
 pytestmark = pytest.mark.filterwarnings("ignore:Nested TransformedEnvs:UserWarning")
 STATE_KEYS = ("logits", "action", "action_log_prob", "eta", "spf_hidden", "memory_features")
 
-
-class CountingEncoder(nn.Module):
-    """Wraps an encoder and counts the frames it encodes."""
-
-    def __init__(self, encoder: ImageEncoder):
-        super().__init__()
-        self.inner = encoder
-        self.feature_dim = encoder.feature_dim
-        self.frames = 0
-
-    def check_frames(self, frames, name="frames"):
-        self.inner.check_frames(frames, name)
-
-    def forward(self, x):
-        self.frames += x.reshape(-1, *x.shape[-3:]).shape[0]
-        return self.inner(x)
 
 
 @pytest.fixture
