@@ -1,6 +1,12 @@
 """Reproduce the paper's Table 1: SPF at sparsity 0.4 / 0.6 / 0.8, RPF (full memory),
 RPF action-only, and open-loop replay, under ``paper`` noise on the test split.
 
+Beyond the paper, one more model, ``spf_random``, is trained once with a sparsity
+drawn per episode from ``model.sparsity_range`` (default 0.2-1.0; checkpoint
+``checkpoints/spf_random-s0.2-1.pt``) and evaluated at each of
+:data:`RANDOM_EVAL_SPARSITIES` (rows without paper numbers). With
+``--from-checkpoints`` and no such checkpoint, those rows are skipped with a warning.
+
 Trains each missing model with ``recipes/bc.py``'s pipeline (all rows share one
 dataset), evaluates every row on the same test episodes, copies each row's best
 checkpoint to ``checkpoints/`` and writes:
@@ -22,6 +28,7 @@ import json
 import logging
 import shutil
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -37,10 +44,56 @@ ROWS = [
     ("RPF (full memory)", "rpf", 1.0, 0.833, 0.752),
     ("open-loop replay", "open_loop", 0.0, None, None),
 ]
+#: Sparsities the one random-sparsity model (``spf_random``) is evaluated at.
+RANDOM_EVAL_SPARSITIES = (0.4, 0.6, 0.8, 1.0)
+RANDOM_MODEL = "spf_random"
 
 
-def checkpoint_name(model: str, sparsity: float) -> str:
+def checkpoint_name(model: str, sparsity: float | Sequence[float]) -> str:
+    """File name of a model's checkpoint: ``spf-s0.4.pt``, or ``spf_random-s0.2-1.pt``
+    for a sparsity range ``(0.2, 1.0)``."""
+    if isinstance(sparsity, Sequence):
+        return f"{model}-s" + "-".join(f"{s:g}" for s in sparsity) + ".pt"
     return f"{model}-s{sparsity:g}.pt"
+
+
+def load_or_train(path: Path, config, train: bool):
+    """The policy in checkpoint ``path``; if it is missing and ``train``, first train
+    ``config`` (a ``BCConfig``) with ``train_bc`` and copy its best checkpoint to ``path``."""
+    from spf_rl.checkpoint import load_checkpoint
+    from spf_rl.train.bc import train_bc
+    from spf_rl.train.models import build_policy
+
+    model = config.model.name
+    if train and not path.exists():
+        train_bc(config)
+        shutil.copyfile(Path(config.output_dir) / "best.pt", path)
+    payload = load_checkpoint(path, expected_model_type=model)
+    policy = build_policy(model, payload["model_config"])
+    policy.load_state_dict(payload["model"])
+    return policy
+
+
+def make_row(
+    label: str,
+    model: str,
+    sparsity: float,
+    memory: int,
+    summary: dict,
+    paper: tuple[float | None, float | None] = (None, None),
+    **extra,
+) -> dict:
+    """One table row: the label, the model, its memory, the paper's (success, SPL) and our summary."""
+    return {
+        "row": label,
+        "model": model,
+        "sparsity": sparsity,
+        "memory_bytes": memory,
+        "paper_success": paper[0],
+        "paper_spl": paper[1],
+        **extra,
+        **summary,
+    }
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
@@ -53,11 +106,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
 
     import envs  # noqa: F401
-    from spf_rl.checkpoint import load_checkpoint
     from spf_rl.modules.policy import OpenLoopPolicy
-    from spf_rl.train.bc import BCConfig, model_memory_bytes, train_bc
+    from spf_rl.train.bc import BCConfig, model_memory_bytes
     from spf_rl.train.evaluation import evaluate_policy
-    from spf_rl.train.models import build_policy
 
     base = load_config(BCConfig, "bc", args.overrides, preset="table1")
     checkpoints, out = Path(args.checkpoints), Path(args.out)
@@ -66,37 +117,39 @@ def main(argv: list[str] | None = None) -> list[dict]:
     test_config = dataclasses.replace(
         base.test, demo_length=base.data.demo_length, max_steps=base.data.max_steps, image_size=base.data.image_size
     )
-    rows = []
+    rows: list[dict] = []
+
+    def row_config(model: str, sparsity: float, path: Path):
+        model_config = dataclasses.replace(base.model, name=model, sparsity=sparsity)
+        return dataclasses.replace(base, model=model_config, output_dir=f"runs/table1/{path.stem}")
+
+    def evaluate(label, model, sparsity, policy, memory, paper=(None, None), **extra):
+        summary, _ = evaluate_policy(policy, test_config, progress=base.progress)
+        rows.append(make_row(label, model, sparsity, memory, summary, paper, **extra))
+        logging.info("%s: success %.3f SPL %.3f", label, summary["success"], summary["spl"])
+
     for label, model, sparsity, paper_success, paper_spl in ROWS:
         if model == "open_loop":
             policy, memory = OpenLoopPolicy(), base.data.demo_length
         else:
             shipped = checkpoints / checkpoint_name(model, sparsity)
-            if not args.from_checkpoints and not shipped.exists():
-                config = dataclasses.replace(
-                    base,
-                    model=dataclasses.replace(base.model, name=model, sparsity=sparsity if model == "spf" else base.model.sparsity),
-                    output_dir=f"runs/table1/{model}-s{sparsity:g}",
-                )
-                train_bc(config)
-                shutil.copyfile(Path(config.output_dir) / "best.pt", shipped)
-            payload = load_checkpoint(shipped, expected_model_type=model)
-            policy = build_policy(model, payload["model_config"])
-            policy.load_state_dict(payload["model"])
+            train_sparsity = sparsity if model == "spf" else base.model.sparsity
+            policy = load_or_train(shipped, row_config(model, train_sparsity, shipped), not args.from_checkpoints)
             memory = model_memory_bytes(model, base.data.demo_length, sparsity, base.data.image_size)
-        summary, _ = evaluate_policy(policy, test_config, progress=base.progress)
-        rows.append(
-            {
-                "row": label,
-                "model": model,
-                "sparsity": sparsity,
-                "memory_bytes": memory,
-                "paper_success": paper_success,
-                "paper_spl": paper_spl,
-                **summary,
-            }
-        )
-        logging.info("%s: success %.3f SPL %.3f", label, summary["success"], summary["spl"])
+        evaluate(label, model, sparsity, policy, memory, (paper_success, paper_spl))
+
+    sparsity_range = tuple(base.model.sparsity_range)
+    shipped = checkpoints / checkpoint_name(RANDOM_MODEL, sparsity_range)
+    if args.from_checkpoints and not shipped.exists():
+        logging.warning("%s is missing: skipping the %s rows (run without --from-checkpoints to train it).", shipped, RANDOM_MODEL)
+    else:
+        policy = load_or_train(shipped, row_config(RANDOM_MODEL, base.model.sparsity, shipped), not args.from_checkpoints)
+        span = "-".join(f"{s:g}" for s in sparsity_range)
+        for sparsity in RANDOM_EVAL_SPARSITIES:
+            policy.set_sparsity(sparsity)
+            memory = model_memory_bytes(RANDOM_MODEL, base.data.demo_length, sparsity, base.data.image_size)
+            label = f"SPF random sparsity {span}, at {sparsity:g}"
+            evaluate(label, RANDOM_MODEL, sparsity, policy, memory, sparsity_range=list(sparsity_range))
     (out / "table1.json").write_text(json.dumps({"rows": rows, "test": dataclasses.asdict(test_config)}, indent=2))
     (out / "table1.md").write_text(markdown_table(rows, test_config))
     plot_rows(rows, out / "table1.png")
@@ -132,13 +185,19 @@ def plot_rows(rows: list[dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, (by_sparsity, by_bytes) = plt.subplots(1, 2, figsize=(10, 4))
-    learned = [r for r in rows if r["model"] != "open_loop"]
+    learned = [r for r in rows if r["model"] not in ("open_loop", RANDOM_MODEL)]
+    random_rows = [r for r in rows if r["model"] == RANDOM_MODEL]
     for metric, marker in (("success", "o"), ("spl", "s")):
         xs = [r["sparsity"] for r in learned]
         by_sparsity.plot(xs, [r[metric] for r in learned], marker, label=f"ours {metric}")
         paper = [(r["sparsity"], r[f"paper_{metric}"]) for r in learned if r[f"paper_{metric}"] is not None]
         by_sparsity.plot(*zip(*paper), marker, mfc="none", label=f"paper {metric}")
         by_bytes.plot([r["memory_bytes"] for r in learned], [r[metric] for r in learned], marker, label=metric)
+        if random_rows:  # one model at several sparsities: a separate series, joined by a line
+            label = f"one random-sparsity model {metric}"
+            ys = [r[metric] for r in random_rows]
+            by_sparsity.plot([r["sparsity"] for r in random_rows], ys, marker + ":", label=label)
+            by_bytes.plot([r["memory_bytes"] for r in random_rows], ys, marker + ":", label=label)
     open_loop = [r for r in rows if r["model"] == "open_loop"]
     if open_loop:
         by_sparsity.axhline(open_loop[0]["success"], color="grey", linestyle="--", label="open-loop success")

@@ -2,7 +2,7 @@
 
 A checkpoint is a plain dict of tensors, numbers, strings, lists and dicts (so
 :func:`torch.load` can read it with ``weights_only=True``) with a fixed header:
-``format_version``, ``model_type`` (``"spf"``, ``"rpf"``, ``"action_only"``...)
+``format_version``, ``model_type`` (``"spf"``, ``"rpf"``, ``"action_only"``, ``"spf_random"``)
 and ``model_config`` (the :class:`~spf_rl.modules.policy.SPFConfig` as a dict).
 It is written to a temporary file in the same directory, flushed and fsynced,
 then moved over the target with :func:`os.replace`, so a crash never leaves a
@@ -22,7 +22,7 @@ from spf_rl.modules.policy import SPFConfig
 #: Version of the checkpoint layout.
 CHECKPOINT_FORMAT_VERSION = 1
 #: Model types a checkpoint may hold.
-MODEL_TYPES = ("spf", "rpf", "action_only")
+MODEL_TYPES = ("spf", "rpf", "action_only", "spf_random")
 
 
 class CheckpointError(RuntimeError):
@@ -44,6 +44,8 @@ def save_checkpoint(path: str | os.PathLike, model_type: str, config: SPFConfig,
     path.parent.mkdir(parents=True, exist_ok=True)
     config_dict = asdict(config)
     config_dict["image_size"] = list(config_dict["image_size"])
+    if config_dict["sparsity_range"] is not None:
+        config_dict["sparsity_range"] = list(config_dict["sparsity_range"])
     payload = {
         "format_version": CHECKPOINT_FORMAT_VERSION,
         "model_type": model_type,

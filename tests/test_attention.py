@@ -142,3 +142,20 @@ def test_bad_args():
 
 if __name__ == "__main__":
     pytest.main([__file__, "--capture", "no", "--exitfirst"])
+
+
+def test_mask_zeroes_weights_and_hides_masked_features():
+    idx = torch.arange(5)
+    eta = torch.tensor([[1.3], [3.0]])
+    mask = torch.tensor([[True, False, True, False, True], [False, True, True, True, False]])
+    w = attention_weights(eta, idx, mask)
+    assert (w[~mask] == 0).all()
+    torch.testing.assert_close(w[mask], attention_weights(eta, idx)[mask], rtol=0, atol=0)
+    att = PointerAttention(feature_dim=4, out_dim=6)
+    acts = torch.randint(0, 3, (2, 5))
+    mem = torch.randn(2, 5, 4)
+    noisy = torch.where(mask.unsqueeze(-1), mem, 1e3 * torch.randn(2, 5, 4))
+    assert torch.equal(att(mem, idx, acts, eta, mask=mask), att(noisy, idx, acts, eta, mask=mask))
+    assert not torch.allclose(att(mem, idx, acts, eta), att(noisy, idx, acts, eta))
+    # a mask shared by the batch ([l]) broadcasts
+    torch.testing.assert_close(att(mem, idx, acts, eta, mask=mask[0]), att(mem[:, ::2], idx[::2], acts, eta))

@@ -4,7 +4,15 @@ from __future__ import annotations
 import pytest
 import torch
 
-from spf_rl.modules import ImageEncoder, MemoryEncoder, memory_bytes, memory_indices, memory_length
+from spf_rl.modules import (
+    ImageEncoder,
+    MemoryEncoder,
+    memory_bytes,
+    memory_indices,
+    memory_length,
+    memory_mask,
+    validate_sparsity_range,
+)
 
 EXPECTED_N30 = {
     0.2: [0, 6, 12, 17, 23, 29],
@@ -83,3 +91,18 @@ def test_memory_longer_than_demo_raises():
 
 if __name__ == "__main__":
     pytest.main([__file__, "--capture", "no", "--exitfirst"])
+
+
+@pytest.mark.parametrize("sparsity", sorted(EXPECTED_N30))
+def test_memory_mask_is_true_at_memory_indices(sparsity):
+    mask = memory_mask(30, sparsity)
+    assert mask.dtype == torch.bool and mask.shape == (30,)
+    assert mask.nonzero().squeeze(-1).tolist() == EXPECTED_N30[sparsity]
+
+
+def test_sparsity_range_validation():
+    assert validate_sparsity_range([0.2, 1]) == (0.2, 1.0)
+    assert validate_sparsity_range((0.5, 0.5)) == (0.5, 0.5)
+    for bad in [(0.0, 1.0), (0.6, 0.4), (0.2, 1.1), (0.5,), (0.2, 0.5, 1.0), "0.2-1", (0.2, float("nan")), (True, 1.0), None]:
+        with pytest.raises(ValueError, match=r"sparsity_range must be a pair \(low, high\)"):
+            validate_sparsity_range(bad)

@@ -13,7 +13,9 @@ from spf_rl.modules.memory import (
     memory_bytes,
     memory_indices,
     memory_length,
+    memory_mask,
     validate_sparsity,
+    validate_sparsity_range,
 )
 from spf_rl.modules.policy import (
     OpenLoopPolicy,
@@ -41,6 +43,8 @@ __all__ = [
     "memory_bytes",
     "memory_indices",
     "memory_length",
+    "memory_mask",
     "soft_action_memory",
     "validate_sparsity",
+    "validate_sparsity_range",
 ]

@@ -31,17 +31,30 @@ DEFAULT_WINDOW_HALF_WIDTH = 2
 DEFAULT_NUM_ACTION_CLASSES = 3
 
 
-def attention_weights(eta: torch.Tensor, indices: torch.Tensor) -> torch.Tensor:
+def attention_weights(
+    eta: torch.Tensor, indices: torch.Tensor, mask: torch.Tensor | None = None
+) -> torch.Tensor:
     """Soft weights ``w_j = exp(-|eta - M*(j)|)`` (un-normalised, eq. 2).
 
     Args:
         eta (torch.Tensor): pointer, shape ``[*, 1]`` (0-based, float).
         indices (torch.Tensor): memory indices ``M*``, shape ``[l]`` (0-based).
+        mask (torch.Tensor, optional): boolean ``[*, l]`` (or broadcastable); the
+            weights of the slots where it is false are exactly 0. Defaults to all
+            slots kept.
 
     Returns:
         torch.Tensor: weights of shape ``[*, l]``.
+
+    Examples:
+        >>> import torch
+        >>> attention_weights(torch.tensor([[1.0]]), torch.arange(3), torch.tensor([True, False, True]))
+        tensor([[0.3679, 0.0000, 0.3679]])
     """
-    return torch.exp(-(eta - indices.to(eta.dtype)).abs())
+    weights = torch.exp(-(eta - indices.to(eta.dtype)).abs())
+    if mask is not None:
+        weights = weights.masked_fill(~mask.to(device=weights.device, dtype=torch.bool), 0.0)
+    return weights
 
 
 def action_window(
@@ -165,11 +178,15 @@ class PointerAttention(nn.Module):
         indices: torch.Tensor | None,
         demo_actions: torch.Tensor,
         eta: torch.Tensor,
+        mask: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor | None, torch.Tensor]:
-        """Return the soft weights ``[*, l]`` (``None`` when action-only) and the window ``[*, 2k+1, C]``."""
+        """Return the soft weights ``[*, l]`` (``None`` when action-only; 0 where ``mask``
+        is false) and the window ``[*, 2k+1, C]``."""
         if demo_actions.dtype != torch.long:
             demo_actions = demo_actions.long()
-        weights = None if self.action_only or indices is None else attention_weights(eta, indices)
+        weights = (
+            None if self.action_only or indices is None else attention_weights(eta, indices, mask)
+        )
         return weights, action_window(demo_actions, eta, self.k, self.num_action_classes)
 
     def forward(
@@ -179,6 +196,7 @@ class PointerAttention(nn.Module):
         demo_actions: torch.Tensor,
         eta: torch.Tensor,
         return_window: bool = False,
+        mask: torch.Tensor | None = None,
     ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
         """Compute ``mu``.
 
@@ -189,11 +207,15 @@ class PointerAttention(nn.Module):
             eta (torch.Tensor): pointer ``[*, 1]`` (0-based, float).
             return_window (bool, optional): also return the action window
                 ``[*, 2k+1, C]``. Defaults to ``False``.
+            mask (torch.Tensor, optional): boolean ``[*, l]``: memory slots to attend
+                to. The weights of the other slots are exactly 0 (set before they
+                multiply the features), so those features do not reach ``mu``.
+                Defaults to all slots.
 
         Returns:
             torch.Tensor: ``mu`` of shape ``[*, out_dim]`` (and the window if asked).
         """
-        weights, window = self.weights_and_window(indices, demo_actions, eta)
+        weights, window = self.weights_and_window(indices, demo_actions, eta, mask)
         parts = []
         if not self.action_only:
             if memory_features is None or weights is None:

@@ -21,7 +21,9 @@ __all__ = [
     "memory_bytes",
     "memory_indices",
     "memory_length",
+    "memory_mask",
     "validate_sparsity",
+    "validate_sparsity_range",
 ]
 
 #: Default frame shape (channels, height, width) used for byte budgets.
@@ -43,6 +45,34 @@ def validate_sparsity(sparsity: float) -> float:
             f"got {sparsity!r}."
         )
     return float(sparsity)
+
+
+def validate_sparsity_range(sparsity_range: tuple[float, float] | list[float]) -> tuple[float, float]:
+    """Check that ``sparsity_range`` is a pair ``(low, high)`` with ``0 < low <= high <= 1``.
+
+    Args:
+        sparsity_range (tuple or list of two floats): the range a random sparsity is
+            drawn from.
+
+    Returns:
+        tuple of float: ``(low, high)``.
+
+    Examples:
+        >>> validate_sparsity_range([0.2, 1])
+        (0.2, 1.0)
+    """
+    pair = tuple(sparsity_range) if isinstance(sparsity_range, (list, tuple)) else None
+    if (
+        pair is None
+        or len(pair) != 2
+        or any(isinstance(v, bool) or not isinstance(v, numbers.Real) or math.isnan(v) for v in pair)
+        or not 0.0 < pair[0] <= pair[1] <= 1.0
+    ):
+        raise ValueError(
+            f"sparsity_range must be a pair (low, high) of numbers with 0 < low <= high <= 1, "
+            f"got {sparsity_range!r}."
+        )
+    return float(pair[0]), float(pair[1])
 
 
 def _validate_n(n: int) -> int:
@@ -103,6 +133,28 @@ def memory_indices(n: int, sparsity: float) -> torch.LongTensor:
     length = memory_length(n, sparsity)
     idx = torch.linspace(0, n - 1, length, dtype=torch.float64).round().long()
     return idx
+
+
+def memory_mask(n: int, sparsity: float) -> torch.BoolTensor:
+    """Boolean mask over the ``n`` demonstration frames, true at :func:`memory_indices`.
+
+    A random-sparsity policy (``SPFConfig.sparsity_range``) holds a memory slot for
+    every demo frame and attends only to the slots where this mask is true.
+
+    Args:
+        n (int): demonstration length (number of frames), positive.
+        sparsity (float): fraction of frames kept, in ``(0, 1]``.
+
+    Returns:
+        torch.BoolTensor: shape ``[n]`` with ``memory_length(n, sparsity)`` true entries.
+
+    Examples:
+        >>> memory_mask(6, 0.5).tolist()
+        [True, False, True, False, False, True]
+    """
+    mask = torch.zeros(_validate_n(n), dtype=torch.bool)
+    mask[memory_indices(n, sparsity)] = True
+    return mask
 
 
 def memory_bytes(

@@ -9,6 +9,11 @@
 * ``eta_{t+1} = eta_t + tanh(b)`` (eq. 4, ``pointer_update="paper"``) or the RPF
   authors' ``min(eta_t + 1 + tanh(b), n - 1)`` (``pointer_update="rpf"``).
 
+Beyond the paper, ``SPFConfig.sparsity_range`` gives one model for many
+sparsities: the memory holds all ``n`` demo frames and a mask keeps those at
+``M*`` of a sparsity drawn per training episode, or of :attr:`SPFPolicy.sparsity`
+(set with :meth:`SPFPolicy.set_sparsity`) at evaluation.
+
 Indices and the pointer are 0-based (``eta_1 = 0``, ``h_1 = 0``). The memory
 features are encoded once per episode (where ``is_init`` is true) and carried in
 the recurrent state with the GRU hidden state and the pointer; the module
@@ -44,7 +49,9 @@ from spf_rl.modules.memory import (
     MemoryEncoder,
     memory_indices,
     memory_length,
+    memory_mask,
     validate_sparsity,
+    validate_sparsity_range,
 )
 
 logger = logging.getLogger(__name__)
@@ -86,7 +93,8 @@ class SPFConfig:
             (with STOP = 3). Also the one-hot size of the demo actions in the window.
         demo_length (int): demonstration length ``n`` (frames and actions).
         sparsity (float): fraction of demo frames kept in memory, in ``(0, 1]``
-            (used when ``memory_mode="sparse"``).
+            (used when ``memory_mode="sparse"``). With ``sparsity_range`` it is the
+            default evaluation sparsity (:attr:`SPFPolicy.sparsity`).
         k (int): half-width of the hard action window (``2k + 1`` actions).
         feature_dim (int): size of the image features phi(o) and memory features.
         hidden_size (int): GRU hidden size.
@@ -113,6 +121,14 @@ class SPFConfig:
             0 (default) is PyTorch's usual initialisation; a value near 1 starts the
             pointer moving along the demonstration about one index per step, as the
             RPF code's rule does. The paper does not say how b is initialised.
+        sparsity_range (tuple of float, optional): ``(low, high)`` with
+            ``0 < low <= high <= 1``: train one model for many sparsities (needs
+            ``memory_mode="sparse"``). The memory then holds a slot for each of the
+            ``n`` demo frames and attends only to the slots at
+            ``memory_indices(n, s)``: in training mode, sequence mode draws
+            ``s ~ Uniform(low, high)`` per episode segment; otherwise ``s`` is
+            :attr:`SPFPolicy.sparsity`. Not in the SPF paper. Defaults to ``None``
+            (one fixed sparsity, ``l`` memory slots).
 
     Examples:
         >>> cfg = SPFConfig(sparsity=0.4)
@@ -120,6 +136,8 @@ class SPFConfig:
         (12, [0, 3, 5, 8])
         >>> cfg.use_soft_action_memory, SPFConfig(memory_mode="none").use_soft_action_memory
         (False, True)
+        >>> SPFConfig(sparsity=0.8, sparsity_range=[0.2, 1]).sparsity_range
+        (0.2, 1.0)
     """
 
     num_actions: int = NUM_PAPER_ACTIONS
@@ -134,6 +152,7 @@ class SPFConfig:
     mu_dim: int | None = None
     soft_action_memory: bool | None = None
     initial_pointer_step: float = 0.0
+    sparsity_range: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         if self.num_actions not in ALLOWED_NUM_ACTIONS:
@@ -162,6 +181,13 @@ class SPFConfig:
             raise ValueError(
                 f"memory_mode must be one of {MEMORY_MODES}, got {self.memory_mode!r}."
             )
+        if self.sparsity_range is not None:
+            self.sparsity_range = validate_sparsity_range(self.sparsity_range)
+            if self.memory_mode != "sparse":
+                raise ValueError(
+                    f"sparsity_range needs memory_mode='sparse' (a random sparsity of the visual "
+                    f"memory), got memory_mode={self.memory_mode!r}; set sparsity_range=None."
+                )
         if self.soft_action_memory is not None and not isinstance(self.soft_action_memory, bool):
             raise ValueError(
                 f"soft_action_memory must be a bool or None (auto), got {self.soft_action_memory!r}."
@@ -238,6 +264,16 @@ class SPFPolicy(TensorDictModuleBase):
     same trajectory. Sequence mode always re-encodes the memory, so gradients reach
     the encoder through the memory too; the stored memory features are not read.
 
+    **Random sparsity** (``config.sparsity_range`` set, model ``"spf_random"``): the
+    memory holds all ``n`` demo frames (``memory_features`` is ``[n, D]``) and a
+    boolean mask ``[n]``, true at ``memory_indices(n, s)``, sets the attention weights
+    of the other slots to exactly 0, so those frames do not reach the output. In
+    training mode, sequence mode draws ``s ~ Uniform(*sparsity_range)`` from torch's
+    global RNG (``torch.manual_seed`` fixes it) for each segment and keeps it for the
+    whole segment. In eval mode, and always in step mode, ``s`` is :attr:`sparsity`
+    (``config.sparsity`` until :meth:`set_sparsity`). The mask used is written to
+    ``memory_mask``.
+
     Args:
         config (SPFConfig, optional): model configuration. Defaults to ``SPFConfig()``.
         encoder (nn.Module, optional): image encoder phi mapping ``[*, 3, H, W]`` to
@@ -250,9 +286,12 @@ class SPFPolicy(TensorDictModuleBase):
             Defaults ``"pixels"``, ``"demo_frames"``, ``"demo_actions"``, ``"is_init"``.
         hidden_key, eta_key, memory_key (NestedKey): recurrent state keys. Defaults
             ``"spf_hidden"`` (``[hidden_size]``), ``"eta"`` (``[1]``),
-            ``"memory_features"`` (``[l, D]``, absent when ``memory_mode="none"``).
+            ``"memory_features"`` (``[l, D]``, ``[n, D]`` with ``config.sparsity_range``,
+            absent when ``memory_mode="none"``).
         logits_key, features_key, eta_used_key (NestedKey): output keys. Defaults
             ``"logits"``, ``"features"``, ``"eta_used"``.
+        memory_mask_key (NestedKey): output key of the memory mask (``[n]`` bool),
+            written only with ``config.sparsity_range``. Defaults to ``"memory_mask"``.
 
     Examples:
         >>> import torch
@@ -268,6 +307,12 @@ class SPFPolicy(TensorDictModuleBase):
         >>> out = policy(td)
         >>> out["logits"].shape, out["next", "memory_features"].shape
         (torch.Size([2, 3]), torch.Size([2, 3, 16]))
+        >>> # one model for many sparsities: all n slots in memory, a mask picks M*
+        >>> import dataclasses
+        >>> random_policy = SPFPolicy(dataclasses.replace(cfg, sparsity_range=(0.2, 1.0)))
+        >>> out = random_policy.set_sparsity(0.5)(td)
+        >>> out["next", "memory_features"].shape, out["memory_mask"][0].tolist()
+        (torch.Size([2, 6, 16]), [True, False, True, False, False, True])
     """
 
     def __init__(
@@ -285,6 +330,7 @@ class SPFPolicy(TensorDictModuleBase):
         logits_key: NestedKey = "logits",
         features_key: NestedKey = "features",
         eta_used_key: NestedKey = "eta_used",
+        memory_mask_key: NestedKey = "memory_mask",
     ) -> None:
         super().__init__()
         config = SPFConfig() if config is None else config
@@ -297,9 +343,10 @@ class SPFPolicy(TensorDictModuleBase):
         feature_dim = int(getattr(encoder, "feature_dim", config.feature_dim))
         self.feature_dim = feature_dim
         self.use_memory = config.memory_mode != "none"
-        self.memory_encoder = (
-            MemoryEncoder(encoder, config.memory_indices) if self.use_memory else None
-        )
+        self.random_sparsity = config.sparsity_range is not None
+        slots = torch.arange(config.demo_length) if self.random_sparsity else config.memory_indices
+        self.memory_encoder = MemoryEncoder(encoder, slots) if self.use_memory else None
+        self._sparsity = config.effective_sparsity
         mu_dim = config.mu_dim or config.feature_dim
         self.attention = PointerAttention(
             feature_dim,
@@ -328,6 +375,7 @@ class SPFPolicy(TensorDictModuleBase):
         self.logits_key = logits_key
         self.features_key = features_key
         self.eta_used_key = eta_used_key
+        self.memory_mask_key = memory_mask_key
 
         state_keys = [hidden_key, eta_key] + ([memory_key] if self.use_memory else [])
         self.in_keys = (
@@ -336,15 +384,55 @@ class SPFPolicy(TensorDictModuleBase):
             + [demo_actions_key, is_init_key]
             + state_keys
         )
-        self.out_keys = [logits_key, features_key, eta_used_key] + [
-            ("next", *((k,) if isinstance(k, str) else tuple(k))) for k in state_keys
-        ]
+        self.out_keys = (
+            [logits_key, features_key, eta_used_key]
+            + ([memory_mask_key] if self.random_sparsity else [])
+            + [("next", *((k,) if isinstance(k, str) else tuple(k))) for k in state_keys]
+        )
 
     # ------------------------------------------------------------------ helpers
     @property
     def memory_length(self) -> int:
-        """Number of memory frames ``l``."""
-        return self.config.memory_length
+        """Number of slots in ``memory_features``: ``l`` (``n`` with ``sparsity_range``; 0 without memory)."""
+        return self.memory_encoder.num_frames if self.use_memory else 0
+
+    @property
+    def sparsity(self) -> float:
+        """Sparsity the memory is read at (``config.effective_sparsity`` unless :meth:`set_sparsity`)."""
+        return self._sparsity
+
+    def set_sparsity(self, sparsity: float) -> SPFPolicy:
+        """Set the sparsity a random-sparsity policy reads its memory at in eval and step mode.
+
+        Only for a policy built with ``config.sparsity_range`` (a fixed-sparsity policy's
+        memory holds its ``l`` frames only). The mask takes effect at the next call,
+        also mid-episode, since the memory holds all ``n`` frames. Training-mode
+        sequence mode keeps drawing random sparsities. Not saved in the state dict.
+
+        Args:
+            sparsity (float): fraction of demo frames attended to, in ``(0, 1]``; it
+                may lie outside ``config.sparsity_range``.
+
+        Returns:
+            SPFPolicy: ``self``.
+
+        Raises:
+            ValueError: ``sparsity`` is not in ``(0, 1]``.
+            RuntimeError: the policy has no ``config.sparsity_range``.
+
+        Examples:
+            >>> cfg = SPFConfig(feature_dim=8, hidden_size=8, sparsity_range=(0.2, 1.0))
+            >>> SPFPolicy(cfg).set_sparsity(0.6).sparsity
+            0.6
+        """
+        sparsity = validate_sparsity(sparsity)
+        if not self.random_sparsity:
+            raise RuntimeError(
+                f"set_sparsity needs a policy built with SPFConfig.sparsity_range (model "
+                f"'spf_random'); this policy keeps a fixed memory of sparsity {self._sparsity}."
+            )
+        self._sparsity = sparsity
+        return self
 
     def make_tensordict_primer(self) -> TensorDictPrimer:
         """Primer for the recurrent state keys (zeroed at every (partial) reset).
@@ -414,6 +502,19 @@ class SPFPolicy(TensorDictModuleBase):
         rows = mask.reshape(-1).nonzero().squeeze(-1)
         return feats, rows
 
+    def _memory_masks(self, num_segments: int, device: torch.device, draw: bool) -> torch.Tensor:
+        """``[K, n]`` memory masks of ``K`` segments: sparsities drawn from
+        ``config.sparsity_range`` if ``draw``, else :attr:`sparsity` for all."""
+        n = self.config.demo_length
+        if not draw:
+            return memory_mask(n, self._sparsity).to(device).repeat(num_segments, 1)
+        low, high = self.config.sparsity_range
+        draws = low + (high - low) * torch.rand(num_segments, dtype=torch.float64)
+        masks = torch.zeros(num_segments, n, dtype=torch.bool)
+        for row, sparsity in enumerate(draws.tolist()):
+            masks[row] = memory_mask(n, sparsity)
+        return masks.to(device)
+
     def _cell(
         self,
         phi: torch.Tensor,
@@ -421,10 +522,13 @@ class SPFPolicy(TensorDictModuleBase):
         demo_actions: torch.Tensor,
         eta: torch.Tensor,
         h: torch.Tensor,
+        mask: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """One step of eqs. 2-4 on flat ``[B, ...]`` tensors -> (logits, h_next, eta_next)."""
         indices = self.memory_encoder.indices if self.use_memory else None
-        mu, window = self.attention(memory, indices, demo_actions, eta, return_window=True)
+        mu, window = self.attention(
+            memory, indices, demo_actions, eta, return_window=True, mask=mask
+        )
         x = torch.cat([mu, phi, window.flatten(-2)], -1)
         h_next = self.gru(x, h)
         logits = self.logits_head(h_next)
@@ -480,8 +584,13 @@ class SPFPolicy(TensorDictModuleBase):
                 feats, rows = self._encode_memory(demo_frames, fresh)
                 memory = memory.index_copy(0, rows, feats.to(memory.dtype))
 
-        logits, h_next, eta_next = self._cell(phi, memory, demo_actions, eta, h)
+        mask = None
+        if self.random_sparsity:  # step mode: always the evaluation sparsity
+            mask = self._memory_masks(num_rows, phi.device, draw=False)
+        logits, h_next, eta_next = self._cell(phi, memory, demo_actions, eta, h, mask)
         td.set(self.logits_key, logits.reshape(*bs, cfg.num_actions))
+        if mask is not None:
+            td.set(self.memory_mask_key, mask.reshape(*bs, cfg.demo_length))
         td.set(self.features_key, h_next.reshape(*bs, cfg.hidden_size))
         td.set(self.eta_used_key, eta.reshape(*bs, 1))
         td.set(("next", self.hidden_key), h_next.reshape(*bs, cfg.hidden_size))
@@ -523,7 +632,7 @@ class SPFPolicy(TensorDictModuleBase):
         h0 = _flat_or_zeros(td.get(self.hidden_key, None), (B, T, cfg.hidden_size), phi)
         eta0 = _flat_or_zeros(td.get(self.eta_key, None), (B, T, 1), phi)
 
-        memory = None
+        memory = mask = None
         if self.use_memory:
             demo_frames = td.get(self.demo_frames_key)
             self._check_demo_frames(demo_frames, 2)
@@ -532,6 +641,9 @@ class SPFPolicy(TensorDictModuleBase):
             memory = feats.index_select(0, segment).reshape(
                 B, T, self.memory_length, self.feature_dim
             )
+            if self.random_sparsity:  # one mask per segment, [K, n] -> [B, T, n]
+                masks = self._memory_masks(feats.shape[0], phi.device, draw=self.training)
+                mask = masks.index_select(0, segment).reshape(B, T, cfg.demo_length)
 
         logits, features, eta_used, eta_next = [], [], [], []
         h = h0[:, 0]
@@ -541,7 +653,8 @@ class SPFPolicy(TensorDictModuleBase):
             h = torch.where(s, h0[:, t], h)
             eta = torch.where(s, eta0[:, t], eta)
             mem_t = memory[:, t] if memory is not None else None
-            logit, h, eta_new = self._cell(phi[:, t], mem_t, demo_actions[:, t], eta, h)
+            mask_t = mask[:, t] if mask is not None else None
+            logit, h, eta_new = self._cell(phi[:, t], mem_t, demo_actions[:, t], eta, h, mask_t)
             logits.append(logit)
             features.append(h)
             eta_used.append(eta)
@@ -557,6 +670,8 @@ class SPFPolicy(TensorDictModuleBase):
         }
         if memory is not None:
             out[("next", self.memory_key)] = memory
+        if mask is not None:
+            out[self.memory_mask_key] = mask
         shape = tensordict.batch_size
         for key, value in out.items():
             tensordict.set(key, value.reshape(*shape, *value.shape[2:]))
@@ -586,14 +701,17 @@ def make_rpf_policy(
     """RPF baseline: the same network with the full visual memory (sparsity 1.0).
 
     The pointer update is taken from ``config`` (pass
-    ``dataclasses.replace(config, pointer_update="rpf")`` for the RPF code's rule).
+    ``dataclasses.replace(config, pointer_update="rpf")`` for the RPF code's rule);
+    ``sparsity_range`` is dropped (the memory is always full).
 
     Examples:
         >>> make_rpf_policy(SPFConfig(feature_dim=8, hidden_size=8)).memory_length
         30
     """
     config = SPFConfig() if config is None else config
-    config = dataclasses.replace(config, memory_mode="full", sparsity=FULL_MEMORY_SPARSITY)
+    config = dataclasses.replace(
+        config, memory_mode="full", sparsity=FULL_MEMORY_SPARSITY, sparsity_range=None
+    )
     return SPFPolicy(config, encoder, **kwargs)
 
 
@@ -607,13 +725,14 @@ def make_action_only_policy(
     which the pointer gets a gradient (``soft_action_memory=None``, the default,
     resolves to ``True`` here). With ``soft_action_memory=False`` the pointer
     only enters through ``floor(eta)`` and the pointer head receives no gradient.
+    ``sparsity_range`` is dropped (there are no memory frames).
 
     Examples:
         >>> make_action_only_policy(SPFConfig(feature_dim=8, hidden_size=8)).memory_length
         0
     """
     config = SPFConfig() if config is None else config
-    config = dataclasses.replace(config, memory_mode="none")
+    config = dataclasses.replace(config, memory_mode="none", sparsity_range=None)
     return SPFPolicy(config, encoder, **kwargs)
 
 

@@ -139,7 +139,11 @@ def bc_loss(policy: SPFPolicy, batch: TensorDict) -> tuple[torch.Tensor, torch.T
 
 
 def model_memory_bytes(model_type: str, demo_length: int, sparsity: float, image_size: int) -> int:
-    """Bytes the agent carries for one demonstration: memory frames (uint8) plus all actions."""
+    """Bytes the agent carries for one demonstration: memory frames (uint8) plus all actions.
+
+    ``"spf_random"`` at ``sparsity`` carries what ``"spf"`` does: only the frames its
+    mask keeps, although its network holds a slot for every frame.
+    """
     frame_shape = (3, image_size, image_size)
     if model_type == "action_only":
         return demo_length  # one byte per action, no frames

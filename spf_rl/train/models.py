@@ -2,8 +2,9 @@
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
+from spf_rl.modules.memory import validate_sparsity_range
 from spf_rl.modules.policy import (
     SPFConfig,
     SPFPolicy,
@@ -13,7 +14,9 @@ from spf_rl.modules.policy import (
 )
 
 #: Model names the recipes accept.
-MODEL_NAMES = ("spf", "rpf", "action_only")
+MODEL_NAMES = ("spf", "rpf", "action_only", "spf_random")
+#: Default sparsity range of ``"spf_random"`` (a sparsity per training episode).
+DEFAULT_SPARSITY_RANGE = (0.2, 1.0)
 
 
 @dataclass
@@ -21,13 +24,24 @@ class ModelConfig:
     """Which policy to train and its hyper-parameters.
 
     Args:
-        name: ``"spf"`` (sparse memory), ``"rpf"`` (full memory) or ``"action_only"``.
-        sparsity: memory sparsity for ``"spf"``, in (0, 1].
+        name: ``"spf"`` (sparse memory), ``"rpf"`` (full memory), ``"action_only"``,
+            or ``"spf_random"`` (one SPF model trained with a sparsity drawn per
+            episode from ``sparsity_range``; not in the paper).
+        sparsity: memory sparsity for ``"spf"``, in (0, 1]; for ``"spf_random"`` the
+            sparsity it is validated and tested at (change it later with
+            :meth:`~spf_rl.modules.policy.SPFPolicy.set_sparsity`).
         pointer_update: ``"paper"`` or ``"rpf"``.
         k: half-width of the hard action window.
         feature_dim: image feature size.
         hidden_size: GRU hidden size.
         initial_pointer_step: untrained pointer increment tanh(b) (see :class:`SPFConfig`).
+        sparsity_range: ``[low, high]``, ``0 < low <= high <= 1``: the training
+            sparsities of ``"spf_random"`` (ignored by the other models).
+
+    Examples:
+        >>> cfg = ModelConfig(name="spf_random", sparsity=0.6)
+        >>> spf_config(cfg, demo_length=30, image_size=64).sparsity_range
+        (0.2, 1.0)
     """
 
     name: str = "spf"
@@ -37,14 +51,19 @@ class ModelConfig:
     feature_dim: int = 128
     hidden_size: int = 128
     initial_pointer_step: float = 0.0
+    sparsity_range: list[float] = field(default_factory=lambda: list(DEFAULT_SPARSITY_RANGE))
 
     def __post_init__(self) -> None:
         if self.name not in MODEL_NAMES:
             raise ValueError(f"model name must be one of {MODEL_NAMES}, got {self.name!r}.")
+        self.sparsity_range = list(validate_sparsity_range(self.sparsity_range))
 
 
 def spf_config(model: ModelConfig, demo_length: int, image_size: int, num_actions: int = 3) -> SPFConfig:
-    """The :class:`SPFConfig` of a :class:`ModelConfig` for an env's sizes."""
+    """The :class:`SPFConfig` of a :class:`ModelConfig` for an env's sizes.
+
+    ``sparsity_range`` is set only for ``"spf_random"``.
+    """
     return SPFConfig(
         num_actions=num_actions,
         demo_length=demo_length,
@@ -55,12 +74,28 @@ def spf_config(model: ModelConfig, demo_length: int, image_size: int, num_action
         pointer_update=model.pointer_update,
         initial_pointer_step=model.initial_pointer_step,
         image_size=(image_size, image_size),
+        sparsity_range=tuple(model.sparsity_range) if model.name == "spf_random" else None,
     )
 
 
 def build_policy(model_type: str, config: SPFConfig) -> SPFPolicy:
-    """The policy module of a model type (the config's memory mode is set by the type)."""
-    if model_type == "spf":
+    """The policy module of a model type (the config's memory mode is set by the type).
+
+    ``"spf_random"`` needs ``config.sparsity_range`` and ``"spf"`` refuses it, so that a
+    checkpoint's type and its memory layout always agree; ``"rpf"`` and
+    ``"action_only"`` drop it.
+
+    Raises:
+        ValueError: unknown ``model_type``, or ``config.sparsity_range`` does not fit it.
+    """
+    if model_type in ("spf", "spf_random"):
+        has_range = config.sparsity_range is not None
+        if has_range != (model_type == "spf_random"):
+            raise ValueError(
+                f"model_type {model_type!r} needs config.sparsity_range "
+                f"{'set (a (low, high) pair)' if model_type == 'spf_random' else 'None'}, "
+                f"got sparsity_range={config.sparsity_range!r}."
+            )
         return make_spf_policy(dataclasses.replace(config, memory_mode="sparse"))
     if model_type == "rpf":
         return make_rpf_policy(config)
