@@ -1,0 +1,318 @@
+"""Collect follow episodes with a policy through TorchRL collectors, locally or on Ray.
+
+DAgger and PPO fine-tuning both roll the learner out in
+:class:`~envs.nav_env.PathFollowEnv`; this module builds the env and the collector
+for them from two small configs:
+
+* :class:`CollectionEnvConfig`: which episodes (split, noise, sizes, expert labels);
+* :class:`CollectorConfig`: how they are stepped: ``backend="local"`` (one
+  in-process :class:`~torchrl.collectors.Collector`, or a
+  :class:`~torchrl.collectors.MultiSyncCollector` over ``num_collectors`` worker
+  processes) or ``backend="ray"`` (TorchRL's
+  :class:`~torchrl.collectors.distributed.RayCollector`, one Ray actor per
+  collector; ``pip install .[distributed]``), each collector over one batched env of
+  ``num_agents`` agents (``env_mode="batched"``) or a
+  :class:`~torchrl.envs.ParallelEnv` of ``num_agents`` single-agent workers
+  (``env_mode="parallel"``).
+
+:func:`collect_episodes` turns collected batches into the episode layout of
+:mod:`spf_rl.data` (one demonstration per episode, steps padded to
+``max_steps``), so DAgger's rounds can be stored and trained on like the BC dataset.
+"""
+from __future__ import annotations
+
+import functools
+import importlib.util
+import logging
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.collectors import Collector
+from torchrl.collectors.utils import split_trajectories
+from torchrl.envs import Compose, EnvBase, InitTracker, ParallelEnv, TensorDictPrimer, TransformedEnv
+
+from envs.nav_env import PathFollowEnv
+from envs.transforms import ActuationNoise
+
+logger = logging.getLogger(__name__)
+
+BACKENDS = ("local", "ray")
+ENV_MODES = ("batched", "parallel")
+_HAS_RAY = importlib.util.find_spec("ray") is not None
+
+
+@dataclass
+class CollectionEnvConfig:
+    """The episodes a collector plays.
+
+    Args:
+        split: house split (``"train"``, ``"val"``, ``"test"``).
+        noise: actuation-noise preset.
+        num_houses: houses of the split (``None``: its default).
+        demo_length: demonstration length n.
+        max_steps: episode limit.
+        image_size: frame side, pixels.
+        with_expert: emit the expert's action (``"expert_action"``) at every step.
+    """
+
+    split: str = "train"
+    noise: str = "paper"
+    num_houses: int | None = None
+    demo_length: int = 30
+    max_steps: int = 50
+    image_size: int = 64
+    with_expert: bool = True
+
+
+@dataclass
+class CollectorConfig:
+    """How episodes are collected.
+
+    Args:
+        backend: ``"local"`` (this machine's processes) or ``"ray"`` (TorchRL's Ray
+            collector; needs ``pip install .[distributed]``).
+        num_collectors: collectors stepping in parallel (``1`` with the local
+            backend: in this process; more: one worker process or Ray actor each).
+        env_mode: ``"batched"`` (one env stepping ``num_agents`` agents in one
+            process, the fast path) or ``"parallel"`` (a ``ParallelEnv`` of
+            ``num_agents`` single-agent workers).
+        num_agents: agents per collector.
+        ray_address: address of an existing Ray cluster (``None``: attach to a
+            running one or start a local one).
+        ray_num_cpus: CPUs reserved per Ray collector actor.
+    """
+
+    backend: str = "local"
+    num_collectors: int = 1
+    env_mode: str = "batched"
+    num_agents: int = 8
+    ray_address: str | None = None
+    ray_num_cpus: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.backend not in BACKENDS:
+            raise ValueError(f"collector.backend must be one of {BACKENDS}, got {self.backend!r}.")
+        if self.env_mode not in ENV_MODES:
+            raise ValueError(f"collector.env_mode must be one of {ENV_MODES}, got {self.env_mode!r}.")
+        for name in ("num_collectors", "num_agents"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"collector.{name} must be a positive int, got {value!r}.")
+        if self.ray_num_cpus <= 0:
+            raise ValueError(f"collector.ray_num_cpus must be > 0, got {self.ray_num_cpus!r}.")
+
+    @property
+    def total_agents(self) -> int:
+        """Agents stepped together over all collectors."""
+        return self.num_collectors * self.num_agents
+
+
+def _single_agent_env(env_config: CollectionEnvConfig) -> TransformedEnv:
+    return TransformedEnv(_base_env(env_config, None), ActuationNoise(env_config.noise))
+
+
+def _base_env(env_config: CollectionEnvConfig, num_agents: int | None) -> PathFollowEnv:
+    return PathFollowEnv(
+        env_config.split,
+        num_houses=env_config.num_houses,
+        num_agents=num_agents,
+        demo_length=env_config.demo_length,
+        max_steps=env_config.max_steps,
+        image_size=env_config.image_size,
+        with_expert=env_config.with_expert,
+    )
+
+
+def make_collection_env(
+    env_config: CollectionEnvConfig,
+    num_agents: int,
+    env_mode: Literal["batched", "parallel"] = "batched",
+    primer: TensorDictPrimer | None = None,
+) -> TransformedEnv:
+    """The env one collector steps: ``num_agents`` agents with noise, ``is_init`` and
+    (optionally) a recurrent policy's primer. Importable, so a
+    :func:`functools.partial` of it is a picklable env factory.
+
+    Args:
+        env_config: the episodes.
+        num_agents: agents in the env.
+        env_mode: ``"batched"`` or ``"parallel"`` (see :class:`CollectorConfig`).
+        primer: the policy's :class:`~torchrl.envs.TensorDictPrimer` (its recurrent state).
+
+    Examples:
+        >>> env = make_collection_env(CollectionEnvConfig(num_houses=1, demo_length=5, image_size=32), num_agents=2)
+        >>> env.batch_size, "expert_action" in env.observation_spec.keys()
+        (torch.Size([2]), True)
+    """
+    if env_mode not in ENV_MODES:
+        raise ValueError(f"env_mode must be one of {ENV_MODES}, got {env_mode!r}.")
+    if env_mode == "batched":
+        env: EnvBase = _base_env(env_config, num_agents)
+        transforms = [ActuationNoise(env_config.noise), InitTracker()]
+    else:
+        env = ParallelEnv(num_agents, functools.partial(_single_agent_env, env_config), mp_start_method="spawn")
+        transforms = [InitTracker()]
+    if primer is not None:
+        transforms.append(primer.clone())
+    return TransformedEnv(env, Compose(*transforms))
+
+
+def make_collector(
+    policy,
+    env_config: CollectionEnvConfig,
+    config: CollectorConfig,
+    *,
+    frames_per_batch: int,
+    total_frames: int = -1,
+    seed: int = 0,
+    reset_at_each_iter: bool = False,
+):
+    """A TorchRL collector running ``policy`` in the path-following env.
+
+    Args:
+        policy: a TensorDict module writing ``"action"``; if it has
+            ``make_tensordict_primer`` (recurrent), its primer is added to every env.
+        env_config: the episodes.
+        config: backend, number of collectors, env mode and agents.
+
+    Keyword Args:
+        frames_per_batch: frames per yielded batch (over all collectors).
+        total_frames: frames before the collector stops (``-1``: never).
+        seed: seed of the envs (each collector's envs get their own seed from it).
+        reset_at_each_iter: reset every env at the start of each batch (batches
+            then hold whole episodes from their start).
+
+    Returns:
+        a :class:`~torchrl.collectors.Collector`, :class:`~torchrl.collectors.MultiSyncCollector`
+        or :class:`~torchrl.collectors.distributed.RayCollector`.
+
+    Raises:
+        ImportError: for ``backend="ray"`` without ray installed.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict.nn import TensorDictModule
+        >>> forward = TensorDictModule(lambda p: torch.zeros(p.shape[0], dtype=torch.long), ["pixels"], ["action"])
+        >>> env_config = CollectionEnvConfig(num_houses=1, demo_length=5, max_steps=6, image_size=32)
+        >>> collector = make_collector(forward, env_config, CollectorConfig(num_agents=2), frames_per_batch=12, total_frames=12)
+        >>> [batch.batch_size for batch in collector]
+        [torch.Size([2, 6])]
+        >>> collector.shutdown()
+    """
+    primer = policy.make_tensordict_primer() if hasattr(policy, "make_tensordict_primer") else None
+    env_factory = functools.partial(
+        make_collection_env, env_config, num_agents=config.num_agents, env_mode=config.env_mode, primer=primer
+    )
+    common = dict(
+        frames_per_batch=frames_per_batch,
+        total_frames=total_frames,
+        reset_at_each_iter=reset_at_each_iter,
+    )
+    if config.backend == "ray":
+        if not _HAS_RAY:
+            raise ImportError("collector.backend='ray' needs ray: pip install '.[distributed]' (or pip install ray).")
+        ray_init_config = {"address": config.ray_address} if config.ray_address else {}
+        collector = Collector(
+            [env_factory] * config.num_collectors,
+            policy,
+            backend="ray",
+            num_collectors=config.num_collectors,
+            sync=True,
+            backend_options={
+                "collector_class": Collector,
+                "collector_kwargs": {"auto_register_policy_transforms": False, "reset_at_each_iter": reset_at_each_iter},
+                "ray_init_config": ray_init_config,
+                "remote_configs": {"num_cpus": config.ray_num_cpus, "num_gpus": 0},
+            },
+            **common,
+        )
+    elif config.num_collectors > 1:
+        collector = Collector(
+            [env_factory] * config.num_collectors,
+            policy,
+            num_collectors=config.num_collectors,
+            sync=True,
+            auto_register_policy_transforms=False,
+            **common,
+        )
+    else:
+        collector = Collector(env_factory(), policy, auto_register_policy_transforms=False, **common)
+    collector.set_seed(seed)
+    return collector
+
+
+def batch_to_episodes(batch: TensorDictBase, max_steps: int) -> TensorDict:
+    """Cut a collected ``[..., T]`` batch into episodes in the layout of :mod:`spf_rl.data`.
+
+    Each trajectory (a run of steps from an ``is_init`` step) becomes one episode:
+    the demonstration of its first step, and its steps padded to ``max_steps``
+    with ``mask`` marking the valid ones. ``success``/``spl`` are read at the
+    trajectory's last step (false/0 for a trajectory the batch cut short).
+    """
+    batch = batch.reshape(-1, batch.shape[-1]) if batch.ndim != 2 else batch
+    trajectories = split_trajectories(batch.exclude("collector"), done_key="done")
+    mask = trajectories.get("mask")
+    keep = mask[:, 0]
+    trajectories, mask = trajectories[keep], mask[keep]
+    count, length = trajectories.shape
+    if length > max_steps:
+        raise ValueError(f"collected trajectories of {length} steps exceed max_steps={max_steps}.")
+    pad = max_steps - length
+
+    def padded(value: torch.Tensor) -> torch.Tensor:
+        if pad == 0:
+            return value
+        return torch.cat([value, value.new_zeros(count, pad, *value.shape[2:])], 1)
+
+    lengths = mask.sum(-1)
+    last = (lengths - 1).clamp(min=0)
+    rows = torch.arange(count)
+    final = trajectories.get("next")[rows, last]
+    steps = TensorDict(
+        {
+            "pixels": padded(trajectories.get("pixels")),
+            "action": padded(trajectories.get("action")),
+            "expert_action": padded(trajectories.get("expert_action")),
+            "mask": padded(mask),
+            "is_init": padded(trajectories.get("is_init")),
+        },
+        batch_size=[count, max_steps],
+    )
+    done = final.get("done").reshape(count)
+    return TensorDict(
+        {
+            "steps": steps,
+            "demo_frames": trajectories.get("demo_frames")[:, 0],
+            "demo_actions": trajectories.get("demo_actions")[:, 0],
+            "episode_seed": trajectories.get("episode_seed")[:, 0].reshape(count),
+            "length": lengths,
+            "success": final.get("success").reshape(count) & done,
+            "spl": torch.where(done, final.get("spl").reshape(count), torch.zeros(count)),
+        },
+        batch_size=[count],
+    )
+
+
+def collect_episodes(collector, max_steps: int, num_batches: int, progress: bool = False) -> TensorDict:
+    """Run ``num_batches`` batches of ``collector`` and return their episodes
+    (:func:`batch_to_episodes`), concatenated."""
+    from tqdm.auto import tqdm
+
+    episodes = []
+    for index, batch in enumerate(tqdm(collector, total=num_batches, desc="collect", disable=not progress)):
+        episodes.append(batch_to_episodes(batch, max_steps))
+        if index + 1 >= num_batches:
+            break
+    return torch.cat(episodes, 0)
+
+
+__all__ = [
+    "CollectionEnvConfig",
+    "CollectorConfig",
+    "batch_to_episodes",
+    "collect_episodes",
+    "make_collection_env",
+    "make_collector",
+]

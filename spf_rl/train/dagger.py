@@ -1,0 +1,379 @@
+"""DAgger from a behaviour-cloning checkpoint.
+
+Round ``r = 1..R``: roll out a mixture of the learner and the expert (per step
+the expert's action with probability ``beta_r = beta0 * beta_decay ** (r - 1)``,
+else the learner's greedy action) through a TorchRL collector, label every
+visited state with the expert (the env's ``expert_action``), store the round's
+episodes on disk, aggregate them (with the BC dataset, by default) into an
+on-disk replay buffer (:class:`~torchrl.data.LazyMemmapStorage`), and retrain
+the learner on the aggregate with the BC loss. Round 0 is the starting BC model.
+Every round is scored on the ``val`` split (and on ``test`` when
+``test_every_round``); the results go to ``results.json`` and ``dagger.png``.
+
+Resuming: the round's episodes (``rounds/round-XX``, written to a temporary
+directory and renamed) and ``last.pt`` (atomic) are the durable state; an
+interrupted run started again with the same config rebuilds the aggregate from
+them and continues with the next round. Collection is deterministic: the env's
+per-agent episode streams, the mixing coin (a Philox draw of the episode seed
+and step) and the greedy learner fix every visited state.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.data import LazyMemmapStorage, SamplerWithoutReplacement, TensorDictReplayBuffer
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.record.loggers import get_logger
+from tqdm.auto import tqdm
+
+from envs.transforms import philox_uniforms
+from spf_rl.checkpoint import load_checkpoint, save_checkpoint
+from spf_rl.data import DatasetConfig, EpisodeDataset
+from spf_rl.train.bc import BCConfig, OptimConfig, _atomic_json, bc_loss
+from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig, collect_episodes, make_collector
+from spf_rl.train.evaluation import EvalConfig, evaluate_policy
+from spf_rl.train.models import build_policy
+
+logger = logging.getLogger(__name__)
+
+#: Mixed into the episode seed so the mixing coin is independent of the actuation noise.
+MIXING_STREAM_SALT = 0x5DA66E4
+
+
+class ExpertMixturePolicy(TensorDictModuleBase):
+    """DAgger's behaviour policy: the learner, or the expert with probability ``beta``.
+
+    The learner runs at every step (so its recurrent state follows the episode);
+    ``"action"`` is then the expert's ``"expert_action"`` where a coin with
+    probability ``beta`` comes up, else the learner's arg-max action. The coin
+    of a step is a Philox draw of ``(episode_seed, step_count)``, so the same
+    episodes give the same actions in any process and batch layout.
+
+    Args:
+        learner: module writing ``"logits"`` (e.g. :class:`~spf_rl.modules.SPFPolicy`).
+        beta: probability of the expert's action, in ``[0, 1]``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from tensordict.nn import TensorDictModule
+        >>> learner = TensorDictModule(lambda p: torch.zeros(p.shape[0], 3), ["pixels"], ["logits"])
+        >>> td = TensorDict({"pixels": torch.zeros(4, 1), "expert_action": torch.full((4,), 2),
+        ...     "episode_seed": torch.arange(4)[:, None], "step_count": torch.zeros(4, 1, dtype=torch.long)}, [4])
+        >>> ExpertMixturePolicy(learner, beta=1.0)(td)["action"].tolist()
+        [2, 2, 2, 2]
+        >>> ExpertMixturePolicy(learner, beta=0.0)(td)["action"].tolist()
+        [0, 0, 0, 0]
+    """
+
+    def __init__(self, learner: TensorDictModuleBase, beta: float) -> None:
+        super().__init__()
+        if not 0.0 <= float(beta) <= 1.0:
+            raise ValueError(f"beta must be in [0, 1], got {beta!r}.")
+        self.learner = learner
+        self.beta = float(beta)
+        self.in_keys = list(dict.fromkeys([*learner.in_keys, "expert_action", "episode_seed", "step_count"]))
+        self.out_keys = list(dict.fromkeys([*learner.out_keys, "action"]))
+
+    def make_tensordict_primer(self):
+        """The learner's primer (its recurrent state), if it has one."""
+        return self.learner.make_tensordict_primer()
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        tensordict = self.learner(tensordict)
+        action = tensordict.get("logits").argmax(-1)
+        if self.beta > 0.0:
+            expert = tensordict.get("expert_action").reshape(action.shape).to(action.dtype)
+            seeds = tensordict.get("episode_seed").reshape(-1).numpy() ^ MIXING_STREAM_SALT
+            steps = tensordict.get("step_count").reshape(-1).numpy()
+            coin = torch.from_numpy(philox_uniforms(seeds, steps, 1)[:, 0]).reshape(action.shape)
+            action = torch.where(coin < self.beta, expert, action)
+        tensordict.set("action", action)
+        return tensordict
+
+
+@dataclass
+class DAggerConfig:
+    """A DAgger run.
+
+    Args:
+        checkpoint: the BC checkpoint to start from.
+        output_dir: checkpoints, round data, logs, results and figures.
+        seed: seed of collection and batching.
+        rounds: DAgger rounds after the starting model.
+        episodes_per_round: learner episodes collected per round.
+        beta0: expert probability in round 1.
+        beta_decay: ``beta`` is multiplied by this each round.
+        aggregate_bc_data: start the aggregate from the BC dataset ``bc_data``
+            (built if missing); otherwise only DAgger's episodes are trained on.
+        bc_data: the BC dataset (default: the one ``recipes/bc.py`` builds).
+        bc_data_dir: its directory (``None``: the BC recipe's default naming).
+        epochs_per_round: passes over the aggregate after each round.
+        test_every_round: also score every round on the test split (else only
+            the start and the final best model).
+        num_workers: processes building the BC dataset, if it is missing.
+        logger: torchrl logger backend or ``""``.
+        progress: progress bars.
+        env: the collection episodes (split, noise, sizes).
+        collector: collection backend and layout.
+        optim: optimiser (``epochs`` is ignored: see ``epochs_per_round``).
+        val: validation after every round.
+        test: test evaluation.
+    """
+
+    checkpoint: str = "checkpoints/spf-s0.8.pt"
+    output_dir: str = "runs/dagger"
+    seed: int = 0
+    rounds: int = 4
+    episodes_per_round: int = 256
+    beta0: float = 0.5
+    beta_decay: float = 0.5
+    aggregate_bc_data: bool = True
+    bc_data: DatasetConfig = field(default_factory=DatasetConfig)
+    bc_data_dir: str | None = None
+    epochs_per_round: int = 1
+    test_every_round: bool = True
+    num_workers: int = 2
+    logger: str = "csv"
+    progress: bool = True
+    env: CollectionEnvConfig = field(default_factory=CollectionEnvConfig)
+    collector: CollectorConfig = field(default_factory=CollectorConfig)
+    optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=3e-4, cosine_schedule=False))
+    val: EvalConfig = field(default_factory=lambda: EvalConfig(split="val", num_episodes=100, seed=1))
+    test: EvalConfig = field(default_factory=lambda: EvalConfig(split="test", num_episodes=500, seed=2))
+
+    def __post_init__(self) -> None:
+        for name in ("rounds", "episodes_per_round", "epochs_per_round"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < (0 if name == "rounds" else 1):
+                raise ValueError(f"{name} must be a {'non-negative' if name == 'rounds' else 'positive'} int, got {value!r}.")
+        for name in ("beta0", "beta_decay"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)!r}.")
+
+    def beta(self, round_index: int) -> float:
+        """Expert probability of round ``round_index`` (1-based)."""
+        return self.beta0 * self.beta_decay ** (round_index - 1)
+
+
+def _store_round(directory: Path, episodes: TensorDict) -> None:
+    """Write one round's episodes as a memory-mapped TensorDict, atomically (temp dir + rename)."""
+    tmp = directory.with_name(f".{directory.name}.tmp")
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    episodes.memmap(tmp)
+    os.replace(tmp, directory)
+
+
+def _eval_config(config: EvalConfig, env: CollectionEnvConfig) -> EvalConfig:
+    return dataclasses.replace(config, demo_length=env.demo_length, max_steps=env.max_steps, image_size=env.image_size)
+
+
+class _Aggregate:
+    """The on-disk aggregate: a replay buffer of whole episodes on a :class:`LazyMemmapStorage`."""
+
+    def __init__(self, root: Path, capacity: int) -> None:
+        if root.exists():
+            shutil.rmtree(root)  # a cache, rebuilt from the durable sources at every start
+        self.storage = LazyMemmapStorage(capacity, scratch_dir=root)
+        self.buffer = TensorDictReplayBuffer(storage=self.storage, batch_size=1)
+
+    def extend(self, episodes: TensorDictBase, chunk: int = 128, progress: bool = False, desc: str = "aggregate") -> None:
+        for start in tqdm(range(0, episodes.shape[0], chunk), desc=desc, disable=not progress):
+            self.buffer.extend(episodes[start : start + chunk].to_tensordict())
+
+    def __len__(self) -> int:
+        return len(self.buffer)
+
+    def sampler(self, batch_size: int, seed: int) -> TensorDictReplayBuffer:
+        """One epoch without replacement over the aggregate, in a seeded order."""
+        buffer = TensorDictReplayBuffer(
+            storage=self.storage, sampler=SamplerWithoutReplacement(), batch_size=batch_size
+        )
+        buffer.set_rng(torch.Generator().manual_seed(seed))
+        return buffer
+
+
+def train_dagger(config: DAggerConfig) -> dict:
+    """Run (or resume) DAgger and return its results (also written to ``results.json``)."""
+    start_time = time.time()
+    output = Path(config.output_dir)
+    (output / "rounds").mkdir(parents=True, exist_ok=True)
+    (output / "config.json").write_text(json.dumps(asdict(config), indent=2, default=str))
+    payload = load_checkpoint(config.checkpoint)
+    model_type, policy_config = payload["model_type"], payload["model_config"]
+    env = config.env
+    if (policy_config.demo_length, policy_config.image_size) != (env.demo_length, (env.image_size, env.image_size)):
+        raise ValueError(
+            f"env.demo_length / env.image_size ({env.demo_length}, {env.image_size}) must match the checkpoint's "
+            f"({policy_config.demo_length}, {policy_config.image_size})."
+        )
+    policy = build_policy(model_type, policy_config)
+    policy.load_state_dict(payload["model"])
+    optimizer = torch.optim.Adam(policy.parameters(), lr=config.optim.lr, weight_decay=config.optim.weight_decay)
+    val_config, test_config = _eval_config(config.val, env), _eval_config(config.test, env)
+
+    last_path, best_path = output / "last.pt", output / "best.pt"
+    history: list[dict] = []
+    done_rounds = 0
+    if last_path.exists():
+        state = load_checkpoint(last_path, expected_model_type=model_type)
+        policy.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        done_rounds, history = state["round"], state["history"]
+        logger.info("resuming %s after round %d", output, done_rounds)
+
+    bc_dataset = None
+    if config.aggregate_bc_data:
+        bc_dir = config.bc_data_dir or BCConfig(data=config.bc_data).resolved_data_dir()
+        bc_dataset = EpisodeDataset.build(bc_dir, config.bc_data, config.num_workers, config.progress)
+    capacity = (len(bc_dataset) if bc_dataset is not None else 0) + config.rounds * config.episodes_per_round
+    aggregate = _Aggregate(output / "aggregate", capacity)
+    if bc_dataset is not None:
+        aggregate.extend(bc_dataset.episodes, progress=config.progress, desc="aggregate BC data")
+    for round_index in range(1, done_rounds + 1):
+        aggregate.extend(TensorDict.load_memmap(output / "rounds" / f"round-{round_index:02d}"))
+
+    run_logger = get_logger(config.logger, logger_name=str(output / "logs"), experiment_name="dagger") if config.logger else None
+
+    def score(round_index: int, extra: dict) -> dict:
+        val, _ = evaluate_policy(policy, val_config)
+        record = {"round": round_index, **extra, "val_success": val["success"], "val_spl": val["spl"]}
+        if config.test_every_round or round_index in (0, config.rounds):
+            test, _ = evaluate_policy(policy, test_config, progress=config.progress)
+            record.update(test_success=test["success"], test_spl=test["spl"], test_success_ci=test["success_ci"], test_spl_ci=test["spl_ci"])
+        logger.info("round %d: %s", round_index, record)
+        if run_logger is not None:
+            for key, value in record.items():
+                if isinstance(value, float):
+                    run_logger.log_scalar(f"round/{key}", value, step=round_index)
+        return record
+
+    def save(round_index: int) -> None:
+        save_checkpoint(
+            last_path,
+            model_type,
+            policy_config,
+            {"model": policy.state_dict(), "optimizer": optimizer.state_dict(), "round": round_index, "history": history},
+        )
+
+    if done_rounds == 0 and not history:
+        history.append(score(0, {"beta": None, "aggregate_episodes": len(aggregate)}))
+        save_checkpoint(best_path, model_type, policy_config, {"model": policy.state_dict(), "round": 0})
+        save(0)
+
+    for round_index in range(done_rounds + 1, config.rounds + 1):
+        round_seed = int(np.random.SeedSequence([config.seed, round_index]).generate_state(1)[0] % (2**31))
+        beta = config.beta(round_index)
+        episodes = _collect_round(policy, config, beta, round_seed)
+        collected = {
+            "beta": beta,
+            "collected_episodes": int(episodes.shape[0]),
+            "behaviour_success": float(episodes["success"].float().mean()),
+        }
+        _store_round(output / "rounds" / f"round-{round_index:02d}", episodes)
+        aggregate.extend(episodes)
+        collected["aggregate_episodes"] = len(aggregate)
+        collected["train_loss"] = _train_round(policy, optimizer, aggregate, config, round_index)
+        history.append(score(round_index, collected))
+        best = max(history, key=lambda r: (r["val_success"], r["val_spl"]))
+        if best["round"] == round_index:
+            save_checkpoint(best_path, model_type, policy_config, {"model": policy.state_dict(), "round": round_index})
+        save(round_index)
+
+    best = max(history, key=lambda r: (r["val_success"], r["val_spl"]))
+    results = {
+        "model": model_type,
+        "start_checkpoint": config.checkpoint,
+        "start": history[0],
+        "final": history[-1],
+        "best_round_by_val": best["round"],
+        "history": history,
+        "wall_seconds_this_run": time.time() - start_time,
+        "config": asdict(config),
+    }
+    _atomic_json(output / "results.json", results)
+    plot_rounds(history, output / "dagger.png", title=f"DAgger from {Path(config.checkpoint).name}")
+    return results
+
+
+def _collect_round(policy: TensorDictModuleBase, config: DAggerConfig, beta: float, seed: int) -> TensorDict:
+    """The round's episodes: whole batches of ``max_steps`` steps from a reset, until
+    ``episodes_per_round`` episodes have been collected (the surplus is dropped)."""
+    env, layout = config.env, config.collector
+    frames_per_batch = layout.total_agents * env.max_steps
+    policy.eval()
+    behaviour = ExpertMixturePolicy(policy, beta)
+    collector = make_collector(
+        behaviour, env, layout, frames_per_batch=frames_per_batch, seed=seed, reset_at_each_iter=True
+    )
+    episodes, count = [], 0
+    bar = tqdm(total=config.episodes_per_round, desc=f"collect (beta {beta:.2f})", disable=not config.progress)
+    try:
+        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+            while count < config.episodes_per_round:
+                batch = collect_episodes(collector, env.max_steps, num_batches=1)
+                episodes.append(batch)
+                count += batch.shape[0]
+                bar.update(batch.shape[0])
+    finally:
+        collector.shutdown()
+        bar.close()
+    policy.train()
+    return torch.cat(episodes, 0)[: config.episodes_per_round]
+
+
+def _train_round(policy, optimizer, aggregate: _Aggregate, config: DAggerConfig, round_index: int) -> float:
+    policy.train()
+    losses = []
+    batches = -(-len(aggregate) // config.optim.batch_size)
+    for epoch in range(config.epochs_per_round):
+        buffer = aggregate.sampler(config.optim.batch_size, seed=config.seed * 100_003 + round_index * 101 + epoch)
+        bar = tqdm(range(batches), desc=f"round {round_index} epoch {epoch + 1}", disable=not config.progress)
+        for _ in bar:
+            loss, _ = bc_loss(policy, buffer.sample())
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(policy.parameters(), config.optim.max_grad_norm)
+            optimizer.step()
+            losses.append(loss.item())
+            bar.set_postfix(loss=f"{losses[-1]:.3f}")
+    return float(sum(losses) / len(losses))
+
+
+def plot_rounds(history: list[dict], path: Path, title: str = "DAgger") -> None:
+    """Success and SPL per round (val, and test where measured)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    rounds = [r["round"] for r in history]
+    for split, style in (("val", "-"), ("test", "--")):
+        for metric, marker in (("success", "o"), ("spl", "s")):
+            points = [(r["round"], r[f"{split}_{metric}"]) for r in history if f"{split}_{metric}" in r]
+            if points:
+                ax.plot(*zip(*points), style, marker=marker, label=f"{split} {metric}")
+    ax.set_xticks(rounds)
+    ax.set_xlabel("DAgger round (0 = BC start)")
+    ax.set_ylim(0, 1)
+    ax.set_title(title)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+__all__ = ["DAggerConfig", "ExpertMixturePolicy", "plot_rounds", "train_dagger"]

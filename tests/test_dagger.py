@@ -1,0 +1,158 @@
+"""DAgger: the beta-mixed behaviour policy, rounds, aggregation, resume and errors."""
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+
+from spf_rl.checkpoint import load_checkpoint, save_checkpoint
+from spf_rl.modules import SPFConfig
+from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig
+from spf_rl.train.dagger import DAggerConfig, ExpertMixturePolicy, train_dagger
+from spf_rl.train.evaluation import EvalConfig
+from spf_rl.train.models import build_policy
+
+
+def constant_learner(action: int) -> TensorDictModule:
+    def logits(pixels):
+        out = torch.zeros(pixels.shape[0], 3)
+        out[:, action] = 1.0
+        return out
+
+    return TensorDictModule(logits, ["pixels"], ["logits"])
+
+
+def mixing_input(count: int, expert: int = 2) -> TensorDict:
+    return TensorDict(
+        {
+            "pixels": torch.zeros(count, 1),
+            "expert_action": torch.full((count,), expert),
+            "episode_seed": torch.arange(count)[:, None] * 7919,
+            "step_count": (torch.arange(count)[:, None] % 50),
+        },
+        [count],
+    )
+
+
+def test_mixture_takes_the_expert_with_probability_beta():
+    actions = ExpertMixturePolicy(constant_learner(0), beta=0.3)(mixing_input(4000))["action"]
+    expert_share = (actions == 2).float().mean().item()
+    assert abs(expert_share - 0.3) < 0.03
+    assert set(actions.unique().tolist()) == {0, 2}
+
+
+def test_mixture_coin_is_a_function_of_episode_and_step_only():
+    td = mixing_input(64)
+    policy = ExpertMixturePolicy(constant_learner(0), beta=0.5)
+    actions = policy(td.clone())["action"]
+    permutation = torch.randperm(64, generator=torch.Generator().manual_seed(0))
+    permuted = policy(td[permutation].clone())["action"]
+    assert torch.equal(permuted, actions[permutation])  # same coins whatever the batch order
+    assert 0 < (actions == 2).sum() < 64
+
+
+def test_mixture_refuses_bad_beta():
+    with pytest.raises(ValueError, match="beta"):
+        ExpertMixturePolicy(constant_learner(0), beta=1.5)
+
+
+@pytest.mark.parametrize(
+    "kwargs, name",
+    [({"beta0": -0.1}, "beta0"), ({"beta_decay": 2.0}, "beta_decay"), ({"rounds": -1}, "rounds"), ({"episodes_per_round": 0}, "episodes_per_round")],
+)
+def test_config_errors_name_the_parameter(kwargs, name):
+    with pytest.raises(ValueError, match=name):
+        DAggerConfig(**kwargs)
+
+
+def tiny_config(tmp_path, checkpoint, **overrides) -> DAggerConfig:
+    evaluation = dict(num_episodes=4, num_agents=4, demo_length=5, max_steps=6, image_size=32, num_houses=1)
+    base = dict(
+        checkpoint=str(checkpoint),
+        output_dir=str(tmp_path / "dagger"),
+        rounds=2,
+        episodes_per_round=4,
+        aggregate_bc_data=False,
+        logger="",
+        progress=False,
+        env=CollectionEnvConfig(num_houses=1, demo_length=5, max_steps=6, image_size=32),
+        collector=CollectorConfig(num_agents=2),
+        val=EvalConfig(split="val", seed=1, **evaluation),
+        test=EvalConfig(split="test", seed=2, **evaluation),
+    )
+    base.update(overrides)
+    return DAggerConfig(**base)
+
+
+@pytest.fixture()
+def bc_checkpoint(tmp_path):
+    torch.manual_seed(0)
+    config = SPFConfig(demo_length=5, sparsity=0.4, feature_dim=8, hidden_size=8, image_size=(32, 32))
+    policy = build_policy("spf", config)
+    path = tmp_path / "bc.pt"
+    save_checkpoint(path, "spf", config, {"model": policy.state_dict()})
+    return path
+
+
+def test_rounds_aggregate_retrain_and_report(tmp_path, bc_checkpoint):
+    results = train_dagger(tiny_config(tmp_path, bc_checkpoint))
+    output = tmp_path / "dagger"
+    history = results["history"]
+    assert [r["round"] for r in history] == [0, 1, 2]
+    assert [r["beta"] for r in history] == [None, 0.5, 0.25]
+    assert [r["aggregate_episodes"] for r in history] == [0, 4, 8]
+    assert all("test_success" in r and 0.0 <= r["val_spl"] <= r["val_success"] + 1e-6 for r in history)
+    assert json.loads((output / "results.json").read_text())["best_round_by_val"] == results["best_round_by_val"]
+    assert (output / "dagger.png").stat().st_size > 0
+    episodes = TensorDict.load_memmap(output / "rounds" / "round-01")
+    assert episodes.batch_size == torch.Size([4])
+    assert episodes["steps", "is_init"][:, 0].all()
+    # every stored state carries a valid expert label
+    labels = episodes["steps", "expert_action"][episodes["steps", "mask"]]
+    assert labels.numel() > 0 and labels.min() >= 0 and labels.max() <= 2
+    # the learner changed, and its checkpoints load weights-only into the start's model type
+    start = load_checkpoint(bc_checkpoint)["model"]
+    last = load_checkpoint(output / "last.pt", expected_model_type="spf")
+    assert last["round"] == 2
+    assert any(not torch.equal(start[k], last["model"][k]) for k in start)
+    best = load_checkpoint(output / "best.pt", expected_model_type="spf")
+    build_policy("spf", best["model_config"]).load_state_dict(best["model"])
+
+
+def test_interrupted_run_resumes_to_the_same_result(tmp_path, bc_checkpoint):
+    straight = train_dagger(tiny_config(tmp_path / "a", bc_checkpoint))
+    train_dagger(tiny_config(tmp_path / "b", bc_checkpoint, rounds=1))  # "interrupted" after round 1
+    round_one = (tmp_path / "b" / "dagger" / "rounds" / "round-01").stat().st_mtime_ns
+    resumed = train_dagger(tiny_config(tmp_path / "b", bc_checkpoint))
+    assert (tmp_path / "b" / "dagger" / "rounds" / "round-01").stat().st_mtime_ns == round_one  # not re-collected
+    assert [r["round"] for r in resumed["history"]] == [0, 1, 2]
+    a = load_checkpoint(tmp_path / "a" / "dagger" / "last.pt")["model"]
+    b = load_checkpoint(tmp_path / "b" / "dagger" / "last.pt")["model"]
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert straight["history"][2]["val_success"] == resumed["history"][2]["val_success"]
+
+
+def test_checkpoint_of_other_sizes_is_refused(tmp_path, bc_checkpoint):
+    config = tiny_config(tmp_path, bc_checkpoint, env=CollectionEnvConfig(num_houses=1, demo_length=6, max_steps=6, image_size=32))
+    with pytest.raises(ValueError, match="demo_length"):
+        train_dagger(config)
+
+
+def test_recipe_configs_load_and_refuse_unknown_keys():
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
+    from config_utils import load_config
+
+    default = load_config(DAggerConfig, "dagger", [])
+    quick = load_config(DAggerConfig, "dagger", ["collector.backend=ray"], preset="dagger_quick")
+    assert default.checkpoint == "checkpoints/spf-s0.8.pt" and default.rounds == 4
+    assert quick.episodes_per_round < default.episodes_per_round and quick.collector.backend == "ray"
+    with pytest.raises(ValueError, match="collector"):
+        load_config(DAggerConfig, "dagger", ["collector.backend=slurm"])
+    with pytest.raises(ValueError):
+        load_config(DAggerConfig, "dagger", ["no_such_key=1"])
