@@ -9,6 +9,7 @@ Usage::
     python recipes/evaluate.py runs/bc/spf-s0.8-seed0/best.pt
     python recipes/evaluate.py checkpoints/ --split test --episodes 500 --noise paper --out results/eval
     python recipes/evaluate.py open_loop --split test
+    python recipes/evaluate.py checkpoints/spf_random-s0.2-1.pt --sparsity 0.6   # one model, any sparsity
 """
 from __future__ import annotations
 
@@ -38,7 +39,15 @@ def evaluate_path(path: str, args: argparse.Namespace) -> dict:
         policy = build_policy(model_type, config)
         policy.load_state_dict(payload["model"])
         demo_length, image_size, sparsity = config.demo_length, config.image_size[0], config.effective_sparsity
-        memory = model_memory_bytes(model_type, demo_length, config.sparsity, image_size)
+        if args.sparsity is not None:
+            if config.sparsity_range is None:
+                raise ValueError(
+                    f"--sparsity applies to random-sparsity models (model type 'spf_random') only; {path} holds a "
+                    f"{model_type!r} model with a fixed sparsity {sparsity:g}."
+                )
+            policy.set_sparsity(args.sparsity)
+            sparsity = args.sparsity
+        memory = model_memory_bytes(model_type, demo_length, sparsity, image_size)
     eval_config = EvalConfig(
         split=args.split,
         num_episodes=args.episodes,
@@ -73,6 +82,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--max-steps", type=int, default=50)
     parser.add_argument("--demo-length", type=int, default=30, help="for open_loop only")
     parser.add_argument("--image-size", type=int, default=64, help="for open_loop only")
+    parser.add_argument(
+        "--sparsity", type=float, default=None, help="memory sparsity to evaluate a random-sparsity (spf_random) model at"
+    )
     parser.add_argument("--model-type", default=None, help="refuse checkpoints of another model type")
     parser.add_argument("--out", default="results/eval", help="output directory for the JSON files")
     parser.add_argument("--no-progress", action="store_true")
@@ -98,6 +110,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     for target in targets:
         result = evaluate_path(target, args)
         name = "open_loop" if target == "open_loop" else Path(target).with_suffix("").as_posix().replace("/", "_").strip("_.")
+        if args.sparsity is not None and target != "open_loop":
+            name += f"-at{args.sparsity:g}"
         destination = out / f"{name}-{args.split}-{args.noise}-seed{args.seed}.json"
         tmp = destination.with_name(f".{destination.name}.tmp")
         tmp.write_text(json.dumps(result, indent=2))

@@ -53,3 +53,21 @@ def test_other_model_type_is_refused(checkpoint, tmp_path):
     module = _evaluate_module()
     with pytest.raises(CheckpointError, match="holds a 'spf' model, but a 'rpf' model"):
         _run(module, checkpoint, tmp_path / "c", "--model-type", "rpf")
+
+
+def test_random_sparsity_model_is_evaluated_at_the_requested_sparsity(tmp_path):
+    import dataclasses
+
+    config = dataclasses.replace(CONFIG, sparsity_range=(0.2, 1.0))
+    path = tmp_path / "spf_random.pt"
+    save_checkpoint(path, "spf_random", config, {"model": build_policy("spf_random", config).state_dict()})
+    module = _evaluate_module()
+    (result,) = _run(module, path, tmp_path / "d", "--sparsity", "1.0")
+    assert result["sparsity"] == 1.0
+    assert result["memory_bytes"] == 6 * 3 * 32 * 32 + 6  # all six frames kept at sparsity 1
+    assert list((tmp_path / "d").glob("*-at1-*.json"))
+
+
+def test_sparsity_flag_is_refused_for_fixed_sparsity_models(checkpoint, tmp_path):
+    with pytest.raises(ValueError, match="--sparsity"):
+        _run(_evaluate_module(), checkpoint, tmp_path / "e", "--sparsity", "0.4")
