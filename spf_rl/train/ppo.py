@@ -151,7 +151,8 @@ class PPOConfig:
             process; on the 2-core machine one thread was about 5x faster than
             torch's default of two while other jobs were running (two threads spin
             waiting for each other).
-        logger: torchrl logger backend (``"csv"``, ``"tensorboard"``, ...) or ``""``.
+        logger: torchrl logger backend (``"csv"``, ``"tensorboard"``, ...); ``""`` or
+            ``None`` (``logger=`` on the command line) for none.
         progress: progress bars.
         collector: how episodes are collected (:class:`~spf_rl.train.collection.CollectorConfig`).
         env: the training episodes (:class:`~spf_rl.train.collection.CollectionEnvConfig`);
@@ -194,7 +195,7 @@ class PPOConfig:
     critic_trunk_grad: bool = False
     val_every: int = 4
     num_threads: int = 1
-    logger: str = "csv"
+    logger: str | None = "csv"
     progress: bool = True
     collector: CollectorConfig = field(default_factory=lambda: CollectorConfig(num_agents=25))
     env: CollectionEnvConfig = field(
