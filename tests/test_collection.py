@@ -146,3 +146,19 @@ def test_ray_backend_collects_a_batch_on_a_local_cluster():
         assert int(episodes["length"].sum()) == 12
     finally:
         ray.shutdown()
+
+
+def test_primer_of_a_wrapped_recurrent_policy_is_found():
+    from spf_rl.modules import make_actor
+
+    actor = make_actor(tiny_policy().eval())
+    assert not hasattr(actor, "make_tensordict_primer")
+    collector = make_collector(actor, TINY_ENV, CollectorConfig(num_agents=2), frames_per_batch=12, total_frames=12, seed=0)
+    try:
+        batch = next(iter(collector))
+    finally:
+        collector.shutdown()
+    # the GRU state is carried: zero at episode starts, non-zero after a step
+    hidden = batch["spf_hidden"]
+    assert torch.all(hidden[batch["is_init"].squeeze(-1)] == 0)
+    assert hidden[~batch["is_init"].squeeze(-1)].abs().sum() > 0

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import pytest
 import torch
@@ -126,6 +127,8 @@ def test_interrupted_run_resumes_to_the_same_result(tmp_path, bc_checkpoint):
     straight = train_dagger(tiny_config(tmp_path / "a", bc_checkpoint))
     train_dagger(tiny_config(tmp_path / "b", bc_checkpoint, rounds=1))  # "interrupted" after round 1
     round_one = (tmp_path / "b" / "dagger" / "rounds" / "round-01").stat().st_mtime_ns
+    # an interruption after round 2's episodes were stored but before last.pt: they are reused
+    shutil.copytree(tmp_path / "a" / "dagger" / "rounds" / "round-02", tmp_path / "b" / "dagger" / "rounds" / "round-02")
     resumed = train_dagger(tiny_config(tmp_path / "b", bc_checkpoint))
     assert (tmp_path / "b" / "dagger" / "rounds" / "round-01").stat().st_mtime_ns == round_one  # not re-collected
     assert [r["round"] for r in resumed["history"]] == [0, 1, 2]

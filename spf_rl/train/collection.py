@@ -32,6 +32,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import Collector
 from torchrl.collectors.utils import split_trajectories
 from torchrl.envs import Compose, EnvBase, InitTracker, ParallelEnv, TensorDictPrimer, TransformedEnv
+from torchrl.modules.utils import get_primers_from_module
 
 from envs.nav_env import PathFollowEnv
 from envs.transforms import ActuationNoise
@@ -172,8 +173,10 @@ def make_collector(
     """A TorchRL collector running ``policy`` in the path-following env.
 
     Args:
-        policy: a TensorDict module writing ``"action"``; if it has
-            ``make_tensordict_primer`` (recurrent), its primer is added to every env.
+        policy: a TensorDict module writing ``"action"``; its recurrent-state primer
+            (its own ``make_tensordict_primer``, else those of its submodules, as for a
+            :class:`~torchrl.modules.ProbabilisticActor` around an SPF policy) is added
+            to every env.
         env_config: the episodes.
         config: backend, number of collectors, env mode and agents.
 
@@ -201,7 +204,10 @@ def make_collector(
         [torch.Size([2, 6])]
         >>> collector.shutdown()
     """
-    primer = policy.make_tensordict_primer() if hasattr(policy, "make_tensordict_primer") else None
+    if hasattr(policy, "make_tensordict_primer"):
+        primer = policy.make_tensordict_primer()
+    else:  # e.g. a ProbabilisticActor around a recurrent policy: the primers of its submodules
+        primer = get_primers_from_module(policy, warn=False) if isinstance(policy, torch.nn.Module) else None
     env_factory = functools.partial(
         make_collection_env, env_config, num_agents=config.num_agents, env_mode=config.env_mode, primer=primer
     )

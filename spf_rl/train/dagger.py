@@ -276,13 +276,18 @@ def train_dagger(config: DAggerConfig) -> dict:
     for round_index in range(done_rounds + 1, config.rounds + 1):
         round_seed = int(np.random.SeedSequence([config.seed, round_index]).generate_state(1)[0] % (2**31))
         beta = config.beta(round_index)
-        episodes = _collect_round(policy, config, beta, round_seed)
+        round_dir = output / "rounds" / f"round-{round_index:02d}"
+        if round_dir.exists():  # stored before an interruption (collection is deterministic): reuse it
+            episodes = TensorDict.load_memmap(round_dir).to_tensordict()
+            logger.info("round %d: reusing the episodes stored in %s", round_index, round_dir)
+        else:
+            episodes = _collect_round(policy, config, beta, round_seed)
+            _store_round(round_dir, episodes)
         collected = {
             "beta": beta,
             "collected_episodes": int(episodes.shape[0]),
             "behaviour_success": float(episodes["success"].float().mean()),
         }
-        _store_round(output / "rounds" / f"round-{round_index:02d}", episodes)
         aggregate.extend(episodes)
         collected["aggregate_episodes"] = len(aggregate)
         collected["train_loss"] = _train_round(policy, optimizer, aggregate, config, round_index)
