@@ -25,6 +25,7 @@ import ctypes.util
 import logging
 import math
 import os
+import threading
 
 import numpy as np
 
@@ -116,11 +117,18 @@ def create_gl_context(width: int, height: int):
     return context
 
 
+#: The GL context current on each thread (OpenGL's "current context" is per thread).
+_current_gl = threading.local()
+
+
 class FirstPersonRenderer:
     """Renders RGB frames of MuJoCo models from a pose given in the xy plane.
 
     One renderer owns one GL context; it keeps a :class:`mujoco.MjrContext` per model
     (created on first use), so houses that differ are all drawn by the same context.
+    Several renderers may live in one process (a collector's env beside an
+    evaluation env): each makes its own context current before it draws, creates
+    or frees GL resources.
 
     Args:
         width: frame width in pixels.
@@ -144,11 +152,18 @@ class FirstPersonRenderer:
         self._per_model: dict[int, tuple] = {}
         self._buffer = np.empty((self.height, self.width, 3), dtype=np.uint8)
 
+    def _activate(self) -> None:
+        """Make this renderer's GL context current on this thread (creating it on first use)."""
+        if self._gl is None:
+            self._gl = create_gl_context(self.width, self.height)
+        elif getattr(_current_gl, "context", None) is not self._gl:
+            self._gl.make_current()
+        _current_gl.context = self._gl
+
     def _model_state(self, house):
         import mujoco
 
-        if self._gl is None:
-            self._gl = create_gl_context(self.width, self.height)
+        self._activate()
         key = id(house.model)
         state = self._per_model.get(key)
         if state is None:
@@ -200,16 +215,21 @@ class FirstPersonRenderer:
         """Free the GL resources held for ``house``'s model."""
         state = self._per_model.pop(id(house.model), None)
         if state is not None:
+            self._activate()
             state[3].free()
 
     def close(self) -> None:
         """Free every model's GL resources and the context."""
+        if self._gl is None:
+            return
+        self._activate()
         for state in self._per_model.values():
             state[3].free()
         self._per_model.clear()
-        if self._gl is not None:
-            self._gl.free()
-            self._gl = None
+        self._gl.free()
+        if getattr(_current_gl, "context", None) is self._gl:
+            _current_gl.context = None
+        self._gl = None
 
 
 #: Minification filter set on 2-D textures (MuJoCo uploads them with trilinear

@@ -1,0 +1,31 @@
+"""The first-person renderer: several renderers in one process keep their own GL state."""
+from __future__ import annotations
+
+import numpy as np
+
+from envs.render import FirstPersonRenderer
+from envs.scenes import build_house
+
+
+def views(renderer, house, count=3):
+    x, y = house.spawn_xy
+    return [renderer.render(house, np.array([x, y, heading])) for heading in np.linspace(0, 2, count)]
+
+
+def test_interleaved_renderers_draw_what_a_lone_renderer_draws():
+    first_house, second_house, third_house = build_house(seed=0), build_house(seed=1), build_house(seed=2)
+    alone = FirstPersonRenderer(32, 32)
+    expected = {seed: views(alone, house) for seed, house in ((0, first_house), (1, second_house), (2, third_house))}
+    alone.close()
+
+    collector_side, evaluation_side = FirstPersonRenderer(32, 32), FirstPersonRenderer(32, 32)
+    a = views(collector_side, first_house)
+    b = views(evaluation_side, second_house)  # the other renderer's context becomes current
+    a_again = views(collector_side, first_house)
+    evaluation_side.close()  # frees its context while the other renderer lives on
+    c = views(collector_side, third_house)  # a new house (new GL resources) after the other one closed
+    collector_side.close()
+    for got, want in ((a, expected[0]), (b, expected[1]), (a_again, expected[0]), (c, expected[2])):
+        for frame, reference in zip(got, want):
+            np.testing.assert_array_equal(frame, reference)
+    assert not np.array_equal(expected[0][0], expected[1][0])
