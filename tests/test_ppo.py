@@ -273,3 +273,20 @@ def test_ray_collector_acts_with_the_updated_weights(tmp_path, checkpoint):
     assert history[0]["max_abs_log_ratio"] > 1e-3
     # ... and the remote collector collected iteration 2's batch with the new weights
     assert history[1]["log_ratio_first"] < 1e-5
+
+
+def test_non_finite_updates_are_skipped_not_applied(tmp_path, checkpoint, monkeypatch):
+    forward = ppo_module.SPFPPOLoss.forward
+
+    def poisoned(self, tensordict):
+        out = forward(self, tensordict)
+        out.set("loss_objective", out.get("loss_objective") * float("nan"))
+        return out
+
+    monkeypatch.setattr(ppo_module.SPFPPOLoss, "forward", poisoned)
+    results = train_ppo(tiny_config(tmp_path, checkpoint, iterations=2))
+    second = results["history"][1]
+    assert not second["critic_warmup"] and second["skipped_updates"] == 2 * AGENTS  # ppo_epochs x minibatches
+    start = load_checkpoint(checkpoint)["model"]
+    last = load_checkpoint(Path(tmp_path / "run" / "last.pt"))["model"]
+    assert all(torch.equal(value, last[key]) and torch.isfinite(value).all() for key, value in start.items())

@@ -655,7 +655,7 @@ class _PPORun:
         warmup = self.iteration < config.critic_warmup_iters
         generator = torch.Generator().manual_seed(config.seed * _PERMUTATION_SALT + self.iteration)
         sums: dict[str, float] = {}
-        count = 0
+        count = skipped = 0
         log_ratio_first = None
         for _ in range(config.ppo_epochs):
             order = torch.randperm(train_td.shape[0], generator=generator)
@@ -676,16 +676,24 @@ class _PPORun:
                     if log_ratio_first is None:
                         log_ratio_first = float(metrics["max_abs_log_ratio"])
                 total.backward()
-                nn.utils.clip_grad_norm_(self.critic.parameters(), config.max_grad_norm)
+                critic_norm = nn.utils.clip_grad_norm_(self.critic.parameters(), config.max_grad_norm)
+                policy_norm = (
+                    nn.utils.clip_grad_norm_(policy.parameters(), config.max_grad_norm) if not warmup else critic_norm
+                )
+                if not (torch.isfinite(total) and torch.isfinite(critic_norm) and torch.isfinite(policy_norm)):
+                    # one bad minibatch must not turn the weights into NaN: skip its step, count it
+                    skipped += 1
+                    logger.warning("iteration %d: non-finite loss or gradient, update skipped", self.iteration + 1)
+                    continue
                 self.critic_optimizer.step()
                 if not warmup:
-                    nn.utils.clip_grad_norm_(policy.parameters(), config.max_grad_norm)
                     self.policy_optimizer.step()
                 for key, value in metrics.items():
                     if value.numel() == 1:
                         sums[key] = sums.get(key, 0.0) + float(value)
                 count += 1
-        record.update({key: value / count for key, value in sums.items()})
+        record.update({key: value / max(count, 1) for key, value in sums.items()})
+        record["skipped_updates"] = skipped
         record["critic_warmup"] = warmup
         if log_ratio_first is not None:
             record["log_ratio_first"] = log_ratio_first
