@@ -25,7 +25,6 @@ import ctypes.util
 import logging
 import math
 import os
-import threading
 
 import numpy as np
 
@@ -117,10 +116,6 @@ def create_gl_context(width: int, height: int):
     return context
 
 
-#: The GL context current on each thread (OpenGL's "current context" is per thread).
-_current_gl = threading.local()
-
-
 class FirstPersonRenderer:
     """Renders RGB frames of MuJoCo models from a pose given in the xy plane.
 
@@ -153,12 +148,16 @@ class FirstPersonRenderer:
         self._buffer = np.empty((self.height, self.width, 3), dtype=np.uint8)
 
     def _activate(self) -> None:
-        """Make this renderer's GL context current on this thread (creating it on first use)."""
+        """Make this renderer's GL context current on this thread (creating it on first use).
+
+        Always re-bound (a few microseconds): another renderer may have made its own
+        context current, and freeing any MuJoCo GL context (even by the garbage
+        collector) calls ``eglReleaseThread``, which unbinds the current one.
+        """
         if self._gl is None:
             self._gl = create_gl_context(self.width, self.height)
-        elif getattr(_current_gl, "context", None) is not self._gl:
+        else:
             self._gl.make_current()
-        _current_gl.context = self._gl
 
     def _model_state(self, house):
         import mujoco
@@ -227,8 +226,6 @@ class FirstPersonRenderer:
             state[3].free()
         self._per_model.clear()
         self._gl.free()
-        if getattr(_current_gl, "context", None) is self._gl:
-            _current_gl.context = None
         self._gl = None
 
 

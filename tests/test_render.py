@@ -29,3 +29,18 @@ def test_interleaved_renderers_draw_what_a_lone_renderer_draws():
         for frame, reference in zip(got, want):
             np.testing.assert_array_equal(frame, reference)
     assert not np.array_equal(expected[0][0], expected[1][0])
+
+
+def test_renderer_survives_another_gl_context_being_freed():
+    from envs.render import create_gl_context
+
+    house = build_house(seed=0)
+    renderer = FirstPersonRenderer(32, 32)
+    expected = views(renderer, house)
+    stray = create_gl_context(32, 32)  # e.g. a context of an env nobody closed ...
+    stray.free()  # ... freed later by the garbage collector: eglReleaseThread unbinds the current context
+    new_house = views(renderer, build_house(seed=2))  # new GL resources
+    assert new_house[0].any()
+    for frame, reference in zip(views(renderer, house), expected):
+        np.testing.assert_array_equal(frame, reference)
+    renderer.close()
