@@ -42,7 +42,7 @@ from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.data import DatasetConfig, EpisodeDataset
 from spf_rl.train.bc import BCConfig, OptimConfig, _atomic_json, bc_loss
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig, collect_episodes, make_collector
-from spf_rl.train.evaluation import EvalConfig, evaluate_policy
+from spf_rl.train.evaluation import EvalConfig, evaluate_policy, with_episode_sizes
 from spf_rl.train.models import build_policy
 
 logger = logging.getLogger(__name__)
@@ -176,10 +176,6 @@ def _store_round(directory: Path, episodes: TensorDict) -> None:
     os.replace(tmp, directory)
 
 
-def _eval_config(config: EvalConfig, env: CollectionEnvConfig) -> EvalConfig:
-    return dataclasses.replace(config, demo_length=env.demo_length, max_steps=env.max_steps, image_size=env.image_size)
-
-
 class _Aggregate:
     """The on-disk aggregate: a replay buffer of whole episodes on a :class:`LazyMemmapStorage`."""
 
@@ -222,7 +218,7 @@ def train_dagger(config: DAggerConfig) -> dict:
     policy = build_policy(model_type, policy_config)
     policy.load_state_dict(payload["model"])
     optimizer = torch.optim.Adam(policy.parameters(), lr=config.optim.lr, weight_decay=config.optim.weight_decay)
-    val_config, test_config = _eval_config(config.val, env), _eval_config(config.test, env)
+    val_config, test_config = with_episode_sizes(config.val, env), with_episode_sizes(config.test, env)
 
     last_path, best_path = output / "last.pt", output / "best.pt"
     history: list[dict] = []

@@ -50,6 +50,16 @@ class EvalConfig:
     render: bool = True
 
 
+def with_episode_sizes(config: EvalConfig, sizes) -> EvalConfig:
+    """``config`` with the demo length, episode limit and frame size of ``sizes`` (any
+    config with ``demo_length``, ``max_steps`` and ``image_size``, e.g. the training
+    data's or the collection env's), so a policy is evaluated on the episodes it was
+    built for."""
+    return dataclasses.replace(
+        config, demo_length=sizes.demo_length, max_steps=sizes.max_steps, image_size=sizes.image_size
+    )
+
+
 def greedy(policy: TensorDictModuleBase):
     """Wrap ``policy`` so that it writes the arg-max of its ``"logits"`` as ``"action"``
     (policies that write ``"action"`` themselves are left as they are)."""

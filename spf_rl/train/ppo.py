@@ -80,7 +80,7 @@ from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.train.bc import _atomic_json
 from spf_rl.modules.policy import SPFPolicy, make_actor
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig, make_collector
-from spf_rl.train.evaluation import EvalConfig, evaluate_policy
+from spf_rl.train.evaluation import EvalConfig, evaluate_policy, with_episode_sizes
 from spf_rl.train.models import build_policy
 
 logger = logging.getLogger(__name__)
@@ -523,8 +523,8 @@ class _PPORun:
         payload = load_checkpoint(config.checkpoint)
         self.model_type, self.policy_config = payload["model_type"], payload["model_config"]
         self.env_config = _checked_env_config(config, self.policy_config)
-        self.val_config = _sized_eval_config(config.val, self.env_config)
-        self.test_config = _sized_eval_config(config.test, self.env_config)
+        self.val_config = with_episode_sizes(config.val, self.env_config)
+        self.test_config = with_episode_sizes(config.test, self.env_config)
 
         torch.manual_seed(config.seed)
         self.policy = build_policy(self.model_type, self.policy_config)
@@ -804,12 +804,6 @@ def _checked_env_config(config: PPOConfig, policy_config) -> CollectionEnvConfig
         logger.info("bc_coef > 0: the env emits expert_action (env.with_expert=True)")
         env = dataclasses.replace(env, with_expert=True)
     return env
-
-
-def _sized_eval_config(eval_config: EvalConfig, env: CollectionEnvConfig) -> EvalConfig:
-    return dataclasses.replace(
-        eval_config, demo_length=env.demo_length, max_steps=env.max_steps, image_size=env.image_size
-    )
 
 
 def plot_ppo(val_history: list[dict], start: dict, path: str | Path, title: str = "PPO") -> Path:
