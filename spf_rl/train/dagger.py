@@ -19,7 +19,6 @@ and step) and the greedy learner fix every visited state.
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import os
