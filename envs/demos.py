@@ -23,6 +23,20 @@ DEFAULT_DEMO_LENGTH = 30
 START_MARGIN_M = 0.1
 #: Attempts at finding a start with a far-enough goal before giving up.
 MAX_SAMPLING_ATTEMPTS = 50
+#: Routes must end this many success radii from their start (no trivial episodes); short
+#: demonstrations need only half their straight length, and never less than one radius.
+MIN_ROUTE_FACTOR = 2.0
+#: The follow protocol's minimum success radius (two forward steps), metres.
+DEFAULT_SUCCESS_RADIUS_M = 2 * FORWARD_STEP_M
+
+
+def default_min_route_length_m(demo_length: int, success_radius_m: float = DEFAULT_SUCCESS_RADIUS_M) -> float:
+    """Shortest route (geodesic, metres) a demonstration of ``demo_length`` steps may have.
+
+    Routes must start outside the success radius; short demonstrations cannot reach
+    ``MIN_ROUTE_FACTOR`` radii, so they need only half their straight length.
+    """
+    return max(success_radius_m, min(MIN_ROUTE_FACTOR * success_radius_m, 0.5 * demo_length * FORWARD_STEP_M))
 
 
 @dataclass

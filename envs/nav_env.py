@@ -16,7 +16,14 @@ progress, a success bonus and a small step cost.
 
 Per-episode data (``demo_frames``, ``demo_actions``) is part of the observation
 spec and is emitted at every step, because ``ParallelEnv`` drops keys that only
-``_reset`` emits. ``pose``, ``goal_distance`` and ``expert_action`` are privileged
+``_reset`` emits.
+
+Demonstrations are sampled and rendered at each episode start, or, with
+``demo_store``, drawn from a :class:`~envs.demo_store.DemoStore` of pre-rendered
+demonstrations (nothing is rendered or planned at reset but the route's distance
+field); the env then also emits ``demo_id``, and with ``emit_demo_frames=False``
+emits it *instead of* ``demo_frames`` (30 frames less per step), for policies that
+look the frames up in the store (:meth:`~envs.demo_store.DemoStore.lookup_module`). ``pose``, ``goal_distance`` and ``expert_action`` are privileged
 keys for metrics, plotting and labelling; policies must not read them.
 
 With ``num_agents=N`` the env is batched (``batch_size=[N]``): N agents, each in
@@ -25,6 +32,8 @@ its own episode and house, stepped and rendered in one process.
 from __future__ import annotations
 
 import logging
+import os
+from collections import OrderedDict
 from collections.abc import Sequence
 
 import numpy as np
@@ -35,12 +44,16 @@ from torchrl.envs import EnvBase
 
 from envs.demos import (
     DEFAULT_DEMO_LENGTH,
+    DEFAULT_SUCCESS_RADIUS_M,
     Demonstration,
     apply_motion,
+    default_min_route_length_m,
     nominal_motion,
     sample_demonstration,
 )
-from envs.expert import FORWARD_STEP_M, STOP, GeodesicExpert
+from envs.demo_store import DemoStore
+from envs.expert import STOP, GeodesicExpert
+from envs.geometry import DistanceField
 from envs.render import FirstPersonRenderer
 from envs.scenes import House, build_house, split_seeds
 
@@ -51,15 +64,14 @@ DEFAULT_IMAGE_SIZE = 64
 #: Default follow-episode limit, steps (the paper's 50).
 DEFAULT_MAX_STEPS = 50
 #: Success: within max(SUCCESS_RADIUS_M, SUCCESS_FRACTION x initial distance) of the end.
-SUCCESS_RADIUS_M = 2 * FORWARD_STEP_M
+SUCCESS_RADIUS_M = DEFAULT_SUCCESS_RADIUS_M
 SUCCESS_FRACTION = 0.1
 #: Dense reward terms: per metre of geodesic progress, on success, per step.
 PROGRESS_REWARD_PER_M = 1.0
 SUCCESS_REWARD = 2.5
 STEP_PENALTY = 0.01
-#: Routes must end this many success radii from their start (no trivial episodes); short
-#: demonstrations need only half their straight length, and never less than one radius.
-MIN_ROUTE_FACTOR = 2.0
+#: Route distance fields kept per env in demo-store mode (about 0.2 MB each).
+DISTANCE_FIELD_CACHE_SIZE = 256
 #: Number of demonstration action classes (forward, left, right).
 NUM_DEMO_ACTIONS = 3
 _MAX_EPISODE_SEED = 2**62
@@ -85,6 +97,13 @@ class PathFollowEnv(EnvBase):
             OpenGL context (fast protocol statistics, expert labelling).
         success_radius_m: minimum success radius, metres.
         success_fraction: success radius as a fraction of the initial distance.
+        demo_store: a :class:`~envs.demo_store.DemoStore` (or its directory) to draw
+            each episode's demonstration from instead of sampling and rendering one;
+            its split, house count, ``demo_length`` and ``image_size`` must match the
+            env's. Adds the ``demo_id`` observation.
+        emit_demo_frames: emit ``demo_frames`` at every step (default). ``False``
+            (only with ``demo_store``) leaves them out: policies look them up from
+            ``demo_id``.
         seed: optional seed (same as calling :meth:`set_seed`).
         device: torch device of the outputs.
 
@@ -115,6 +134,8 @@ class PathFollowEnv(EnvBase):
         render: bool = True,
         success_radius_m: float = SUCCESS_RADIUS_M,
         success_fraction: float = SUCCESS_FRACTION,
+        demo_store: DemoStore | str | os.PathLike | None = None,
+        emit_demo_frames: bool = True,
         seed: int | None = None,
         device: torch.device | str = "cpu",
     ) -> None:
@@ -127,7 +148,16 @@ class PathFollowEnv(EnvBase):
             raise ValueError(
                 f"success_radius_m must be > 0 metres and success_fraction >= 0, got {success_radius_m}, {success_fraction}."
             )
-        if house_seeds is not None:
+        if demo_store is not None:
+            demo_store = demo_store if isinstance(demo_store, DemoStore) else DemoStore(demo_store, verify=False)
+            _check_store_matches(demo_store, split, num_houses, house_seeds, demo_length, image_size)
+            house_seeds = sorted({int(seed) for seed in demo_store.house_seeds.tolist()})
+        elif not emit_demo_frames:
+            raise ValueError(
+                "emit_demo_frames=False needs a demo_store (the frames must be retrievable from demo_id); "
+                "pass demo_store=<DemoStore or its directory> or keep emit_demo_frames=True."
+            )
+        elif house_seeds is not None:
             house_seeds = [int(s) for s in house_seeds]
             if not house_seeds or min(house_seeds) < 0:
                 raise ValueError(f"house_seeds must be a non-empty list of non-negative ints, got {house_seeds!r}.")
@@ -147,11 +177,11 @@ class PathFollowEnv(EnvBase):
         self.render_frames = bool(render)
         self.success_radius_m = float(success_radius_m)
         self.success_fraction = float(success_fraction)
+        self.demo_store = demo_store
+        self.emit_demo_frames = bool(emit_demo_frames)
+        self._field_cache: OrderedDict[int, DistanceField] = OrderedDict()
         self.num_actions = NUM_DEMO_ACTIONS + int(self.stop_action)
-        # routes must start outside the success radius; short demos cannot reach 2 radii
-        self._min_route_length_m = max(
-            self.success_radius_m, min(MIN_ROUTE_FACTOR * self.success_radius_m, 0.5 * self.demo_length * FORWARD_STEP_M)
-        )
+        self._min_route_length_m = default_min_route_length_m(self.demo_length, self.success_radius_m)
         self._renderer: FirstPersonRenderer | None = None  # created at the first reset
         self._cpu = self.device is not None and torch.device(self.device).type == "cpu"
         self._set_seed(seed)
@@ -167,7 +197,6 @@ class PathFollowEnv(EnvBase):
             # low/high tensors of the full frame-stack shape, which makes every spec
             # copy and check slow for batched envs.
             "pixels": Unbounded(shape=(*shape, 3, size, size), dtype=torch.uint8, device=self.device),
-            "demo_frames": Unbounded(shape=(*shape, n, 3, size, size), dtype=torch.uint8, device=self.device),
             "demo_actions": Categorical(NUM_DEMO_ACTIONS, shape=(*shape, n), dtype=torch.int64, device=self.device),
             "step_count": Unbounded(shape=(*shape, 1), dtype=torch.int64, device=self.device),
             "episode_seed": Unbounded(shape=(*shape, 1), dtype=torch.int64, device=self.device),
@@ -178,6 +207,10 @@ class PathFollowEnv(EnvBase):
             "success": Categorical(2, shape=(*shape, 1), dtype=torch.bool, device=self.device),
             "spl": Unbounded(shape=(*shape, 1), dtype=torch.float32, device=self.device),
         }
+        if self.emit_demo_frames:
+            observation["demo_frames"] = Unbounded(shape=(*shape, n, 3, size, size), dtype=torch.uint8, device=self.device)
+        if self.demo_store is not None:
+            observation["demo_id"] = Unbounded(shape=(*shape, 1), dtype=torch.int64, device=self.device)
         if self.with_expert:
             observation["expert_action"] = Categorical(self.num_actions, shape=shape, dtype=torch.int64, device=self.device)
         self.observation_spec = Composite(observation, shape=shape, device=self.device)
@@ -204,9 +237,11 @@ class PathFollowEnv(EnvBase):
         self._initial_distance = np.ones(count)
         self._shortest = np.zeros(count)
         self._episode_seed = np.zeros(count, dtype=np.int64)
+        self._demo_id = np.zeros(count, dtype=np.int64)
         self._success = np.zeros(count, dtype=bool)
         self._spl = np.zeros(count)
-        self._demo_frames = torch.zeros((count, n, 3, size, size), dtype=torch.uint8)
+        # (count, 0, ...) when the frames are not emitted: the per-episode copies cost nothing
+        self._demo_frames = torch.zeros((count, n if self.emit_demo_frames else 0, 3, size, size), dtype=torch.uint8)
         self._demo_actions = torch.zeros((count, n), dtype=torch.int64)
         self._pixels = torch.zeros((count, 3, size, size), dtype=torch.uint8)
 
@@ -235,10 +270,8 @@ class PathFollowEnv(EnvBase):
         if not self.render_frames:
             out[...] = 0
             return out
-        for row, index in enumerate(indices):
-            pose = self._pose[index] if poses is None else poses[row]
-            self.renderer.render(self._houses[index], pose, out=out[row])
-        return out
+        houses = [self._houses[index] for index in indices]
+        return self.renderer.render_many(houses, self._pose[list(indices)] if poses is None else poses, out=out)
 
     # ------------------------------------------------------------------ reset
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
@@ -266,10 +299,16 @@ class PathFollowEnv(EnvBase):
     def _start_episode(self, index: int, demo_frames: torch.Tensor, demo_actions: torch.Tensor, pixels: torch.Tensor) -> None:
         episode_seed = int(self._agent_rngs[index].integers(_MAX_EPISODE_SEED))
         episode_rng = np.random.default_rng(episode_seed)
-        house = build_house(int(episode_rng.choice(self.house_seeds)))
-        demo = sample_demonstration(
-            house, episode_rng, self.demo_length, min_route_length_m=self._min_route_length_m
-        )
+        if self.demo_store is not None:
+            demo_id = int(episode_rng.integers(len(self.demo_store)))
+            demo = self._stored_demonstration(demo_id)
+            house = build_house(demo.house_seed)
+            self._demo_id[index] = demo_id
+        else:
+            house = build_house(int(episode_rng.choice(self.house_seeds)))
+            demo = sample_demonstration(
+                house, episode_rng, self.demo_length, min_route_length_m=self._min_route_length_m
+            )
         self._houses[index] = house
         self._demos[index] = demo
         self._experts[index] = GeodesicExpert(
@@ -284,10 +323,34 @@ class PathFollowEnv(EnvBase):
         self._shortest[index] = demo.shortest_length_m
         self._success[index] = False
         self._spl[index] = 0.0
+        demo_actions[index] = torch.from_numpy(demo.actions)
+        if self.demo_store is not None:
+            stored = self.demo_store.frames[self._demo_id[index]]
+            if self.emit_demo_frames:
+                demo_frames[index] = stored
+            pixels[index] = stored[0] if self.render_frames else 0  # the agent starts on the demo's first pose
+            return
         # rendered straight into the (n, 3, H, W) tensor, seen as (n, H, W, 3)
         self._render([index] * self.demo_length, demo.poses[: self.demo_length], out=demo_frames[index].numpy().transpose(0, 2, 3, 1))
-        demo_actions[index] = torch.from_numpy(demo.actions)
         pixels[index] = demo_frames[index, 0]  # the agent starts on the demo's first pose
+
+    def _stored_demonstration(self, demo_id: int) -> Demonstration:
+        """Demonstration ``demo_id`` of the store, its distance field cached (LRU)."""
+        field = self._field_cache.pop(demo_id, None)
+        store = self.demo_store
+        poses = store.poses[demo_id].numpy().copy()  # the store's memory map stays untouched
+        if field is None:
+            field = build_house(int(store.house_seeds[demo_id])).graph.distance_field(poses[-1, :2])
+        self._field_cache[demo_id] = field
+        if len(self._field_cache) > DISTANCE_FIELD_CACHE_SIZE:
+            self._field_cache.popitem(last=False)
+        return Demonstration(
+            house_seed=int(store.house_seeds[demo_id]),
+            poses=poses,
+            actions=store.actions[demo_id].numpy().copy(),
+            end_field=field,
+            shortest_length_m=float(store.shortest_lengths_m[demo_id]),
+        )
 
     def _radius(self, initial_distance_m: float | np.ndarray) -> float | np.ndarray:
         return np.maximum(self.success_radius_m, self.success_fraction * initial_distance_m)
@@ -347,9 +410,10 @@ class PathFollowEnv(EnvBase):
         floats[:, 4:7] = self._pose
         if reward is not None:
             floats[:, 7] = reward
-        ints = np.empty((count, 2), dtype=np.int64)
+        ints = np.empty((count, 3), dtype=np.int64)
         ints[:, 0] = self._steps
         ints[:, 1] = self._episode_seed
+        ints[:, 2] = self._demo_id
         bools = np.empty((count, 4), dtype=bool)
         bools[:, 0] = self._success
         bools[:, 1] = done
@@ -362,7 +426,6 @@ class PathFollowEnv(EnvBase):
             pixels, demo_frames, demo_actions = pixels[0], demo_frames[0], demo_actions[0]
         out = {
             "pixels": pixels,
-            "demo_frames": demo_frames,
             "demo_actions": demo_actions,
             "step_count": int_columns[..., 0:1],
             "episode_seed": int_columns[..., 1:2],
@@ -378,6 +441,10 @@ class PathFollowEnv(EnvBase):
         }
         if reward is not None:
             out["reward"] = float_columns[..., 7:8]
+        if self.emit_demo_frames:
+            out["demo_frames"] = demo_frames
+        if self.demo_store is not None:
+            out["demo_id"] = int_columns[..., 2:3]
         if self.with_expert:
             expert = torch.from_numpy(self.expert_actions())
             out["expert_action"] = expert if self.num_agents is not None else expert[0]
@@ -409,6 +476,31 @@ class PathFollowEnv(EnvBase):
             self._renderer.close()
             self._renderer = None
         super().close(raise_if_closed=raise_if_closed)
+
+
+def _check_store_matches(
+    store: DemoStore,
+    split: str,
+    num_houses: int | None,
+    house_seeds: Sequence[int] | None,
+    demo_length: int,
+    image_size: int,
+) -> None:
+    """Raise ``ValueError`` when the env's arguments disagree with the demo store's configuration."""
+    config = store.config
+    if house_seeds is not None:
+        raise ValueError("house_seeds cannot be combined with demo_store (the store fixes the houses).")
+    mismatches = []
+    if split != config.split:
+        mismatches.append(f"split={split!r} (store: {config.split!r})")
+    if num_houses is not None and split_seeds(split, num_houses) != config.house_seeds:
+        mismatches.append(f"num_houses={num_houses} (store: {len(config.house_seeds)})")
+    if demo_length != config.demo_length:
+        mismatches.append(f"demo_length={demo_length} (store: {config.demo_length})")
+    if image_size != config.image_size:
+        mismatches.append(f"image_size={image_size} (store: {config.image_size})")
+    if mismatches:
+        raise ValueError(f"demo_store {store.root} does not match the env: {', '.join(mismatches)}.")
 
 
 def _check_positive_int(name: str, value) -> None:

@@ -210,6 +210,44 @@ class FirstPersonRenderer:
         np.copyto(out, self._buffer[::-1])
         return out
 
+    def render_many(self, houses, poses: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """Render one frame per ``(house, pose)`` pair, binding the GL context once.
+
+        Args:
+            houses: a sequence of houses (repeats allowed).
+            poses: ``(N, 3)`` poses, one per house.
+            out: optional ``(N, height, width, 3)`` uint8 array (any strides, e.g. a
+                CHW tensor's array transposed) that receives the frames.
+
+        Returns:
+            ``out``, or a new ``(N, height, width, 3)`` uint8 array.
+        """
+        import mujoco
+
+        if out is None:
+            out = np.empty((len(houses), self.height, self.width, 3), dtype=np.uint8)
+        self._activate()
+        offscreen = mujoco.mjtFramebuffer.mjFB_OFFSCREEN
+        everything = mujoco.mjtCatBit.mjCAT_ALL
+        current = None
+        for row, house in enumerate(houses):
+            key = id(house.model)
+            state = self._per_model.get(key)
+            if state is None:
+                state = self._model_state(house)
+            model, data, scene, context, camera, option, viewport, _ = state
+            if key != current:
+                mujoco.mjr_setBuffer(offscreen, context)
+                current = key
+            pose = poses[row]
+            data.cam_xpos[0] = (pose[0], pose[1], house.eye_height_m)
+            data.cam_xmat[0] = _camera_matrix(float(pose[2]))
+            mujoco.mjv_updateScene(model, data, option, None, camera, everything, scene)
+            mujoco.mjr_render(viewport, scene, context)
+            mujoco.mjr_readPixels(self._buffer, None, viewport, context)
+            np.copyto(out[row], self._buffer[::-1])
+        return out
+
     def release(self, house) -> None:
         """Free the GL resources held for ``house``'s model."""
         state = self._per_model.pop(id(house.model), None)

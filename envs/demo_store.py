@@ -1,0 +1,316 @@
+"""A store of pre-rendered demonstrations, shared by every env process through memory maps.
+
+Sampling a demonstration at each episode start costs a route search and
+``demo_length`` rendered frames (about 20 ms, as much as 50 agent steps), and
+emitting its frames at every step makes each collected frame carry 30 more. A
+:class:`DemoStore` does that work once: ``K`` demonstrations of a split are
+sampled and rendered ahead of time and written to a directory as a
+memory-mapped TensorDict (TensorDict's memmap format; no pickle)::
+
+    <root>/meta.json     configuration, format version, SHA-256 of every tensor
+    <root>/demos/        frames [K, n, 3, H, W] uint8, actions [K, n], poses [K, n + 1, 3],
+                         house_seed [K], shortest_length_m [K]
+
+A :class:`~envs.nav_env.PathFollowEnv` given ``demo_store=root`` draws each
+episode's demonstration from the store (a uniformly drawn ``demo_id``), renders
+nothing at reset, and emits ``demo_id`` at every step; with ``demo_frames=False``
+it emits the id instead of the frames, and the policy looks the frames up in the
+store where it needs them (:meth:`DemoStore.lookup_module`). The store is a pure
+function of its :class:`DemoStoreConfig` (demonstration ``k`` is drawn from the
+generator seeded with ``(seed, k)``), is written to a temporary directory and
+renamed into place when complete, and is verified against its checksums when
+opened.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import shutil
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+from tqdm.auto import tqdm
+
+from envs.demos import Demonstration, default_min_route_length_m, sample_demonstration
+from envs.render import FirstPersonRenderer
+from envs.scenes import build_house, split_seeds
+
+logger = logging.getLogger(__name__)
+
+#: Version of the on-disk layout; bumped when it changes.
+DEMO_STORE_FORMAT_VERSION = 1
+
+
+class DemoStoreError(RuntimeError):
+    """A demo-store directory is missing, corrupt, or of another configuration."""
+
+
+@dataclass
+class DemoStoreConfig:
+    """Which demonstrations a store holds.
+
+    Args:
+        num_demos: number of demonstrations K.
+        split: house split (``"train"``, ``"val"`` or ``"test"``).
+        num_houses: houses of the split (``None``: the split's default).
+        demo_length: demonstration length n, steps.
+        image_size: frame side, pixels.
+        min_route_length_m: routes must end farther than this (geodesic, metres) from
+            their start; ``None`` uses the env's default for ``demo_length``.
+        seed: store seed; demonstration ``k`` depends only on ``(seed, k)``.
+    """
+
+    num_demos: int = 1000
+    split: str = "train"
+    num_houses: int | None = None
+    demo_length: int = 30
+    image_size: int = 64
+    min_route_length_m: float | None = None
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("num_demos", "demo_length", "image_size"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+                raise ValueError(f"{name} must be a positive int, got {value!r}.")
+        split_seeds(self.split, self.num_houses)  # validates split and num_houses
+        if self.min_route_length_m is None:
+            self.min_route_length_m = default_min_route_length_m(self.demo_length)
+
+    @property
+    def house_seeds(self) -> list[int]:
+        return split_seeds(self.split, self.num_houses)
+
+
+def sample_store_demonstration(config: DemoStoreConfig, index: int) -> Demonstration:
+    """Demonstration ``index`` of a store (a pure function of ``(config.seed, index)``)."""
+    rng = np.random.default_rng([config.seed, index])
+    house = build_house(int(rng.choice(config.house_seeds)))
+    return sample_demonstration(house, rng, config.demo_length, min_route_length_m=config.min_route_length_m)
+
+
+def _checksums(demos: TensorDict) -> dict[str, str]:
+    return {
+        key: hashlib.sha256(demos.get(key).contiguous().numpy().tobytes()).hexdigest()
+        for key in sorted(demos.keys())
+    }
+
+
+def _empty(config: DemoStoreConfig) -> TensorDict:
+    k, n, s = config.num_demos, config.demo_length, config.image_size
+    return TensorDict(
+        {
+            "frames": torch.zeros(k, n, 3, s, s, dtype=torch.uint8),
+            "actions": torch.zeros(k, n, dtype=torch.int64),
+            "poses": torch.zeros(k, n + 1, 3, dtype=torch.float64),
+            "house_seed": torch.zeros(k, dtype=torch.int64),
+            "shortest_length_m": torch.zeros(k, dtype=torch.float64),
+        },
+        batch_size=[k],
+    )
+
+
+class DemoStore:
+    """Pre-rendered demonstrations in a directory, memory-mapped read-only.
+
+    Open an existing store with ``DemoStore(root)``; create one with
+    :meth:`build` (which opens an existing, matching store instead of rebuilding
+    it). The store pickles as its path, so it can be passed to env factories that
+    run in ``spawn`` worker processes; every process maps the same files.
+
+    Args:
+        root: the store directory.
+        verify: recompute the SHA-256 of every tensor and compare with ``meta.json``.
+
+    Raises:
+        DemoStoreError: if ``root`` is not a complete store, its metadata is
+            corrupt, a tensor is missing, has another shape, or fails its checksum.
+
+    Examples:
+        >>> import tempfile
+        >>> config = DemoStoreConfig(num_demos=2, num_houses=1, demo_length=5, image_size=32)
+        >>> store = DemoStore.build(tempfile.mkdtemp() + "/store", config, progress=False)
+        >>> len(store), store.frames.shape
+        (2, torch.Size([2, 5, 3, 32, 32]))
+        >>> store.lookup(torch.tensor([[1], [0]])).shape
+        torch.Size([2, 5, 3, 32, 32])
+    """
+
+    def __init__(self, root: str | os.PathLike, verify: bool = True) -> None:
+        self.root = Path(root)
+        self.config, self._checksums = self._read_meta()
+        self._demos: TensorDict | None = None
+        self._open()
+        if verify:
+            self.verify()
+
+    # ---------------------------------------------------------------- opening
+    def _read_meta(self) -> tuple[DemoStoreConfig, dict[str, str]]:
+        try:
+            meta = json.loads((self.root / "meta.json").read_text())
+        except FileNotFoundError as err:
+            raise DemoStoreError(
+                f"{self.root} is not a demo store (no meta.json); create it with DemoStore.build "
+                "or `python recipes/make_demo_store.py`."
+            ) from err
+        except json.JSONDecodeError as err:
+            raise DemoStoreError(f"demo store {self.root}: corrupt meta.json ({err}).") from err
+        if meta.get("format_version") != DEMO_STORE_FORMAT_VERSION:
+            raise DemoStoreError(
+                f"demo store {self.root}: format version {meta.get('format_version')!r} is not "
+                f"{DEMO_STORE_FORMAT_VERSION}; build it again."
+            )
+        try:
+            return DemoStoreConfig(**meta["config"]), dict(meta["checksums"])
+        except (KeyError, TypeError, ValueError) as err:
+            raise DemoStoreError(f"demo store {self.root}: invalid meta.json ({err}).") from err
+
+    def _open(self) -> None:
+        try:
+            demos = TensorDict.load_memmap(self.root / "demos")
+        except Exception as err:  # noqa: BLE001 - any failure to map means a damaged store
+            raise DemoStoreError(f"demo store {self.root}: cannot read the tensors ({err}).") from err
+        expected = _empty(self.config)
+        for key in expected.keys():
+            if key not in demos.keys() or demos.get(key).shape != expected.get(key).shape:
+                raise DemoStoreError(
+                    f"demo store {self.root}: tensor {key!r} is missing or has the wrong shape "
+                    f"(expected {tuple(expected.get(key).shape)})."
+                )
+        self._demos = demos
+
+    def verify(self) -> None:
+        """Recompute every tensor's checksum; raise :class:`DemoStoreError` on a mismatch."""
+        actual = _checksums(self._demos)
+        for key, digest in self._checksums.items():
+            if actual.get(key) != digest:
+                raise DemoStoreError(
+                    f"demo store {self.root}: tensor {key!r} is corrupt (checksum mismatch). "
+                    "Delete the directory and build the store again."
+                )
+
+    def __getstate__(self) -> dict:
+        return {"root": str(self.root)}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__(state["root"], verify=False)
+
+    # --------------------------------------------------------------- building
+    @classmethod
+    def build(cls, root: str | os.PathLike, config: DemoStoreConfig, progress: bool = True) -> DemoStore:
+        """Sample and render the store's demonstrations into ``root`` (or open it if it exists).
+
+        The tensors are written into ``<root>.tmp`` and renamed to ``root`` when
+        complete, so an interrupted build leaves no half-written store (the next
+        call starts it again).
+
+        Raises:
+            DemoStoreError: if ``root`` holds a store of another configuration.
+        """
+        root = Path(root)
+        if (root / "meta.json").exists():
+            store = cls(root, verify=False)
+            if asdict(store.config) != asdict(config):
+                raise DemoStoreError(
+                    f"demo store {root} was built with another configuration ({asdict(store.config)}); "
+                    "choose another directory or delete it."
+                )
+            return store
+        tmp = root.with_name(root.name + ".tmp")
+        if tmp.exists():
+            shutil.rmtree(tmp)
+        tmp.mkdir(parents=True)
+        demos = _empty(config).memmap_(tmp / "demos")
+        renderer = FirstPersonRenderer(config.image_size, config.image_size)
+        n = config.demo_length
+        try:
+            for index in tqdm(range(config.num_demos), desc="demonstrations", disable=not progress):
+                demo = sample_store_demonstration(config, index)
+                house = build_house(demo.house_seed)
+                # rendered straight into the memory-mapped (n, 3, H, W) frames, seen as (n, H, W, 3)
+                renderer.render_many([house] * n, demo.poses[:n], out=demos["frames"][index].numpy().transpose(0, 2, 3, 1))
+                demos["actions"][index] = torch.from_numpy(demo.actions)
+                demos["poses"][index] = torch.from_numpy(demo.poses)
+                demos["house_seed"][index] = demo.house_seed
+                demos["shortest_length_m"][index] = demo.shortest_length_m
+        finally:
+            renderer.close()
+        meta = {"format_version": DEMO_STORE_FORMAT_VERSION, "config": asdict(config), "checksums": _checksums(demos)}
+        with open(tmp / "meta.json", "w") as handle:
+            json.dump(meta, handle, indent=2, sort_keys=True)
+            handle.flush()
+            os.fsync(handle.fileno())
+        del demos
+        if root.exists():  # an empty directory the caller created
+            root.rmdir()
+        os.replace(tmp, root)
+        logger.info("wrote %d demonstrations to %s", config.num_demos, root)
+        return cls(root, verify=False)
+
+    # ---------------------------------------------------------------- reading
+    def __len__(self) -> int:
+        return self.config.num_demos
+
+    @property
+    def frames(self) -> torch.Tensor:
+        """``[K, n, 3, H, W]`` uint8 frames (memory-mapped)."""
+        return self._demos.get("frames")
+
+    @property
+    def actions(self) -> torch.Tensor:
+        """``[K, n]`` int64 actions."""
+        return self._demos.get("actions")
+
+    @property
+    def poses(self) -> torch.Tensor:
+        """``[K, n + 1, 3]`` float64 poses (x m, y m, heading rad) before each action, then the end pose."""
+        return self._demos.get("poses")
+
+    @property
+    def house_seeds(self) -> torch.Tensor:
+        """``[K]`` house seed of each demonstration."""
+        return self._demos.get("house_seed")
+
+    @property
+    def shortest_lengths_m(self) -> torch.Tensor:
+        """``[K]`` geodesic length (metres) from each route's start to its end."""
+        return self._demos.get("shortest_length_m")
+
+    def lookup(self, demo_id: torch.Tensor) -> torch.Tensor:
+        """Frames of demonstrations by id: ``[*, 1]`` (or ``[*]``) int64 -> ``[*, n, 3, H, W]`` uint8.
+
+        Raises:
+            ValueError: on ids outside ``[0, K)``.
+        """
+        ids = demo_id.squeeze(-1) if demo_id.ndim and demo_id.shape[-1] == 1 else demo_id
+        if ids.numel() and (int(ids.min()) < 0 or int(ids.max()) >= len(self)):
+            raise ValueError(f"demo_id must be in [0, {len(self) - 1}] for store {self.root}, got {ids.tolist()}.")
+        return self.frames[ids.reshape(-1).cpu()].reshape(*ids.shape, *self.frames.shape[1:]).to(demo_id.device)
+
+    def lookup_module(self, in_key: str = "demo_id", out_key: str = "demo_frames") -> TensorDictModule:
+        """A :class:`~tensordict.nn.TensorDictModule` writing ``out_key`` frames from ``in_key`` ids.
+
+        Put it in front of a policy that reads ``demo_frames`` when the env emits
+        only ``demo_id``: ``TensorDictSequential(store.lookup_module(), policy,
+        selected_out_keys=policy.out_keys)`` keeps the frames out of the
+        collected batches.
+        """
+        return TensorDictModule(self.lookup, in_keys=[in_key], out_keys=[out_key])
+
+    def demonstration(self, demo_id: int) -> Demonstration:
+        """Demonstration ``demo_id`` with its geodesic end field (one Dijkstra run)."""
+        house = build_house(int(self.house_seeds[demo_id]))
+        poses = self.poses[demo_id].numpy().copy()
+        return Demonstration(
+            house_seed=house.seed,
+            poses=poses,
+            actions=self.actions[demo_id].numpy().copy(),
+            end_field=house.graph.distance_field(poses[-1, :2]),
+            shortest_length_m=float(self.shortest_lengths_m[demo_id]),
+        )
