@@ -44,3 +44,21 @@ def test_renderer_survives_another_gl_context_being_freed():
     for frame, reference in zip(views(renderer, house), expected):
         np.testing.assert_array_equal(frame, reference)
     renderer.close()
+
+
+def test_render_many_matches_one_frame_at_a_time_across_houses():
+    houses = [build_house(seed=0), build_house(seed=1), build_house(seed=0), build_house(seed=2)]
+    poses = np.array([[*house.spawn_xy, heading] for house, heading in zip(houses, (0.0, 1.0, 2.0, -1.0))])
+    single = FirstPersonRenderer(32, 32)
+    expected = [single.render(house, pose) for house, pose in zip(houses, poses)]
+    single.close()
+    batched = FirstPersonRenderer(32, 32)
+    chw = np.zeros((len(houses), 3, 32, 32), dtype=np.uint8)
+    frames = batched.render_many(houses, poses, out=chw.transpose(0, 2, 3, 1))  # strided output, as the env uses
+    fresh = batched.render_many(houses[::-1], poses[::-1])
+    batched.close()
+    for row, reference in enumerate(expected):
+        np.testing.assert_array_equal(frames[row], reference)
+        np.testing.assert_array_equal(chw[row].transpose(1, 2, 0), reference)
+        np.testing.assert_array_equal(fresh[len(houses) - 1 - row], reference)
+    assert not np.array_equal(expected[0], expected[1])
