@@ -20,11 +20,13 @@ Back-end selection, done once per process before ``mujoco`` opens any context:
 """
 from __future__ import annotations
 
+import atexit
 import ctypes
 import ctypes.util
 import logging
 import math
 import os
+import weakref
 
 import numpy as np
 
@@ -38,6 +40,33 @@ _INSTALL_HINT = (
     "or OSMesa (`apt-get install libosmesa6`), or set MUJOCO_GL to one of "
     f"{SUPPORTED_GL_BACKENDS}."
 )
+
+
+#: Renderers holding a GL context, closed at interpreter exit: a context left to the
+#: garbage collector during interpreter teardown fails to free (an EGL traceback).
+_OPEN_RENDERERS: weakref.WeakSet = weakref.WeakSet()
+_EXIT_HOOK_REGISTERED = False
+
+
+def _track_open_renderer(renderer: FirstPersonRenderer) -> None:
+    """Remember ``renderer`` so it is closed at exit.
+
+    The exit hook is registered after MuJoCo's first context, whose own exit hook
+    (``eglTerminate``) must run after ours (``atexit`` runs hooks last-in first-out).
+    """
+    global _EXIT_HOOK_REGISTERED
+    if not _EXIT_HOOK_REGISTERED:
+        atexit.register(_close_open_renderers)
+        _EXIT_HOOK_REGISTERED = True
+    _OPEN_RENDERERS.add(renderer)
+
+
+def _close_open_renderers() -> None:
+    for renderer in list(_OPEN_RENDERERS):
+        try:
+            renderer.close()
+        except Exception:  # noqa: BLE001 - best effort at exit
+            logger.debug("could not close a renderer at exit", exc_info=True)
 
 
 class RendererUnavailableError(RuntimeError):
@@ -156,6 +185,7 @@ class FirstPersonRenderer:
         """
         if self._gl is None:
             self._gl = create_gl_context(self.width, self.height)
+            _track_open_renderer(self)
         else:
             self._gl.make_current()
 
@@ -265,6 +295,7 @@ class FirstPersonRenderer:
         self._per_model.clear()
         self._gl.free()
         self._gl = None
+        _OPEN_RENDERERS.discard(self)
 
 
 #: Minification filter set on 2-D textures (MuJoCo uploads them with trilinear

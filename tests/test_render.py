@@ -62,3 +62,24 @@ def test_render_many_matches_one_frame_at_a_time_across_houses():
         np.testing.assert_array_equal(chw[row].transpose(1, 2, 0), reference)
         np.testing.assert_array_equal(fresh[len(houses) - 1 - row], reference)
     assert not np.array_equal(expected[0], expected[1])
+
+
+def test_unclosed_renderers_exit_without_gl_errors():
+    """Envs nobody closed: their GL contexts are freed before EGL shuts down at exit."""
+    import subprocess
+    import sys
+
+    script = (
+        "import envs, numpy as np\n"
+        "from envs.render import FirstPersonRenderer\n"
+        "from envs.scenes import build_house\n"
+        "house = build_house(0)\n"
+        "for size in (32, 48):\n"
+        "    FirstPersonRenderer(size, size).render(house, np.array([*house.spawn_xy, 0.0]))\n"
+        "kept = FirstPersonRenderer(32, 32); kept.render(house, np.array([*house.spawn_xy, 1.0]))\n"
+        "print('rendered')\n"
+    )
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert "rendered" in result.stdout
+    assert "Exception ignored" not in result.stderr and "EGLError" not in result.stderr, result.stderr
