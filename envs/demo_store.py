@@ -117,12 +117,14 @@ def _empty(config: DemoStoreConfig) -> TensorDict:
 
 
 class DemoStore:
-    """Pre-rendered demonstrations in a directory, memory-mapped read-only.
+    """Pre-rendered demonstrations in a directory, memory-mapped and shared between processes.
 
     Open an existing store with ``DemoStore(root)``; create one with
     :meth:`build` (which opens an existing, matching store instead of rebuilding
     it). The store pickles as its path, so it can be passed to env factories that
-    run in ``spawn`` worker processes; every process maps the same files.
+    run in ``spawn`` worker processes; every process maps the same files. The
+    tensors it exposes are those shared maps: read them (the env and
+    :meth:`lookup` copy out of them), never write to them.
 
     Args:
         root: the store directory.
@@ -154,13 +156,15 @@ class DemoStore:
     def _read_meta(self) -> tuple[DemoStoreConfig, dict[str, str]]:
         try:
             meta = json.loads((self.root / "meta.json").read_text())
-        except FileNotFoundError as err:
+        except (FileNotFoundError, NotADirectoryError) as err:
             raise DemoStoreError(
                 f"{self.root} is not a demo store (no meta.json); create it with DemoStore.build "
                 "or `python recipes/make_demo_store.py`."
             ) from err
-        except json.JSONDecodeError as err:
-            raise DemoStoreError(f"demo store {self.root}: corrupt meta.json ({err}).") from err
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+            raise DemoStoreError(f"demo store {self.root}: corrupt or unreadable meta.json ({err}).") from err
+        if not isinstance(meta, dict):
+            raise DemoStoreError(f"demo store {self.root}: corrupt meta.json (a {type(meta).__name__}, not an object).")
         if meta.get("format_version") != DEMO_STORE_FORMAT_VERSION:
             raise DemoStoreError(
                 f"demo store {self.root}: format version {meta.get('format_version')!r} is not "
@@ -183,7 +187,7 @@ class DemoStore:
                     f"demo store {self.root}: tensor {key!r} is missing or has the wrong shape "
                     f"(expected {tuple(expected.get(key).shape)})."
                 )
-        self._demos = demos
+        self._demos = demos.lock_()
 
     def verify(self) -> None:
         """Recompute every tensor's checksum; raise :class:`DemoStoreError` on a mismatch."""
@@ -222,6 +226,10 @@ class DemoStore:
                     "choose another directory or delete it."
                 )
             return store
+        if root.exists() and (not root.is_dir() or any(root.iterdir())):
+            raise DemoStoreError(
+                f"{root} exists and is not a demo store (no meta.json); choose another directory or delete it."
+            )
         tmp = root.with_name(root.name + ".tmp")
         if tmp.exists():
             shutil.rmtree(tmp)

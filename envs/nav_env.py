@@ -149,9 +149,10 @@ class PathFollowEnv(EnvBase):
                 f"success_radius_m must be > 0 metres and success_fraction >= 0, got {success_radius_m}, {success_fraction}."
             )
         if demo_store is not None:
-            demo_store = demo_store if isinstance(demo_store, DemoStore) else DemoStore(demo_store, verify=False)
-            _check_store_matches(demo_store, split, num_houses, house_seeds, demo_length, image_size)
-            house_seeds = sorted({int(seed) for seed in demo_store.house_seeds.tolist()})
+            # a directory is opened and verified (checksums) once per env process
+            demo_store = demo_store if isinstance(demo_store, DemoStore) else DemoStore(demo_store)
+            _check_store_matches(demo_store, split, num_houses, house_seeds, demo_length, image_size, success_radius_m)
+            house_seeds = demo_store.config.house_seeds
         elif not emit_demo_frames:
             raise ValueError(
                 "emit_demo_frames=False needs a demo_store (the frames must be retrievable from demo_id); "
@@ -485,6 +486,7 @@ def _check_store_matches(
     house_seeds: Sequence[int] | None,
     demo_length: int,
     image_size: int,
+    success_radius_m: float,
 ) -> None:
     """Raise ``ValueError`` when the env's arguments disagree with the demo store's configuration."""
     config = store.config
@@ -499,6 +501,12 @@ def _check_store_matches(
         mismatches.append(f"demo_length={demo_length} (store: {config.demo_length})")
     if image_size != config.image_size:
         mismatches.append(f"image_size={image_size} (store: {config.image_size})")
+    needed = default_min_route_length_m(demo_length, success_radius_m)
+    if config.min_route_length_m < needed - 1e-9:
+        mismatches.append(
+            f"success_radius_m={success_radius_m} needs routes longer than {needed:.2f} m "
+            f"(store: min_route_length_m={config.min_route_length_m:.2f})"
+        )
     if mismatches:
         raise ValueError(f"demo_store {store.root} does not match the env: {', '.join(mismatches)}.")
 
