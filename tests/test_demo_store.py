@@ -450,3 +450,24 @@ def test_collector_with_spf_policy_looks_frames_up(store, store_root):
     torch.testing.assert_close(first["next", "memory_features"], direct["next", "memory_features"])
     torch.testing.assert_close(first["logits"], direct["logits"])
     assert first["next", "memory_features"].abs().sum() > 0
+
+
+# ------------------------------------------------- env: protocol on stored routes
+def test_expert_follows_stored_routes_to_success(store):
+    """The stored route's end, distance field and success radius agree: the noise-free expert succeeds."""
+    env = make_path_follow_env(
+        noise="none", demo_store=store, emit_demo_frames=False, with_expert=True, num_agents=4, **{**ENV_KWARGS, "max_steps": 20}
+    )
+    env.set_seed(3)
+    td = env.reset()
+    finished = []
+    for _ in range(60):
+        td.set("action", td.get("expert_action"))
+        td, td_next = env.step_and_maybe_reset(td)
+        done = td.get(("next", "done")).squeeze(-1)
+        finished += td.get(("next", "success")).squeeze(-1)[done].tolist()
+        assert (td.get(("next", "goal_distance"))[~done] >= 0).all()
+        td = td_next
+    env.close()
+    assert len(finished) >= 8
+    assert all(finished)
