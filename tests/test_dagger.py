@@ -12,7 +12,7 @@ from tensordict.nn import TensorDictModule
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.modules import SPFConfig
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig
-from spf_rl.train.dagger import DAggerConfig, ExpertMixturePolicy, train_dagger
+from spf_rl.train.dagger import DAggerConfig, ExpertMixturePolicy, behaviour_statistics, train_dagger
 from spf_rl.train.evaluation import EvalConfig
 from spf_rl.train.models import build_policy
 
@@ -121,6 +121,37 @@ def test_rounds_aggregate_retrain_and_report(tmp_path, bc_checkpoint):
     assert any(not torch.equal(start[k], last["model"][k]) for k in start)
     best = load_checkpoint(output / "best.pt", expected_model_type="spf")
     build_policy("spf", best["model_config"]).load_state_dict(best["model"])
+
+
+def test_behaviour_success_counts_first_episodes_only():
+    # batches of 6 steps per agent. Agent 0: success after 2 steps, then a fragment of 4 steps cut by
+    # the batch end; agent 1: ran all 6 steps without success; agent 2: success after 3 steps, then a
+    # second success after 3 more (kept whole only because it was quick: not counted either)
+    episodes = TensorDict(
+        {
+            "success": torch.tensor([True, False, False, True, True]),
+            "length": torch.tensor([2, 4, 6, 3, 3]),
+        },
+        [5],
+    )
+    stats = behaviour_statistics(episodes, max_steps=6)
+    assert stats == {"collected_trajectories": 5, "first_episodes": 3, "behaviour_success": pytest.approx(2 / 3)}
+    with pytest.raises(ValueError, match="max_steps"):
+        behaviour_statistics(episodes, max_steps=5)  # lengths 2 + 4 cross a 5-step batch boundary
+
+
+def test_expert_only_round_succeeds_in_every_complete_episode(tmp_path, bc_checkpoint):
+    """beta = 1: the expert drives, so every first episode succeeds (the fragments after it are not failures)."""
+    config = tiny_config(
+        tmp_path, bc_checkpoint, rounds=1, beta0=1.0, episodes_per_round=8, env=CollectionEnvConfig(
+            num_houses=1, demo_length=5, max_steps=12, image_size=32, noise="none"
+        )
+    )
+    config.val = config.test = EvalConfig(split="val", seed=1, num_episodes=2, num_agents=2, demo_length=5, max_steps=12, image_size=32, num_houses=1)
+    round_one = train_dagger(config)["history"][1]
+    assert round_one["first_episodes"] >= 2
+    assert round_one["collected_trajectories"] > round_one["first_episodes"]  # episodes end early: fragments follow
+    assert round_one["behaviour_success"] == 1.0
 
 
 def test_interrupted_run_resumes_to_the_same_result(tmp_path, bc_checkpoint):

@@ -175,6 +175,35 @@ def _store_round(directory: Path, episodes: TensorDict) -> None:
     os.replace(tmp, directory)
 
 
+def behaviour_statistics(episodes: TensorDictBase, max_steps: int) -> dict:
+    """Counts and success rate of a round's behaviour episodes.
+
+    A round is whole batches of ``max_steps`` steps per agent from a reset, cut into
+    trajectories agent by agent (:func:`~spf_rl.train.collection.batch_to_episodes`),
+    so each agent's trajectories in a batch add up to ``max_steps`` steps: its
+    first episode, then (if that one succeeded early) further episodes, the last
+    one cut short by the batch end. All of them are training data (every state is
+    labelled by the expert), but only first episodes measure the behaviour policy
+    without bias (a later episode is kept whole only if it ended quickly, i.e.
+    mostly when it succeeded), so ``behaviour_success`` is their success rate.
+
+    Raises:
+        ValueError: if the trajectory lengths do not tile batches of ``max_steps``.
+    """
+    success = episodes["success"].reshape(-1)
+    lengths = episodes["length"].reshape(-1)
+    ends = lengths.cumsum(0)
+    starts = ends - lengths
+    if (lengths < 1).any() or (starts // max_steps != (ends - 1) // max_steps).any():
+        raise ValueError(f"episode lengths do not tile batches of max_steps={max_steps} steps per agent.")
+    first = starts % max_steps == 0
+    return {
+        "collected_trajectories": int(success.numel()),
+        "first_episodes": int(first.sum()),
+        "behaviour_success": float(success[first].float().mean()) if first.any() else float("nan"),
+    }
+
+
 class _Aggregate:
     """The on-disk aggregate: a replay buffer of whole episodes on a :class:`LazyMemmapStorage`."""
 
@@ -278,11 +307,7 @@ def train_dagger(config: DAggerConfig) -> dict:
         else:
             episodes = _collect_round(policy, config, beta, round_seed)
             _store_round(round_dir, episodes)
-        collected = {
-            "beta": beta,
-            "collected_episodes": int(episodes.shape[0]),
-            "behaviour_success": float(episodes["success"].float().mean()),
-        }
+        collected = {"beta": beta, **behaviour_statistics(episodes, env.max_steps)}
         aggregate.extend(episodes)
         collected["aggregate_episodes"] = len(aggregate)
         collected["train_loss"] = _train_round(policy, optimizer, aggregate, config, round_index)
@@ -376,4 +401,4 @@ def plot_rounds(history: list[dict], path: Path, title: str = "DAgger") -> None:
     plt.close(fig)
 
 
-__all__ = ["DAggerConfig", "ExpertMixturePolicy", "plot_rounds", "train_dagger"]
+__all__ = ["DAggerConfig", "ExpertMixturePolicy", "behaviour_statistics", "plot_rounds", "train_dagger"]
