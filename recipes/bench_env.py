@@ -289,6 +289,32 @@ def machine_info() -> dict:
     }
 
 
+def plot_results(output: dict, path: Path) -> None:
+    """Bar chart of frames/s per collection path, with the raw loop and the 3,000 frames/s target."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    results = output["results"]
+    names = [name for name in results if name != "raw"]
+    fps = [results[name]["fps"] for name in names]
+    colours = ["tab:green" if "_store" in name else "tab:blue" for name in names]
+    fig, ax = plt.subplots(figsize=(8, 0.45 * len(names) + 1.5))
+    ax.barh(names[::-1], fps[::-1], color=colours[::-1])
+    if "raw" in results:
+        ax.axvline(results["raw"]["fps"], color="black", linestyle="--", label=f"raw loop, 1 process ({results['raw']['fps']:.0f})")
+    ax.axvline(output["targets"]["fps"], color="tab:red", linestyle=":", label=f"target ({output['targets']['fps']})")
+    for row, value in enumerate(fps[::-1]):
+        ax.text(value, row, f" {value:.0f}", va="center", fontsize=8)
+    ax.set_xlabel(f"collected frames/s ({output['setup']['image_size']} px, 2 processes at most; green: demo store)")
+    ax.legend(loc="lower right", fontsize=8)
+    ax.set_title("Environment throughput (recipes/bench_env.py)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="about 1 minute instead of about 5")
@@ -301,9 +327,14 @@ def main() -> None:
         "--demo-store", type=Path, default=DEMO_STORE_ROOT, help="demo store directory (built on first use, then reused)"
     )
     parser.add_argument("--output", type=Path, default=RESULTS_PATH)
+    parser.add_argument("--plot-only", action="store_true", help="redraw the PNG from an existing --output JSON")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     torch.set_num_threads(1)
+    if args.plot_only:
+        plot_results(json.loads(args.output.read_text()), args.output.with_suffix(".png"))
+        print(f"wrote {args.output.with_suffix('.png')}")
+        return
 
     chunks = 3 if args.quick else 5
     scale = 0.4 if args.quick else 1.0
@@ -558,6 +589,7 @@ def main() -> None:
     }
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(json.dumps(output, indent=2) + "\n")
+    plot_results(output, args.output.with_suffix(".png"))
 
     print(f"\n{'config':<24} {'frames/s':>9} {'x raw':>6} {'+demo f/s':>10} {'x raw':>6} {'frames':>7}")
     for name, result in results.items():
