@@ -13,13 +13,13 @@ memory-mapped TensorDict (TensorDict's memmap format; no pickle)::
 
 A :class:`~envs.nav_env.PathFollowEnv` given ``demo_store=root`` draws each
 episode's demonstration from the store (a uniformly drawn ``demo_id``), renders
-nothing at reset, and emits ``demo_id`` at every step; with ``demo_frames=False``
+nothing at reset, and emits ``demo_id`` at every step; with ``emit_demo_frames=False``
 it emits the id instead of the frames, and the policy looks the frames up in the
 store where it needs them (:meth:`DemoStore.lookup_module`). The store is a pure
 function of its :class:`DemoStoreConfig` (demonstration ``k`` is drawn from the
 generator seeded with ``(seed, k)``), is written to a temporary directory and
 renamed into place when complete, and is verified against its checksums when
-opened.
+opened by path (``DemoStore(root)``, and envs given a directory).
 """
 from __future__ import annotations
 
@@ -79,9 +79,13 @@ class DemoStoreConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
                 raise ValueError(f"{name} must be a positive int, got {value!r}.")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"seed must be a non-negative int, got {self.seed!r}.")
         split_seeds(self.split, self.num_houses)  # validates split and num_houses
         if self.min_route_length_m is None:
             self.min_route_length_m = default_min_route_length_m(self.demo_length)
+        elif not isinstance(self.min_route_length_m, (int, float)) or not self.min_route_length_m >= 0:
+            raise ValueError(f"min_route_length_m must be a number >= 0 (metres) or None, got {self.min_route_length_m!r}.")
 
     @property
     def house_seeds(self) -> list[int]:
@@ -96,10 +100,8 @@ def sample_store_demonstration(config: DemoStoreConfig, index: int) -> Demonstra
 
 
 def _checksums(demos: TensorDict) -> dict[str, str]:
-    return {
-        key: hashlib.sha256(demos.get(key).contiguous().numpy().tobytes()).hexdigest()
-        for key in sorted(demos.keys())
-    }
+    # hashed straight from the (memory-mapped) buffers: no copy of the store in memory
+    return {key: hashlib.sha256(demos.get(key).contiguous().numpy()).hexdigest() for key in sorted(demos.keys())}
 
 
 def _empty(config: DemoStoreConfig) -> TensorDict:
@@ -237,6 +239,7 @@ class DemoStore:
         demos = _empty(config).memmap_(tmp / "demos")
         renderer = FirstPersonRenderer(config.image_size, config.image_size)
         n = config.demo_length
+        completed = False
         try:
             for index in tqdm(range(config.num_demos), desc="demonstrations", disable=not progress):
                 demo = sample_store_demonstration(config, index)
@@ -247,8 +250,12 @@ class DemoStore:
                 demos["poses"][index] = torch.from_numpy(demo.poses)
                 demos["house_seed"][index] = demo.house_seed
                 demos["shortest_length_m"][index] = demo.shortest_length_m
+            completed = True
         finally:
             renderer.close()
+            if not completed:  # an interrupted or failed build leaves nothing behind
+                del demos
+                shutil.rmtree(tmp, ignore_errors=True)
         meta = {"format_version": DEMO_STORE_FORMAT_VERSION, "config": asdict(config), "checksums": _checksums(demos)}
         with open(tmp / "meta.json", "w") as handle:
             json.dump(meta, handle, indent=2, sort_keys=True)
@@ -291,25 +298,52 @@ class DemoStore:
         return self._demos.get("shortest_length_m")
 
     def lookup(self, demo_id: torch.Tensor) -> torch.Tensor:
-        """Frames of demonstrations by id: ``[*, 1]`` (or ``[*]``) int64 -> ``[*, n, 3, H, W]`` uint8.
+        """Frames of demonstrations by id: ``[*, 1]`` int64 (the env's ``demo_id``) -> ``[*, n, 3, H, W]`` uint8 (a copy).
 
         Raises:
-            ValueError: on ids outside ``[0, K)``.
+            ValueError: on ids of another shape or outside ``[0, K)``.
         """
-        ids = demo_id.squeeze(-1) if demo_id.ndim and demo_id.shape[-1] == 1 else demo_id
+        if demo_id.ndim == 0 or demo_id.shape[-1] != 1:
+            raise ValueError(f"demo_id must have shape [*, 1] (the env's demo_id), got {tuple(demo_id.shape)}.")
+        ids = demo_id.squeeze(-1)
         if ids.numel() and (int(ids.min()) < 0 or int(ids.max()) >= len(self)):
             raise ValueError(f"demo_id must be in [0, {len(self) - 1}] for store {self.root}, got {ids.tolist()}.")
         return self.frames[ids.reshape(-1).cpu()].reshape(*ids.shape, *self.frames.shape[1:]).to(demo_id.device)
 
-    def lookup_module(self, in_key: str = "demo_id", out_key: str = "demo_frames") -> TensorDictModule:
+    def lookup_module(
+        self, in_key: str = "demo_id", out_key: str = "demo_frames", only_where: str | None = None
+    ) -> TensorDictModule:
         """A :class:`~tensordict.nn.TensorDictModule` writing ``out_key`` frames from ``in_key`` ids.
 
         Put it in front of a policy that reads ``demo_frames`` when the env emits
         only ``demo_id``: ``TensorDictSequential(store.lookup_module(), policy,
         selected_out_keys=policy.out_keys)`` keeps the frames out of the
         collected batches.
+
+        Args:
+            in_key: the ids' key.
+            out_key: the frames' key.
+            only_where: a boolean key (e.g. ``"is_init"``): frames are looked up only
+                in rows where it is true, the other rows are zeros (allocated lazily by
+                the OS, so rows nobody reads cost nothing). For step-by-step
+                collection with the SPF policies, which encode the memory where
+                ``is_init`` is true and carry it in their recurrent state otherwise;
+                not for sequence-mode training, which reads every row's frames.
         """
-        return TensorDictModule(self.lookup, in_keys=[in_key], out_keys=[out_key])
+        if only_where is None:
+            return TensorDictModule(self.lookup, in_keys=[in_key], out_keys=[out_key])
+        return TensorDictModule(self.lookup_rows, in_keys=[in_key, only_where], out_keys=[out_key])
+
+    def lookup_rows(self, demo_id: torch.Tensor, where: torch.Tensor) -> torch.Tensor:
+        """:meth:`lookup` in the rows where ``where`` (``[*]`` or ``[*, 1]`` bool) is true, zeros elsewhere."""
+        if demo_id.ndim == 0 or demo_id.shape[-1] != 1:
+            raise ValueError(f"demo_id must have shape [*, 1] (the env's demo_id), got {tuple(demo_id.shape)}.")
+        rows = demo_id.shape[:-1]
+        mask = where.reshape(rows).to(torch.bool)
+        out = torch.zeros(*rows, *self.frames.shape[1:], dtype=self.frames.dtype, device=demo_id.device)
+        if mask.any():
+            out[mask] = self.lookup(demo_id[mask])
+        return out
 
     def demonstration(self, demo_id: int) -> Demonstration:
         """Demonstration ``demo_id`` with its geodesic end field (one Dijkstra run)."""

@@ -93,8 +93,9 @@ class PathFollowEnv(EnvBase):
         image_size: side of the square first-person frames, pixels.
         stop_action: add a STOP action (index 3) that ends the episode.
         with_expert: also emit ``expert_action``, the expert's action at every step.
-        render: render frames; ``False`` emits black frames and never opens an
-            OpenGL context (fast protocol statistics, expert labelling).
+        render: render frames; ``False`` emits black frames (``pixels``, and the
+            demonstration's frames unless they come from ``demo_store``) and never
+            opens an OpenGL context (fast protocol statistics, expert labelling).
         success_radius_m: minimum success radius, metres.
         success_fraction: success radius as a fraction of the initial distance.
         demo_store: a :class:`~envs.demo_store.DemoStore` (or its directory) to draw
@@ -149,6 +150,10 @@ class PathFollowEnv(EnvBase):
                 f"success_radius_m must be > 0 metres and success_fraction >= 0, got {success_radius_m}, {success_fraction}."
             )
         if demo_store is not None:
+            if not isinstance(demo_store, (DemoStore, str, os.PathLike)):
+                raise ValueError(
+                    f"demo_store must be a DemoStore, a store directory (str or path) or None, got {type(demo_store).__name__}."
+                )
             # a directory is opened and verified (checksums) once per env process
             demo_store = demo_store if isinstance(demo_store, DemoStore) else DemoStore(demo_store)
             _check_store_matches(demo_store, split, num_houses, house_seeds, demo_length, image_size, success_radius_m)

@@ -135,11 +135,12 @@ def test_interrupted_build_leaves_no_store(tmp_path, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         DemoStore.build(root, config, progress=False)
     assert not root.exists()
+    assert not (tmp_path / "store.tmp").exists()  # the half-written tensors are removed
     with pytest.raises(DemoStoreError):
         DemoStore(root)
     monkeypatch.setattr(demo_store_module, "sample_store_demonstration", real)
-    # the half-written <root>.tmp of the interrupted build is replaced
-    assert (tmp_path / "store.tmp").exists()
+    # a <root>.tmp left by a killed build (no cleanup possible) is replaced
+    (tmp_path / "store.tmp").mkdir()
     (tmp_path / "store.tmp" / "junk").write_text("left over")
     store = DemoStore.build(root, config, progress=False)
     assert not (tmp_path / "store.tmp").exists()
@@ -256,6 +257,12 @@ def test_lookup_by_ids(store):
 def test_lookup_refuses_out_of_range_ids(store, bad):
     with pytest.raises(ValueError, match="demo_id"):
         store.lookup(torch.tensor(bad).unsqueeze(-1))
+
+
+@pytest.mark.parametrize("shape", [(), (2,), (3, 2)])
+def test_lookup_refuses_ids_without_the_trailing_unit_dim(store, shape):
+    with pytest.raises(ValueError, match=r"demo_id must have shape \[\*, 1\]"):
+        store.lookup(torch.zeros(shape, dtype=torch.int64))
 
 
 def test_lookup_module_feeds_frames_to_the_policy_only(store):
@@ -391,6 +398,8 @@ def test_env_refuses_emit_false_without_store_and_a_missing_store(tmp_path):
         PathFollowEnv(emit_demo_frames=False, **ENV_KWARGS)
     with pytest.raises(DemoStoreError):
         PathFollowEnv(demo_store=tmp_path / "nowhere", **ENV_KWARGS)
+    with pytest.raises(ValueError, match="demo_store must be"):
+        PathFollowEnv(demo_store=5, **ENV_KWARGS)
 
 
 @pytest.mark.parametrize(
@@ -402,6 +411,9 @@ def test_env_refuses_emit_false_without_store_and_a_missing_store(tmp_path):
         (dict(image_size=0), "image_size"),
         (dict(split="validation"), "split"),
         (dict(num_houses=0), "num_houses"),
+        (dict(seed=-1), "seed"),
+        (dict(seed=0.5), "seed"),
+        (dict(min_route_length_m=-1.0), "min_route_length_m"),
     ],
 )
 def test_store_config_refuses_bad_values(kwargs, match):
@@ -471,3 +483,37 @@ def test_expert_follows_stored_routes_to_success(store):
     env.close()
     assert len(finished) >= 8
     assert all(finished)
+
+
+def test_lookup_rows_fills_only_the_flagged_rows(store):
+    ids = torch.tensor([[3], [5], [7]])
+    frames = store.lookup_rows(ids, torch.tensor([[True], [False], [True]]))
+    assert frames.shape == (3, *store.frames.shape[1:])
+    assert torch.equal(frames[0], store.frames[3]) and torch.equal(frames[2], store.frames[7])
+    assert not frames[1].any()
+    with pytest.raises(ValueError, match="demo_id"):
+        store.lookup_rows(torch.tensor([[3], [25]]), torch.tensor([True, True]))
+
+
+def test_spf_collection_with_init_only_lookup_matches_full_lookup(store, store_root):
+    """The SPF policy encodes the memory where is_init is true only: looking frames up there only changes nothing."""
+    torch.manual_seed(0)
+    spf = make_spf_policy(SPFConfig(demo_length=5, sparsity=0.4, feature_dim=8, hidden_size=8, image_size=(32, 32))).eval()
+    actor = make_actor(spf, 3)
+    batches = {}
+    for name, lookup in (("full", store.lookup_module()), ("init_only", store.lookup_module(only_where="is_init"))):
+        policy = TensorDictSequential(lookup, actor, selected_out_keys=list(actor.out_keys))
+        env = make_path_follow_env(demo_store=store_root, emit_demo_frames=False, num_agents=2, **ENV_KWARGS)
+        env.append_transform(spf.make_tensordict_primer())
+        env.set_seed(0)
+        torch.manual_seed(1)  # the actor samples its actions: the same draws in both runs
+        collector = Collector(env, policy, frames_per_batch=24, total_frames=24, auto_register_policy_transforms=False)
+        try:
+            batches[name] = next(iter(collector))
+        finally:
+            collector.shutdown()
+    full, init_only = batches["full"], batches["init_only"]
+    assert full["is_init"].sum() > 2  # episodes of max_steps=3: several resets inside the batch
+    torch.testing.assert_close(init_only["logits"], full["logits"])
+    torch.testing.assert_close(init_only["next", "memory_features"], full["next", "memory_features"])
+    assert torch.equal(init_only["demo_id"], full["demo_id"])

@@ -200,7 +200,7 @@ def behaviour_statistics(episodes: TensorDictBase, max_steps: int) -> dict:
     return {
         "collected_trajectories": int(success.numel()),
         "first_episodes": int(first.sum()),
-        "behaviour_success": float(success[first].float().mean()) if first.any() else float("nan"),
+        "behaviour_success": float(success[first].float().mean()) if first.any() else None,
     }
 
 
