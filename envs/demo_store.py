@@ -38,6 +38,7 @@ from tensordict.nn import TensorDictModule
 from tqdm.auto import tqdm
 
 from envs.demos import Demonstration, default_min_route_length_m, sample_demonstration
+from envs.geometry import DistanceField
 from envs.render import FirstPersonRenderer
 from envs.scenes import build_house, split_seeds
 
@@ -303,12 +304,17 @@ class DemoStore:
         Raises:
             ValueError: on ids of another shape or outside ``[0, K)``.
         """
+        ids = self._checked_ids(demo_id)
+        return self.frames[ids.reshape(-1).cpu()].reshape(*ids.shape, *self.frames.shape[1:]).to(demo_id.device)
+
+    def _checked_ids(self, demo_id: torch.Tensor) -> torch.Tensor:
+        """``[*, 1]`` ids -> ``[*]``, refusing other shapes and ids outside ``[0, K)``."""
         if demo_id.ndim == 0 or demo_id.shape[-1] != 1:
             raise ValueError(f"demo_id must have shape [*, 1] (the env's demo_id), got {tuple(demo_id.shape)}.")
         ids = demo_id.squeeze(-1)
         if ids.numel() and (int(ids.min()) < 0 or int(ids.max()) >= len(self)):
             raise ValueError(f"demo_id must be in [0, {len(self) - 1}] for store {self.root}, got {ids.tolist()}.")
-        return self.frames[ids.reshape(-1).cpu()].reshape(*ids.shape, *self.frames.shape[1:]).to(demo_id.device)
+        return ids
 
     def lookup_module(
         self, in_key: str = "demo_id", out_key: str = "demo_frames", only_where: str | None = None
@@ -336,23 +342,29 @@ class DemoStore:
 
     def lookup_rows(self, demo_id: torch.Tensor, where: torch.Tensor) -> torch.Tensor:
         """:meth:`lookup` in the rows where ``where`` (``[*]`` or ``[*, 1]`` bool) is true, zeros elsewhere."""
-        if demo_id.ndim == 0 or demo_id.shape[-1] != 1:
-            raise ValueError(f"demo_id must have shape [*, 1] (the env's demo_id), got {tuple(demo_id.shape)}.")
-        rows = demo_id.shape[:-1]
-        mask = where.reshape(rows).to(torch.bool)
-        out = torch.zeros(*rows, *self.frames.shape[1:], dtype=self.frames.dtype, device=demo_id.device)
+        ids = self._checked_ids(demo_id)
+        mask = where.reshape(ids.shape).to(torch.bool)
+        out = torch.zeros(*ids.shape, *self.frames.shape[1:], dtype=self.frames.dtype, device=demo_id.device)
         if mask.any():
-            out[mask] = self.lookup(demo_id[mask])
+            out[mask] = self.frames[ids[mask].cpu()].to(demo_id.device)
         return out
 
-    def demonstration(self, demo_id: int) -> Demonstration:
-        """Demonstration ``demo_id`` with its geodesic end field (one Dijkstra run)."""
-        house = build_house(int(self.house_seeds[demo_id]))
+    def demonstration(self, demo_id: int, end_field: DistanceField | None = None) -> Demonstration:
+        """Demonstration ``demo_id`` (arrays copied out of the store).
+
+        Args:
+            demo_id: index in ``[0, K)``.
+            end_field: its geodesic distance field to the route's end, if already known;
+                otherwise computed (one Dijkstra run).
+        """
+        house_seed = int(self.house_seeds[demo_id])
         poses = self.poses[demo_id].numpy().copy()
+        if end_field is None:
+            end_field = build_house(house_seed).graph.distance_field(poses[-1, :2])
         return Demonstration(
-            house_seed=house.seed,
+            house_seed=house_seed,
             poses=poses,
             actions=self.actions[demo_id].numpy().copy(),
-            end_field=house.graph.distance_field(poses[-1, :2]),
+            end_field=end_field,
             shortest_length_m=float(self.shortest_lengths_m[demo_id]),
         )

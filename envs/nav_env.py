@@ -342,21 +342,11 @@ class PathFollowEnv(EnvBase):
 
     def _stored_demonstration(self, demo_id: int) -> Demonstration:
         """Demonstration ``demo_id`` of the store, its distance field cached (LRU)."""
-        field = self._field_cache.pop(demo_id, None)
-        store = self.demo_store
-        poses = store.poses[demo_id].numpy().copy()  # the store's memory map stays untouched
-        if field is None:
-            field = build_house(int(store.house_seeds[demo_id])).graph.distance_field(poses[-1, :2])
-        self._field_cache[demo_id] = field
+        demo = self.demo_store.demonstration(demo_id, end_field=self._field_cache.pop(demo_id, None))
+        self._field_cache[demo_id] = demo.end_field
         if len(self._field_cache) > DISTANCE_FIELD_CACHE_SIZE:
             self._field_cache.popitem(last=False)
-        return Demonstration(
-            house_seed=int(store.house_seeds[demo_id]),
-            poses=poses,
-            actions=store.actions[demo_id].numpy().copy(),
-            end_field=field,
-            shortest_length_m=float(store.shortest_lengths_m[demo_id]),
-        )
+        return demo
 
     def _radius(self, initial_distance_m: float | np.ndarray) -> float | np.ndarray:
         return np.maximum(self.success_radius_m, self.success_fraction * initial_distance_m)
