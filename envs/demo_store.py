@@ -343,6 +343,11 @@ class DemoStore:
     def lookup_rows(self, demo_id: torch.Tensor, where: torch.Tensor) -> torch.Tensor:
         """:meth:`lookup` in the rows where ``where`` (``[*]`` or ``[*, 1]`` bool) is true, zeros elsewhere."""
         ids = self._checked_ids(demo_id)
+        if where.numel() != ids.numel():
+            raise ValueError(
+                f"where must hold one flag per demo_id row ([*] or [*, 1] with * = {tuple(ids.shape)}), "
+                f"got shape {tuple(where.shape)}."
+            )
         mask = where.reshape(ids.shape).to(torch.bool)
         out = torch.zeros(*ids.shape, *self.frames.shape[1:], dtype=self.frames.dtype, device=demo_id.device)
         if mask.any():

@@ -493,6 +493,8 @@ def test_lookup_rows_fills_only_the_flagged_rows(store):
     assert not frames[1].any()
     with pytest.raises(ValueError, match="demo_id"):
         store.lookup_rows(torch.tensor([[3], [25]]), torch.tensor([True, True]))
+    with pytest.raises(ValueError, match="where must hold one flag per demo_id row"):
+        store.lookup_rows(ids, torch.tensor([True, False]))
 
 
 def test_spf_collection_with_init_only_lookup_matches_full_lookup(store, store_root):
