@@ -23,21 +23,18 @@ from pathlib import Path
 def evaluate_path(path: str, args: argparse.Namespace) -> dict:
     """Evaluate one checkpoint file (or ``open_loop``) and return its results dict."""
     import envs  # noqa: F401
-    from spf_rl.checkpoint import load_checkpoint
+    from spf_rl.hub import policy_from_checkpoint
     from spf_rl.modules.policy import OpenLoopPolicy
     from spf_rl.train.bc import model_memory_bytes
     from spf_rl.train.evaluation import EvalConfig, evaluate_policy
-    from spf_rl.train.models import build_policy
 
     if path == "open_loop":
         policy, model_type, demo_length, image_size, sparsity = OpenLoopPolicy(), "open_loop", args.demo_length, args.image_size, 0.0
         memory = demo_length
     else:
-        payload = load_checkpoint(path, expected_model_type=args.model_type)
+        policy, payload = policy_from_checkpoint(path, expected_model_type=args.model_type)
         config = payload["model_config"]
         model_type = payload["model_type"]
-        policy = build_policy(model_type, config)
-        policy.load_state_dict(payload["model"])
         demo_length, image_size, sparsity = config.demo_length, config.image_size[0], config.effective_sparsity
         if args.sparsity is not None:
             if config.sparsity_range is None:

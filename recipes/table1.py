@@ -60,18 +60,14 @@ def checkpoint_name(model: str, sparsity: float | Sequence[float]) -> str:
 def load_or_train(path: Path, config, train: bool):
     """The policy in checkpoint ``path``; if it is missing and ``train``, first train
     ``config`` (a ``BCConfig``) with ``train_bc`` and copy its best checkpoint to ``path``."""
-    from spf_rl.checkpoint import load_checkpoint
+    from spf_rl.hub import policy_from_checkpoint
     from spf_rl.train.bc import train_bc
-    from spf_rl.train.models import build_policy
 
     model = config.model.name
     if train and not path.exists():
         train_bc(config)
         shutil.copyfile(Path(config.output_dir) / "best.pt", path)
-    payload = load_checkpoint(path, expected_model_type=model)
-    policy = build_policy(model, payload["model_config"])
-    policy.load_state_dict(payload["model"])
-    return policy
+    return policy_from_checkpoint(path, expected_model_type=model)[0]
 
 
 def make_row(

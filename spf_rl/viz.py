@@ -1,13 +1,28 @@
-"""Figures: training curves, trajectories on the house map, pointer plots, rollout videos."""
+"""Figures: training curves, trajectories on the house map, pointer plots, rollout videos.
+
+Needs the ``viz`` extra (matplotlib, imageio): ``pip install -e ".[viz]"``. The
+plotting libraries are imported when a function is called, not with the module.
+"""
 from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
 import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+#: How to install what this module needs.
+VIZ_INSTALL_HINT = 'install the viz extra: pip install -e ".[viz]" (matplotlib, imageio)'
+
+
+def pyplot():
+    """:mod:`matplotlib.pyplot`, or an :class:`ImportError` that says how to install it.
+
+    matplotlib chooses its back-end (Agg on a machine without a display).
+    """
+    try:
+        import matplotlib.pyplot as plt
+    except ImportError as err:
+        raise ImportError(f"spf_rl.viz needs matplotlib: {VIZ_INSTALL_HINT}.") from err
+    return plt
 
 
 def plot_training_curves(history: list[dict], path: str | Path, title: str = "training") -> Path:
@@ -26,6 +41,7 @@ def plot_training_curves(history: list[dict], path: str | Path, title: str = "tr
         >>> out.exists()
         True
     """
+    plt = pyplot()
     path = Path(path)
     epochs = [h["epoch"] for h in history]
     fig, (left, right) = plt.subplots(1, 2, figsize=(9, 3.5))
@@ -66,7 +82,7 @@ def plot_pointer(eta: np.ndarray, nearest_demo_index: np.ndarray, memory_indices
         True
     """
     if ax is None:
-        _, ax = plt.subplots(figsize=(5, 3.5))
+        _, ax = pyplot().subplots(figsize=(5, 3.5))
     steps = np.arange(len(eta))
     ax.plot(steps, eta, "o-", markersize=3, label="pointer eta")
     ax.plot(steps, nearest_demo_index, "s-", markersize=3, label="nearest demo index (privileged)")
@@ -82,7 +98,10 @@ def plot_pointer(eta: np.ndarray, nearest_demo_index: np.ndarray, memory_indices
 
 def write_gif(frames: list[np.ndarray], path: str | Path, fps: int = 5) -> Path:
     """Write RGB frames ``(H, W, 3)`` uint8 as an animated GIF with imageio."""
-    import imageio.v2 as imageio
+    try:
+        import imageio.v2 as imageio
+    except ImportError as err:
+        raise ImportError(f"write_gif needs imageio: {VIZ_INSTALL_HINT}.") from err
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -94,3 +113,97 @@ def figure_to_array(fig) -> np.ndarray:
     """Render a matplotlib figure to an RGB uint8 array."""
     fig.canvas.draw()
     return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
+
+
+def watch(
+    policy,
+    out_dir: str | Path,
+    *,
+    split: str = "test",
+    noise: str = "paper",
+    seed: int = 7,
+    num_houses: int | None = None,
+    index: int = 0,
+    label: str = "agent",
+    gif: bool = True,
+) -> dict:
+    """Play one greedy episode and draw what the agent does.
+
+    Writes, in ``out_dir``:
+
+    * ``map_<index>.png``: the top-down map with the demonstration, the path the
+      agent followed and the positions of the memory frames;
+    * ``pointer_<index>.png`` (policies with a pointer): the pointer over time
+      against the demonstration index the agent is nearest to (privileged, for
+      the plot only);
+    * ``rollout_<index>.gif`` (``gif=True``): the first-person view beside the map, step by step.
+
+    Args:
+        policy: a policy (e.g. from :func:`spf_rl.load_policy`); its ``config`` gives
+            the demonstration length and frame size (30 and 64 without one).
+        out_dir: output directory (created).
+        split: house split.
+        noise: actuation-noise preset.
+        seed: episode seed (the same seed plays the same episode for every policy).
+        num_houses: houses of the split (``None``: its default).
+        index: number in the file names.
+        label: the agent's name in legends and titles.
+        gif: also write the GIF.
+
+    Returns:
+        the episode's record (:func:`~spf_rl.train.evaluation.record_rollout`).
+    """
+    import dataclasses
+
+    from envs.render import draw_top_down_map
+    from envs.scenes import build_house
+    from spf_rl.modules.memory import memory_indices
+    from spf_rl.train.evaluation import EvalConfig, record_rollout
+
+    plt = pyplot()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    eval_config = EvalConfig(split=split, noise=noise, seed=seed, num_houses=num_houses)
+    config = getattr(policy, "config", None)
+    indices = np.zeros(0, dtype=np.int64)
+    if config is not None:
+        eval_config = dataclasses.replace(eval_config, demo_length=config.demo_length, image_size=config.image_size[0])
+        if getattr(policy, "use_memory", False):
+            indices = memory_indices(config.demo_length, policy.sparsity).numpy()
+    record = record_rollout(policy, eval_config)
+    house = build_house(record["house_seed"])
+    demo, followed = record["demo_poses"][:, :2], record["poses"][:, :2]
+    outcome = f"{'success' if record['success'] else 'failure'}, SPL {record['spl']:.2f}"
+
+    ax = draw_top_down_map(
+        house,
+        paths={"demonstration": demo, label: followed},
+        points={"memory frames": demo[indices]} if len(indices) else None,
+        title=f"{label}: {outcome}",
+    )
+    ax.figure.savefig(out / f"map_{index}.png", dpi=120)
+    plt.close(ax.figure)
+    if "eta" in record:
+        nearest = np.argmin(np.linalg.norm(followed[:-1, None] - demo[None, :-1], axis=-1), axis=1)
+        ax = plot_pointer(record["eta"], nearest, indices, title=f"{label}: pointer vs position")
+        ax.figure.tight_layout()
+        ax.figure.savefig(out / f"pointer_{index}.png", dpi=120)
+        plt.close(ax.figure)
+    if gif:
+        fig, (left, right) = plt.subplots(1, 2, figsize=(7, 3.5))
+        view = left.imshow(record["frames"][0])
+        left.set_axis_off()
+        left.set_title("first-person view, step 0")
+        draw_top_down_map(house, paths={"demonstration": demo}, ax=right)
+        (trail,) = right.plot(followed[:1, 0], followed[:1, 1], "-", linewidth=2, label=label)
+        right.legend(loc="upper right", fontsize=7)
+        fig.tight_layout()
+        frames = []
+        for step in range(len(record["frames"])):
+            view.set_data(record["frames"][step])
+            left.set_title(f"first-person view, step {step}")
+            trail.set_data(followed[: step + 2, 0], followed[: step + 2, 1])
+            frames.append(figure_to_array(fig))
+        plt.close(fig)
+        write_gif(frames, out / f"rollout_{index}.gif")
+    return record

@@ -1,0 +1,92 @@
+"""spf_rl.load_policy / list_checkpoints: shipped names, paths, clear errors."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+import spf_rl
+from spf_rl import hub
+from spf_rl.checkpoint import CheckpointError, save_checkpoint
+from spf_rl.modules.policy import SPFConfig, SPFPolicy
+from spf_rl.train.models import build_policy
+
+SHIPPED = [
+    "action_only-s0",
+    "dagger-spf-s0.8",
+    "ppo-spf-s0.8",
+    "rpf-s1",
+    "spf-s0.4",
+    "spf-s0.6",
+    "spf-s0.8",
+    "spf_random-s0.2-1",
+]
+
+
+def test_list_checkpoints_names_every_shipped_file():
+    assert spf_rl.list_checkpoints() == SHIPPED
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_every_shipped_name_loads_a_ready_policy(name):
+    policy, config = spf_rl.load_policy(name)
+    assert isinstance(policy, SPFPolicy) and isinstance(config, SPFConfig)
+    assert not policy.training
+    assert config is policy.config
+    assert config.num_actions == 3 and config.demo_length == 30 and config.image_size == (64, 64)
+
+
+def test_config_has_the_memory_of_the_model_type():
+    assert spf_rl.load_policy("rpf-s1").config.memory_mode == "full"
+    assert spf_rl.load_policy("action_only-s0").config.memory_length == 0
+    assert spf_rl.load_policy("spf-s0.4").config.memory_length == 12
+    assert spf_rl.load_policy("spf_random-s0.2-1").config.sparsity_range == (0.2, 1.0)
+
+
+def test_name_and_path_give_the_same_weights():
+    by_name, _ = spf_rl.load_policy("spf-s0.8")
+    by_path, _ = spf_rl.load_policy(hub.CHECKPOINT_DIR / "spf-s0.8.pt")
+    by_str, _ = spf_rl.load_policy(str(hub.CHECKPOINT_DIR / "spf-s0.8.pt"))
+    for other in (by_path, by_str):
+        for (key, a), b in zip(by_name.state_dict().items(), other.state_dict().values()):
+            assert torch.equal(a, b), key
+
+
+def test_a_path_written_by_the_recipes_loads(tmp_path):
+    config = SPFConfig(feature_dim=8, hidden_size=8, demo_length=10)
+    trained = build_policy("spf", config)
+    save_checkpoint(tmp_path / "best.pt", "spf", config, {"model": trained.state_dict()})
+    policy, loaded = spf_rl.load_policy(tmp_path / "best.pt", model_type="spf")
+    assert loaded.demo_length == 10 and not policy.training
+    for a, b in zip(trained.state_dict().values(), policy.state_dict().values()):
+        assert torch.equal(a, b)
+    with pytest.raises(CheckpointError, match="'rpf' model was asked for"):
+        spf_rl.load_policy(tmp_path / "best.pt", model_type="rpf")
+
+
+def test_unknown_name_lists_the_shipped_names():
+    with pytest.raises(ValueError, match="unknown checkpoint name 'spf-s0.9'") as info:
+        spf_rl.load_policy("spf-s0.9")
+    for name in SHIPPED:
+        assert name in str(info.value)
+
+
+@pytest.mark.parametrize("missing", ["runs/bc/nothing/best.pt", "nothing.pt", Path("nothing")])
+def test_missing_path_is_a_file_not_found_error(missing):
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        spf_rl.load_policy(missing)
+
+
+def test_corrupt_file_is_a_checkpoint_error(tmp_path):
+    (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match="corrupt"):
+        spf_rl.load_policy(tmp_path / "bad.pt")
+
+
+def test_without_a_checkpoint_directory_names_fail_clearly(monkeypatch, tmp_path):
+    monkeypatch.setattr(hub, "CHECKPOINT_DIR", tmp_path / "absent")
+    with pytest.raises(FileNotFoundError, match="install spf-rl from a clone"):
+        spf_rl.list_checkpoints()
+    with pytest.raises(FileNotFoundError, match="install spf-rl from a clone"):
+        spf_rl.load_policy("spf-s0.8")
