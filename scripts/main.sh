@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
-# Install everything (CPU torch pinned in pyproject.toml) and run the main job:
-# behaviour cloning of SPF (sparsity 0.8) on the default config, then test-split evaluation.
+# Install the package with its figures extra (torch==2.13.0 from the configured package
+# index) and run the main job: behaviour cloning of SPF (sparsity 0.8) on the default
+# config, then test-split evaluation. Arguments are passed to recipes/bc.py.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-python -m pip install --quiet --disable-pip-version-check -e .
+python -m pip install --quiet --disable-pip-version-check -e ".[viz]"
 export MUJOCO_GL="${MUJOCO_GL:-egl}"
 python recipes/bc.py "$@"

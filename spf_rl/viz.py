@@ -5,9 +5,12 @@ plotting libraries are imported when a function is called, not with the module.
 """
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
+
+logger = logging.getLogger(__name__)
 
 #: How to install what this module needs.
 VIZ_INSTALL_HINT = 'install the viz extra: pip install -e ".[viz]" (matplotlib, imageio)'
@@ -23,6 +26,16 @@ def pyplot():
     except ImportError as err:
         raise ImportError(f"spf_rl.viz needs matplotlib: {VIZ_INSTALL_HINT}.") from err
     return plt
+
+
+def plot_if_available(plot, *args, **kwargs):
+    """``plot(*args, **kwargs)``, or ``None`` with a logged warning when the viz extra is
+    missing: a training run still finishes (and keeps its JSON) without its figure."""
+    try:
+        return plot(*args, **kwargs)
+    except ImportError as err:
+        logger.warning("figure skipped: %s", err)
+        return None
 
 
 def plot_training_curves(history: list[dict], path: str | Path, title: str = "training") -> Path:

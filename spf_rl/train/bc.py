@@ -267,9 +267,9 @@ def train_bc(config: BCConfig) -> dict:
     }
     _atomic_json(output / "results.json", results)
     _atomic_json(output / "test_episodes.json", {"episodes": records})
-    from spf_rl.viz import plot_training_curves
+    from spf_rl.viz import plot_if_available, plot_training_curves
 
-    plot_training_curves(history, output / "training_curves.png", title=f"BC {model_type}")
+    plot_if_available(plot_training_curves, history, output / "training_curves.png", title=f"BC {model_type}")
     return results
 
 

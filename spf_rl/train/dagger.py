@@ -43,6 +43,7 @@ from spf_rl.train.bc import BCConfig, OptimConfig, _atomic_json, bc_loss
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig, collect_episodes, make_collector
 from spf_rl.train.evaluation import EvalConfig, evaluate_policy, with_episode_sizes
 from spf_rl.train.models import build_policy
+from spf_rl.viz import plot_if_available, pyplot
 
 logger = logging.getLogger(__name__)
 
@@ -329,7 +330,7 @@ def train_dagger(config: DAggerConfig) -> dict:
         "config": asdict(config),
     }
     _atomic_json(output / "results.json", results)
-    plot_rounds(history, output / "dagger.png", title=f"DAgger from {Path(config.checkpoint).name}")
+    plot_if_available(plot_rounds, history, output / "dagger.png", title=f"DAgger from {Path(config.checkpoint).name}")
     return results
 
 
@@ -379,11 +380,7 @@ def _train_round(policy, optimizer, aggregate: _Aggregate, config: DAggerConfig,
 
 def plot_rounds(history: list[dict], path: Path, title: str = "DAgger") -> None:
     """Success and SPL per round (val, and test where measured)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 4))
     rounds = [r["round"] for r in history]
     for split, style in (("val", "-"), ("test", "--")):

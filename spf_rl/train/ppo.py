@@ -82,6 +82,7 @@ from spf_rl.modules.policy import SPFPolicy, make_actor
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig, make_collector
 from spf_rl.train.evaluation import EvalConfig, evaluate_policy, with_episode_sizes
 from spf_rl.train.models import build_policy
+from spf_rl.viz import plot_if_available, pyplot
 
 logger = logging.getLogger(__name__)
 
@@ -755,7 +756,9 @@ class _PPORun:
             "config": asdict(self.config),
         }
         _atomic_json(self.output / "results.json", results)
-        plot_ppo(val_history, start, self.output / "ppo.png", title=f"PPO from {Path(self.config.checkpoint).name}")
+        plot_if_available(
+            plot_ppo, val_history, start, self.output / "ppo.png", title=f"PPO from {Path(self.config.checkpoint).name}"
+        )
         return results
 
     # ------------------------------------------------------------------ checkpoints
@@ -818,11 +821,7 @@ def plot_ppo(val_history: list[dict], start: dict, path: str | Path, title: str 
     Returns:
         ``path``.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     path = Path(path)
     fig, ax = plt.subplots(figsize=(6, 4))
     iterations = [r["iteration"] for r in val_history]
