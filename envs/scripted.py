@@ -4,7 +4,7 @@
 can drive :class:`~envs.nav_env.PathFollowEnv` in ``env.rollout`` or a TorchRL
 collector. :func:`run_episodes` plays a fixed number of episodes on a batched env
 and returns one record per episode (success, SPL, distances); it is how the
-README's expert and open-loop figures are measured (``recipes/expert_stats.py``).
+expert and open-loop figures of docs/results.md are measured (``recipes/expert_stats.py``).
 """
 from __future__ import annotations
 
