@@ -40,6 +40,8 @@ i''. ``multisync_2x_batched32_store_lookup``: (i') with a policy that looks the
    recipe does;
 j. ``multisync_2x_batched8_store_frames``: (f) with the store but the frames
    still emitted at every step (``emit_demo_frames=True``).
+k. ``dmc`` (only when named in ``--only``): ``recipes/bench_dmc.py``, the dm_control
+   face beside ``PathFollowEnv``, written to ``benchmarks/results/dmc.json``.
 
 Usage::
 
@@ -345,7 +347,7 @@ def main() -> None:
     parser.add_argument("--num-houses", type=int, default=4)
     parser.add_argument("--demo-length", type=int, default=30)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--only", nargs="*", default=None, help="subset of configs (raw env_step collector_single ...)")
+    parser.add_argument("--only", nargs="*", default=None, help="subset of configs (raw env_step ...; dmc if named)")
     parser.add_argument(
         "--demo-store",
         type=Path,
@@ -489,6 +491,12 @@ def main() -> None:
         "multisync_2x_batched8_store_frames": "(j) (f) with a DemoStore, demo_frames still emitted at every step",
     }
     wanted = set(args.only) if args.only else set(descriptions)
+    if "dmc" in wanted:  # optional path (only when named): recipes/bench_dmc.py, writes benchmarks/results/dmc.json
+        from bench_dmc import bench_dmc, write_results
+
+        write_results(bench_dmc(args.image_size, args.num_houses, args.demo_length, args.seed, args.quick))
+        if wanted == {"dmc"}:
+            return
     machine = machine_info()  # load average before the run
     others_before = _other_processes_cpu_seconds() if Path("/proc").exists() else {}
     wall_start = time.perf_counter()

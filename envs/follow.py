@@ -1,0 +1,151 @@
+"""The follow protocol shared by the environment faces: episodes from a seed, success, SPL, reward.
+
+:class:`~envs.nav_env.PathFollowEnv` (TorchRL) and :mod:`envs.dmc` (dm_control)
+run the same task; this module holds the pieces of it that do not depend on the
+framework, as plain numpy functions that work on one agent or on a batch:
+
+* :func:`episode_for_seed`: the house and demonstration of an episode seed;
+* :class:`FollowRules`: the success radius, the end of an episode (success, STOP,
+  step limit), SPL (Anderson et al. 2018) and the dense reward of a step.
+
+Protocol (the paper's, Sec. 4.1): success means ending within
+``max(success_radius_m, success_fraction * initial distance)`` (geodesic) of the
+route's end; without STOP the episode terminates as soon as the agent is inside
+that radius, with STOP when the agent stops; it is truncated after ``max_steps``.
+The reward is ``progress_reward_per_m`` per metre of geodesic progress, plus
+``success_reward`` on success, minus ``step_penalty`` per step.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from envs.demos import Demonstration, sample_demonstration
+from envs.expert import STOP
+from envs.scenes import House, build_house
+
+#: Episode seeds are drawn in [0, MAX_EPISODE_SEED) (they also key the actuation noise).
+MAX_EPISODE_SEED = 2**62
+#: SPL's denominator never goes below this, metres (a zero-length route and path).
+MIN_SPL_DENOMINATOR_M = 1e-9
+
+
+def episode_for_seed(
+    episode_seed: int, house_seeds: Sequence[int], demo_length: int, min_route_length_m: float
+) -> tuple[House, Demonstration]:
+    """The house and demonstration of an episode seed.
+
+    The house is drawn from ``house_seeds`` and the demonstration sampled in it, both
+    from ``np.random.default_rng(episode_seed)``, so one seed gives the same episode
+    in every face of the task.
+
+    Args:
+        episode_seed: the episode's seed, in ``[0, MAX_EPISODE_SEED)``.
+        house_seeds: the houses to draw from (a split's seeds).
+        demo_length: demonstration length n, steps.
+        min_route_length_m: routes ending this close to their start (geodesic, metres)
+            are re-drawn.
+
+    Examples:
+        >>> house, demo = episode_for_seed(7, [0, 1], demo_length=5, min_route_length_m=0.6)
+        >>> house.seed in (0, 1), demo.actions.shape
+        (True, (5,))
+    """
+    rng = np.random.default_rng(episode_seed)
+    house = build_house(int(rng.choice(house_seeds)))
+    return house, sample_demonstration(house, rng, demo_length, min_route_length_m=min_route_length_m)
+
+
+@dataclass(frozen=True)
+class StepOutcome:
+    """What a step means under :class:`FollowRules` (arrays of the agents' shape, or scalars).
+
+    Attributes:
+        terminated: success (without STOP) or STOP: a true end, no bootstrapping.
+        truncated: the step limit was reached without termination.
+        success: the episode ended inside the success radius.
+        spl: success weighted by path length, 0 unless ``success``.
+        reward: the step's dense reward.
+    """
+
+    terminated: np.ndarray
+    truncated: np.ndarray
+    success: np.ndarray
+    spl: np.ndarray
+    reward: np.ndarray
+
+    @property
+    def done(self) -> np.ndarray:
+        return self.terminated | self.truncated
+
+
+@dataclass(frozen=True)
+class FollowRules:
+    """Success, episode end, SPL and reward of the follow protocol.
+
+    Args:
+        max_steps: follow-episode limit, steps.
+        success_radius_m: minimum success radius, metres.
+        success_fraction: success radius as a fraction of the initial distance.
+        stop_action: episodes end on STOP (action 3) instead of on arrival.
+        progress_reward_per_m: reward per metre of geodesic progress.
+        success_reward: reward on success.
+        step_penalty: reward subtracted at every step.
+
+    Examples:
+        >>> rules = FollowRules(max_steps=50, success_radius_m=0.6, success_fraction=0.1, stop_action=False,
+        ...                     progress_reward_per_m=1.0, success_reward=2.5, step_penalty=0.01)
+        >>> outcome = rules.score(action=0, distance_m=0.5, previous_distance_m=0.8, initial_distance_m=9.0,
+        ...                       path_length_m=9.3, shortest_length_m=9.0, steps=31)
+        >>> bool(outcome.success), round(float(outcome.spl), 3), round(float(outcome.reward), 2)
+        (True, 0.968, 2.79)
+    """
+
+    max_steps: int
+    success_radius_m: float
+    success_fraction: float
+    stop_action: bool
+    progress_reward_per_m: float
+    success_reward: float
+    step_penalty: float
+
+    def radius(self, initial_distance_m: float | np.ndarray) -> float | np.ndarray:
+        """Success radius, metres, of episodes starting ``initial_distance_m`` (geodesic) from the end."""
+        return np.maximum(self.success_radius_m, self.success_fraction * initial_distance_m)
+
+    def score(
+        self,
+        *,
+        action: int | np.ndarray,
+        distance_m: float | np.ndarray,
+        previous_distance_m: float | np.ndarray,
+        initial_distance_m: float | np.ndarray,
+        path_length_m: float | np.ndarray,
+        shortest_length_m: float | np.ndarray,
+        steps: int | np.ndarray,
+    ) -> StepOutcome:
+        """Score a step that has just been taken.
+
+        Args:
+            action: the action taken (STOP matters only with ``stop_action``).
+            distance_m: geodesic distance to the route's end after the step, metres.
+            previous_distance_m: the same before the step, metres.
+            initial_distance_m: the same at the episode's start, metres.
+            path_length_m: length travelled since the start, this step included, metres.
+            shortest_length_m: geodesic length of the route, metres.
+            steps: steps taken, this one included.
+        """
+        inside = np.asarray(distance_m) <= self.radius(initial_distance_m)
+        terminated = (np.asarray(action) == STOP) if self.stop_action else inside
+        truncated = (np.asarray(steps) >= self.max_steps) & ~terminated
+        success = (terminated | truncated) & inside
+        denominator = np.maximum(np.maximum(path_length_m, shortest_length_m), MIN_SPL_DENOMINATOR_M)
+        spl = np.where(success, shortest_length_m / denominator, 0.0)
+        reward = (
+            self.progress_reward_per_m * (np.asarray(previous_distance_m) - distance_m)
+            + self.success_reward * success
+            - self.step_penalty
+        )
+        return StepOutcome(terminated=terminated, truncated=truncated, success=success, spl=spl, reward=reward)
