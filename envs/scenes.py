@@ -31,7 +31,14 @@ import labmaze
 import numpy as np
 from labmaze import assets as labmaze_assets
 
-from envs.geometry import GEODESIC_RESOLUTION_M, OCCUPANCY_RESOLUTION_M, GeodesicGraph, OccupancyMap
+from envs.geometry import (
+    GEODESIC_RESOLUTION_M,
+    OCCUPANCY_RESOLUTION_M,
+    GeodesicGraph,
+    OccupancyMap,
+    count_components,
+    navigable_beside,
+)
 
 #: Side of a labmaze cell, metres.
 CELL_SIZE_M = 1.0
@@ -256,11 +263,18 @@ def build_house(seed: int) -> House:
 def _place_furniture(house: House, cells: np.ndarray, rng: np.random.Generator) -> list[Furniture]:
     """Furniture at labmaze object cells, pushed towards a neighbouring wall.
 
-    A piece is kept only if the navigable space stays in one piece with it.
+    A piece is kept only if the navigable space stays in one piece with it (as many
+    8-connected components of navigable nodes as the walls alone leave). The
+    navigable nodes are updated piece by piece with
+    :func:`~envs.geometry.navigable_beside`: exactly the nodes of
+    ``GeodesicGraph(OccupancyMap(_rasterise(house, kept + [piece])))``, without a
+    distance transform of the whole house per piece.
     """
     kept: list[Furniture] = []
     size = house.cell_size_m
-    base_components = GeodesicGraph(OccupancyMap(_rasterise(house, []), OCCUPANCY_RESOLUTION_M)).components()
+    navigable = GeodesicGraph(OccupancyMap(_rasterise(house, []), OCCUPANCY_RESOLUTION_M)).navigable
+    base_components = count_components(navigable)
+    xs, ys = _cell_centres(house)
     for row, col in cells:
         kind = "box" if rng.random() < 0.6 else "cylinder"
         if kind == "box":
@@ -283,9 +297,10 @@ def _place_furniture(house: House, cells: np.ndarray, rng: np.random.Generator) 
             height_m=float(rng.uniform(0.5, 1.4)),
             rgb=LANDMARK_PALETTE[int(rng.integers(len(LANDMARK_PALETTE)))],
         )
-        trial = OccupancyMap(_rasterise(house, kept + [piece]), OCCUPANCY_RESOLUTION_M)
-        if GeodesicGraph(trial).components() <= base_components:
+        trial = navigable & navigable_beside(_footprint(piece, xs, ys), OCCUPANCY_RESOLUTION_M, GEODESIC_RESOLUTION_M)
+        if count_components(trial) <= base_components:
             kept.append(piece)
+            navigable = trial
     return kept
 
 
@@ -318,17 +333,26 @@ def _rasterise(house: House, furniture: list[Furniture]) -> np.ndarray:
     """Occupancy grid (row 0 at y = 0) of walls and furniture at ``OCCUPANCY_RESOLUTION_M``."""
     factor = int(round(house.cell_size_m / OCCUPANCY_RESOLUTION_M))
     occupied = np.kron(house.walls, np.ones((factor, factor), dtype=bool))
-    rows, cols = occupied.shape
-    ys = (np.arange(rows) + 0.5) * OCCUPANCY_RESOLUTION_M
-    xs = (np.arange(cols) + 0.5) * OCCUPANCY_RESOLUTION_M
+    xs, ys = _cell_centres(house)
     for piece in furniture:
-        dx = xs[None, :] - piece.centre_xy[0]
-        dy = ys[:, None] - piece.centre_xy[1]
-        if piece.kind == "box":
-            occupied |= (np.abs(dx) <= piece.half_size_m[0]) & (np.abs(dy) <= piece.half_size_m[1])
-        else:
-            occupied |= dx**2 + dy**2 <= piece.half_size_m[0] ** 2
+        occupied |= _footprint(piece, xs, ys)
     return occupied
+
+
+def _cell_centres(house: House) -> tuple[np.ndarray, np.ndarray]:
+    """x of every occupancy-grid column and y of every row (cell centres), metres."""
+    factor = int(round(house.cell_size_m / OCCUPANCY_RESOLUTION_M))
+    rows, cols = house.walls.shape[0] * factor, house.walls.shape[1] * factor
+    return (np.arange(cols) + 0.5) * OCCUPANCY_RESOLUTION_M, (np.arange(rows) + 0.5) * OCCUPANCY_RESOLUTION_M
+
+
+def _footprint(piece: Furniture, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+    """Boolean occupancy grid of one piece of furniture alone (cells whose centre it covers)."""
+    dx = xs[None, :] - piece.centre_xy[0]
+    dy = ys[:, None] - piece.centre_xy[1]
+    if piece.kind == "box":
+        return (np.abs(dx) <= piece.half_size_m[0]) & (np.abs(dy) <= piece.half_size_m[1])
+    return dx**2 + dy**2 <= piece.half_size_m[0] ** 2
 
 
 def _wall_faces(house: House) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, str]]:
