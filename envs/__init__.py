@@ -1,10 +1,34 @@
 """Indoor path-following environments built on MuJoCo and labmaze, for TorchRL.
 
-Importing :mod:`envs` selects a headless OpenGL back-end (``MUJOCO_GL``) before
-MuJoCo opens any context; see :func:`envs.render.select_gl_backend`.
+Importing :mod:`envs` changes nothing in the process environment: the headless
+OpenGL back-end (``MUJOCO_GL``) is selected at the first render, and envs with
+``render=False`` never need one (see :func:`envs.render.select_gl_backend`).
+
+Examples:
+    >>> from envs import PathFollowEnv, ActuationNoise, make_path_follow_env
+    >>> env = make_path_follow_env(noise="paper", num_houses=1, demo_length=5, render=False)
+    >>> env.rollout(3)["pixels"].shape
+    torch.Size([3, 64, 64, 3])
 """
 from __future__ import annotations
 
-from envs.render import select_gl_backend
+from envs.demo_store import DemoStore, DemoStoreConfig
+from envs.factory import make_parallel_path_follow_env, make_path_follow_env
+from envs.nav_env import PathFollowEnv
+from envs.specs import PRIVILEGED_KEYS, HidePrivileged
+from envs.transforms import NOISE_PRESETS, ActuationNoise, NoiseModel
+from envs.version import ENV_VERSION
 
-select_gl_backend()
+__all__ = [
+    "ENV_VERSION",
+    "NOISE_PRESETS",
+    "PRIVILEGED_KEYS",
+    "ActuationNoise",
+    "DemoStore",
+    "DemoStoreConfig",
+    "HidePrivileged",
+    "NoiseModel",
+    "PathFollowEnv",
+    "make_parallel_path_follow_env",
+    "make_path_follow_env",
+]

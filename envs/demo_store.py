@@ -8,7 +8,7 @@ sampled and rendered ahead of time and written to a directory as a
 memory-mapped TensorDict (TensorDict's memmap format; no pickle)::
 
     <root>/meta.json     configuration, format version, SHA-256 of every tensor
-    <root>/demos/        frames [K, n, 3, H, W] uint8, actions [K, n], poses [K, n + 1, 3],
+    <root>/demos/        frames [K, n, H, W, 3] uint8, actions [K, n], poses [K, n + 1, 3],
                          house_seed [K], shortest_length_m [K]
 
 A :class:`~envs.nav_env.PathFollowEnv` given ``demo_store=root`` draws each
@@ -28,6 +28,7 @@ import json
 import logging
 import os
 import shutil
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -41,11 +42,13 @@ from envs.demos import Demonstration, default_min_route_length_m, sample_demonst
 from envs.geometry import DistanceField
 from envs.render import FirstPersonRenderer
 from envs.scenes import build_house, split_seeds
+from envs.specs import NUM_RGB_CHANNELS
+from envs.version import ENV_VERSION, check_env_version
 
 logger = logging.getLogger(__name__)
 
 #: Version of the on-disk layout; bumped when it changes.
-DEMO_STORE_FORMAT_VERSION = 1
+DEMO_STORE_FORMAT_VERSION = 2  # 2: HWC frames
 
 
 class DemoStoreError(RuntimeError):
@@ -109,7 +112,7 @@ def _empty(config: DemoStoreConfig) -> TensorDict:
     k, n, s = config.num_demos, config.demo_length, config.image_size
     return TensorDict(
         {
-            "frames": torch.zeros(k, n, 3, s, s, dtype=torch.uint8),
+            "frames": torch.zeros(k, n, s, s, NUM_RGB_CHANNELS, dtype=torch.uint8),
             "actions": torch.zeros(k, n, dtype=torch.int64),
             "poses": torch.zeros(k, n + 1, 3, dtype=torch.float64),
             "house_seed": torch.zeros(k, dtype=torch.int64),
@@ -142,9 +145,9 @@ class DemoStore:
         >>> config = DemoStoreConfig(num_demos=2, num_houses=1, demo_length=5, image_size=32)
         >>> store = DemoStore.build(tempfile.mkdtemp() + "/store", config, progress=False)
         >>> len(store), store.frames.shape
-        (2, torch.Size([2, 5, 3, 32, 32]))
+        (2, torch.Size([2, 5, 32, 32, 3]))
         >>> store.lookup(torch.tensor([[1], [0]])).shape
-        torch.Size([2, 5, 3, 32, 32])
+        torch.Size([2, 5, 32, 32, 3])
     """
 
     def __init__(self, root: str | os.PathLike, verify: bool = True) -> None:
@@ -171,8 +174,12 @@ class DemoStore:
         if meta.get("format_version") != DEMO_STORE_FORMAT_VERSION:
             raise DemoStoreError(
                 f"demo store {self.root}: format version {meta.get('format_version')!r} is not "
-                f"{DEMO_STORE_FORMAT_VERSION}; build it again."
+                f"{DEMO_STORE_FORMAT_VERSION} (version 1 stored CHW frames; frames are HWC now); build it again."
             )
+        try:
+            check_env_version(meta.get("env_version"), f"demo store {self.root}")
+        except ValueError as err:
+            raise DemoStoreError(str(err)) from err
         try:
             return DemoStoreConfig(**meta["config"]), dict(meta["checksums"])
         except (KeyError, TypeError, ValueError) as err:
@@ -245,8 +252,8 @@ class DemoStore:
             for index in tqdm(range(config.num_demos), desc="demonstrations", disable=not progress):
                 demo = sample_store_demonstration(config, index)
                 house = build_house(demo.house_seed)
-                # rendered straight into the memory-mapped (n, 3, H, W) frames, seen as (n, H, W, 3)
-                renderer.render_many([house] * n, demo.poses[:n], out=demos["frames"][index].numpy().transpose(0, 2, 3, 1))
+                # rendered straight into the memory-mapped (n, H, W, 3) frames
+                renderer.render_many([house] * n, demo.poses[:n], out=demos["frames"][index].numpy())
                 demos["actions"][index] = torch.from_numpy(demo.actions)
                 demos["poses"][index] = torch.from_numpy(demo.poses)
                 demos["house_seed"][index] = demo.house_seed
@@ -257,7 +264,12 @@ class DemoStore:
             if not completed:  # an interrupted or failed build leaves nothing behind
                 del demos
                 shutil.rmtree(tmp, ignore_errors=True)
-        meta = {"format_version": DEMO_STORE_FORMAT_VERSION, "config": asdict(config), "checksums": _checksums(demos)}
+        meta = {
+            "format_version": DEMO_STORE_FORMAT_VERSION,
+            "env_version": ENV_VERSION,
+            "config": asdict(config),
+            "checksums": _checksums(demos),
+        }
         with open(tmp / "meta.json", "w") as handle:
             json.dump(meta, handle, indent=2, sort_keys=True)
             handle.flush()
@@ -275,7 +287,7 @@ class DemoStore:
 
     @property
     def frames(self) -> torch.Tensor:
-        """``[K, n, 3, H, W]`` uint8 frames (memory-mapped)."""
+        """``[K, n, H, W, 3]`` uint8 frames (memory-mapped)."""
         return self._demos.get("frames")
 
     @property
@@ -299,7 +311,7 @@ class DemoStore:
         return self._demos.get("shortest_length_m")
 
     def lookup(self, demo_id: torch.Tensor) -> torch.Tensor:
-        """Frames of demonstrations by id: ``[*, 1]`` int64 (the env's ``demo_id``) -> ``[*, n, 3, H, W]`` uint8 (a copy).
+        """Frames of demonstrations by id: ``[*, 1]`` int64 (the env's ``demo_id``) -> ``[*, n, H, W, 3]`` uint8 (a copy).
 
         Raises:
             ValueError: on ids of another shape or outside ``[0, K)``.
@@ -373,3 +385,35 @@ class DemoStore:
             end_field=end_field,
             shortest_length_m=float(self.shortest_lengths_m[demo_id]),
         )
+
+
+def check_store_matches(
+    store: DemoStore,
+    split: str,
+    num_houses: int | None,
+    house_seeds: Sequence[int] | None,
+    demo_length: int,
+    image_size: int,
+    success_radius_m: float,
+) -> None:
+    """Raise ``ValueError`` when the env's arguments disagree with the demo store's configuration."""
+    config = store.config
+    if house_seeds is not None:
+        raise ValueError("house_seeds cannot be combined with demo_store (the store fixes the houses).")
+    mismatches = []
+    if split != config.split:
+        mismatches.append(f"split={split!r} (store: {config.split!r})")
+    if num_houses is not None and split_seeds(split, num_houses) != config.house_seeds:
+        mismatches.append(f"num_houses={num_houses} (store: {len(config.house_seeds)})")
+    if demo_length != config.demo_length:
+        mismatches.append(f"demo_length={demo_length} (store: {config.demo_length})")
+    if image_size != config.image_size:
+        mismatches.append(f"image_size={image_size} (store: {config.image_size})")
+    needed = default_min_route_length_m(demo_length, success_radius_m)
+    if config.min_route_length_m < needed - 1e-9:
+        mismatches.append(
+            f"success_radius_m={success_radius_m} needs routes longer than {needed:.2f} m "
+            f"(store: min_route_length_m={config.min_route_length_m:.2f})"
+        )
+    if mismatches:
+        raise ValueError(f"demo_store {store.root} does not match the env: {', '.join(mismatches)}.")

@@ -23,8 +23,12 @@ Demonstrations are sampled and rendered at each episode start, or, with
 demonstrations (nothing is rendered or planned at reset but the route's distance
 field); the env then also emits ``demo_id``, and with ``emit_demo_frames=False``
 emits it *instead of* ``demo_frames`` (30 frames less per step), for policies that
-look the frames up in the store (:meth:`~envs.demo_store.DemoStore.lookup_module`). ``pose``, ``goal_distance`` and ``expert_action`` are privileged
-keys for metrics, plotting and labelling; policies must not read them.
+look the frames up in the store (:meth:`~envs.demo_store.DemoStore.lookup_module`).
+
+Frames are HWC uint8, as TorchRL's pixel envs emit them (see :mod:`envs.specs`).
+``pose``, ``goal_distance``, ``expert_action`` and the episode metrics are
+privileged keys (:data:`~envs.specs.PRIVILEGED_KEYS`) for metrics, plotting and
+labelling; append :class:`~envs.specs.HidePrivileged` to hide them from a policy.
 
 With ``num_agents=N`` the env is batched (``batch_size=[N]``): N agents, each in
 its own episode and house, stepped and rendered in one process.
@@ -39,7 +43,6 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from envs.demos import (
@@ -51,11 +54,14 @@ from envs.demos import (
     nominal_motion,
     sample_demonstration,
 )
+from envs.checks import check_action, check_actuation_noise, check_positive_int, resolve_houses
 from envs.demo_store import DemoStore
 from envs.expert import STOP, GeodesicExpert
 from envs.geometry import DistanceField
 from envs.render import FirstPersonRenderer
-from envs.scenes import House, build_house, split_seeds
+from envs.scenes import House, build_house
+from envs.specs import NUM_DEMO_ACTIONS, NUM_RGB_CHANNELS, path_follow_specs
+from envs.transforms import ACTUATION_NOISE_KEY
 
 logger = logging.getLogger(__name__)
 
@@ -72,8 +78,6 @@ SUCCESS_REWARD = 2.5
 STEP_PENALTY = 0.01
 #: Route distance fields kept per env in demo-store mode (about 0.2 MB each).
 DISTANCE_FIELD_CACHE_SIZE = 256
-#: Number of demonstration action classes (forward, left, right).
-NUM_DEMO_ACTIONS = 3
 _MAX_EPISODE_SEED = 2**62
 
 
@@ -114,7 +118,7 @@ class PathFollowEnv(EnvBase):
         0
         >>> td = env.reset()
         >>> td["pixels"].shape, td["demo_frames"].shape, td["demo_actions"].shape
-        (torch.Size([3, 64, 64]), torch.Size([10, 3, 64, 64]), torch.Size([10]))
+        (torch.Size([64, 64, 3]), torch.Size([10, 64, 64, 3]), torch.Size([10]))
         >>> td = env.rand_step(td)
         >>> td["next", "reward"].shape
         torch.Size([1])
@@ -140,35 +144,18 @@ class PathFollowEnv(EnvBase):
         seed: int | None = None,
         device: torch.device | str = "cpu",
     ) -> None:
-        _check_positive_int("demo_length", demo_length)
-        _check_positive_int("max_steps", max_steps)
-        _check_positive_int("image_size", image_size)
+        check_positive_int("demo_length", demo_length)
+        check_positive_int("max_steps", max_steps)
+        check_positive_int("image_size", image_size)
         if num_agents is not None:
-            _check_positive_int("num_agents", num_agents)
+            check_positive_int("num_agents", num_agents)
         if success_radius_m <= 0 or success_fraction < 0:
             raise ValueError(
                 f"success_radius_m must be > 0 metres and success_fraction >= 0, got {success_radius_m}, {success_fraction}."
             )
-        if demo_store is not None:
-            if not isinstance(demo_store, (DemoStore, str, os.PathLike)):
-                raise ValueError(
-                    f"demo_store must be a DemoStore, a store directory (str or path) or None, got {type(demo_store).__name__}."
-                )
-            # a directory is opened and verified (checksums) once per env process
-            demo_store = demo_store if isinstance(demo_store, DemoStore) else DemoStore(demo_store)
-            _check_store_matches(demo_store, split, num_houses, house_seeds, demo_length, image_size, success_radius_m)
-            house_seeds = demo_store.config.house_seeds
-        elif not emit_demo_frames:
-            raise ValueError(
-                "emit_demo_frames=False needs a demo_store (the frames must be retrievable from demo_id); "
-                "pass demo_store=<DemoStore or its directory> or keep emit_demo_frames=True."
-            )
-        elif house_seeds is not None:
-            house_seeds = [int(s) for s in house_seeds]
-            if not house_seeds or min(house_seeds) < 0:
-                raise ValueError(f"house_seeds must be a non-empty list of non-negative ints, got {house_seeds!r}.")
-        else:
-            house_seeds = split_seeds(split, num_houses)
+        demo_store, house_seeds = resolve_houses(
+            split, num_houses, house_seeds, demo_store, emit_demo_frames, demo_length, image_size, success_radius_m
+        )
         batch_size = torch.Size([] if num_agents is None else [num_agents])
         super().__init__(device=device, batch_size=batch_size)
         self.split = split
@@ -196,40 +183,21 @@ class PathFollowEnv(EnvBase):
 
     # ------------------------------------------------------------------ specs
     def _make_specs(self) -> None:
-        shape = self.batch_size
-        size, n = self.image_size, self.demo_length
-        observation = {
-            # uint8 frames (0-255). Unbounded rather than Bounded: a Bounded spec stores
-            # low/high tensors of the full frame-stack shape, which makes every spec
-            # copy and check slow for batched envs.
-            "pixels": Unbounded(shape=(*shape, 3, size, size), dtype=torch.uint8, device=self.device),
-            "demo_actions": Categorical(NUM_DEMO_ACTIONS, shape=(*shape, n), dtype=torch.int64, device=self.device),
-            "step_count": Unbounded(shape=(*shape, 1), dtype=torch.int64, device=self.device),
-            "episode_seed": Unbounded(shape=(*shape, 1), dtype=torch.int64, device=self.device),
-            "pose": Unbounded(shape=(*shape, 3), dtype=torch.float32, device=self.device),
-            "goal_distance": Unbounded(shape=(*shape, 1), dtype=torch.float32, device=self.device),
-            "path_length": Unbounded(shape=(*shape, 1), dtype=torch.float32, device=self.device),
-            "shortest_path_length": Unbounded(shape=(*shape, 1), dtype=torch.float32, device=self.device),
-            "success": Categorical(2, shape=(*shape, 1), dtype=torch.bool, device=self.device),
-            "spl": Unbounded(shape=(*shape, 1), dtype=torch.float32, device=self.device),
-        }
-        if self.emit_demo_frames:
-            observation["demo_frames"] = Unbounded(shape=(*shape, n, 3, size, size), dtype=torch.uint8, device=self.device)
-        if self.demo_store is not None:
-            observation["demo_id"] = Unbounded(shape=(*shape, 1), dtype=torch.int64, device=self.device)
-        if self.with_expert:
-            observation["expert_action"] = Categorical(self.num_actions, shape=shape, dtype=torch.int64, device=self.device)
-        self.observation_spec = Composite(observation, shape=shape, device=self.device)
-        self.action_spec = Categorical(self.num_actions, shape=shape, dtype=torch.int64, device=self.device)
-        self.reward_spec = Unbounded(shape=(*shape, 1), dtype=torch.float32, device=self.device)
-        self.done_spec = Composite(
-            {
-                key: Categorical(2, shape=(*shape, 1), dtype=torch.bool, device=self.device)
-                for key in ("done", "terminated", "truncated")
-            },
-            shape=shape,
+        specs = path_follow_specs(
+            self.batch_size,
+            image_size=self.image_size,
+            demo_length=self.demo_length,
+            num_actions=self.num_actions,
+            emit_demo_frames=self.emit_demo_frames,
+            with_demo_id=self.demo_store is not None,
+            with_expert=self.with_expert,
             device=self.device,
         )
+        self.observation_spec = specs["observation"]
+        self.action_spec = specs["action"]
+        self.state_spec = specs["state"]
+        self.reward_spec = specs["reward"]
+        self.done_spec = specs["done"]
 
     def _init_state(self) -> None:
         count, n, size = self._count, self.demo_length, self.image_size
@@ -247,9 +215,12 @@ class PathFollowEnv(EnvBase):
         self._success = np.zeros(count, dtype=bool)
         self._spl = np.zeros(count)
         # (count, 0, ...) when the frames are not emitted: the per-episode copies cost nothing
-        self._demo_frames = torch.zeros((count, n if self.emit_demo_frames else 0, 3, size, size), dtype=torch.uint8)
+        self._demo_frames = torch.zeros(
+            (count, n if self.emit_demo_frames else 0, size, size, NUM_RGB_CHANNELS), dtype=torch.uint8
+        )
         self._demo_actions = torch.zeros((count, n), dtype=torch.int64)
-        self._pixels = torch.zeros((count, 3, size, size), dtype=torch.uint8)
+        self._pixels = torch.zeros((count, size, size, NUM_RGB_CHANNELS), dtype=torch.uint8)
+        self._zero_noise = torch.zeros((*self.batch_size, 3), dtype=torch.float32)
 
     # ---------------------------------------------------------------- seeding
     def _set_seed(self, seed: int | None) -> None:
@@ -268,8 +239,8 @@ class PathFollowEnv(EnvBase):
     def _render(self, indices: Sequence[int], poses: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
         """Frames ``(len(indices), H, W, 3)`` of agents at their (or the given) poses.
 
-        ``out`` may be any ``(len(indices), H, W, 3)`` uint8 view, e.g. a CHW tensor's
-        array transposed, so that frames land in their final layout with one copy.
+        ``out`` may be any ``(len(indices), H, W, 3)`` uint8 array (e.g. a tensor's
+        ``.numpy()`` view), so that frames land in their final place with one copy.
         """
         if out is None:
             out = np.zeros((len(indices), self.image_size, self.image_size, 3), dtype=np.uint8)
@@ -336,8 +307,8 @@ class PathFollowEnv(EnvBase):
                 demo_frames[index] = stored
             pixels[index] = stored[0] if self.render_frames else 0  # the agent starts on the demo's first pose
             return
-        # rendered straight into the (n, 3, H, W) tensor, seen as (n, H, W, 3)
-        self._render([index] * self.demo_length, demo.poses[: self.demo_length], out=demo_frames[index].numpy().transpose(0, 2, 3, 1))
+        # rendered straight into the (n, H, W, 3) tensor
+        self._render([index] * self.demo_length, demo.poses[: self.demo_length], out=demo_frames[index].numpy())
         pixels[index] = demo_frames[index, 0]  # the agent starts on the demo's first pose
 
     def _stored_demonstration(self, demo_id: int) -> Demonstration:
@@ -353,16 +324,13 @@ class PathFollowEnv(EnvBase):
 
     # ------------------------------------------------------------------- step
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict.get("action").reshape(self._count).cpu().numpy()
-        if action.dtype.kind not in "iu" or action.min() < 0 or action.max() >= self.num_actions:
-            raise ValueError(
-                f"action must be an integer in [0, {self.num_actions - 1}] "
-                f"(0 forward, 1 left, 2 right{', 3 stop' if self.stop_action else ''}), got {action.tolist()}."
-            )
-        if "actuation" in tensordict.keys():
-            motion = tensordict.get("actuation").reshape(self._count, 3).cpu().numpy().astype(np.float64)
-        else:
-            motion = nominal_motion(action)
+        if any(house is None for house in self._houses):
+            raise RuntimeError("PathFollowEnv.step() was called before reset(): call env.reset() first.")
+        action = check_action(tensordict.get("action", None), self._count, self.num_actions, self.stop_action)
+        motion = nominal_motion(action)
+        noise = tensordict.get(ACTUATION_NOISE_KEY, None)
+        if noise is not None:
+            motion += check_actuation_noise(noise, self._count, self.batch_size)
         previous = self._distance.copy()
         # apply_motion for every agent at once (same float64 operations, element by element),
         # with each agent's collision check in its own house
@@ -387,8 +355,8 @@ class PathFollowEnv(EnvBase):
         shortest = self._shortest
         self._spl = np.where(self._success, shortest / np.maximum(np.maximum(self._path_length, shortest), 1e-9), 0.0)
         reward = PROGRESS_REWARD_PER_M * (previous - self._distance) + SUCCESS_REWARD * self._success - STEP_PENALTY
-        pixels = torch.empty((self._count, 3, self.image_size, self.image_size), dtype=torch.uint8)
-        self._render(range(self._count), out=pixels.numpy().transpose(0, 2, 3, 1))
+        pixels = torch.empty((self._count, self.image_size, self.image_size, NUM_RGB_CHANNELS), dtype=torch.uint8)
+        self._render(range(self._count), out=pixels.numpy())
         self._pixels = pixels
         return self._observation(terminated, truncated, done, reward=reward)
 
@@ -421,6 +389,7 @@ class PathFollowEnv(EnvBase):
             float_columns, int_columns, bool_columns = float_columns[0], int_columns[0], bool_columns[0]
             pixels, demo_frames, demo_actions = pixels[0], demo_frames[0], demo_actions[0]
         out = {
+            ACTUATION_NOISE_KEY: self._zero_noise,
             "pixels": pixels,
             "demo_actions": demo_actions,
             "step_count": int_columns[..., 0:1],
@@ -472,40 +441,3 @@ class PathFollowEnv(EnvBase):
             self._renderer.close()
             self._renderer = None
         super().close(raise_if_closed=raise_if_closed)
-
-
-def _check_store_matches(
-    store: DemoStore,
-    split: str,
-    num_houses: int | None,
-    house_seeds: Sequence[int] | None,
-    demo_length: int,
-    image_size: int,
-    success_radius_m: float,
-) -> None:
-    """Raise ``ValueError`` when the env's arguments disagree with the demo store's configuration."""
-    config = store.config
-    if house_seeds is not None:
-        raise ValueError("house_seeds cannot be combined with demo_store (the store fixes the houses).")
-    mismatches = []
-    if split != config.split:
-        mismatches.append(f"split={split!r} (store: {config.split!r})")
-    if num_houses is not None and split_seeds(split, num_houses) != config.house_seeds:
-        mismatches.append(f"num_houses={num_houses} (store: {len(config.house_seeds)})")
-    if demo_length != config.demo_length:
-        mismatches.append(f"demo_length={demo_length} (store: {config.demo_length})")
-    if image_size != config.image_size:
-        mismatches.append(f"image_size={image_size} (store: {config.image_size})")
-    needed = default_min_route_length_m(demo_length, success_radius_m)
-    if config.min_route_length_m < needed - 1e-9:
-        mismatches.append(
-            f"success_radius_m={success_radius_m} needs routes longer than {needed:.2f} m "
-            f"(store: min_route_length_m={config.min_route_length_m:.2f})"
-        )
-    if mismatches:
-        raise ValueError(f"demo_store {store.root} does not match the env: {', '.join(mismatches)}.")
-
-
-def _check_positive_int(name: str, value) -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value <= 0:
-        raise ValueError(f"{name} must be a positive int, got {value!r}.")

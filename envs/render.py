@@ -89,7 +89,9 @@ def _can_load(library: str) -> bool:
 def select_gl_backend() -> str:
     """Choose and export the MuJoCo GL back-end for this process.
 
-    Must run before ``mujoco`` creates a context; :mod:`envs` calls it at import.
+    Runs at the first render (:func:`create_gl_context`), before ``mujoco`` creates
+    a context; importing :mod:`envs` does not call it, so the process environment
+    is left alone until something is drawn.
 
     Returns:
         the back-end name written to ``MUJOCO_GL`` (and ``PYOPENGL_PLATFORM``).
@@ -129,7 +131,7 @@ def create_gl_context(width: int, height: int):
     """
     import importlib
 
-    backend = os.environ.get("MUJOCO_GL", "egl")
+    backend = select_gl_backend()
     try:
         # import the back-end module explicitly: ``mujoco.GLContext`` is bound when
         # ``mujoco`` is first imported, which may have happened before ``envs``.

@@ -1,11 +1,15 @@
 """Environment-side transforms: actuation noise.
 
 :class:`ActuationNoise` turns the discrete action the policy chose into the
-physical motion the robot actually makes. It is an inverse transform: on the
-way into the environment it writes ``"actuation"`` = (forward m, lateral m,
-rotation rad) in the agent's frame, which :class:`~envs.nav_env.PathFollowEnv`
-executes instead of the nominal step. The stored ``"action"`` stays the one the
-policy chose.
+physical motion the robot actually makes. It is an inverse transform: on the way
+into the environment it writes ``"actuation_noise"`` = (forward m, lateral m,
+rotation rad), the realised motion minus the nominal step, in the agent's frame,
+which :class:`~envs.nav_env.PathFollowEnv` adds to the nominal step. The stored
+``"action"`` stays the one the policy chose.
+
+``"actuation_noise"`` is declared in the env's state spec (zero when absent:
+noise-free), so it crosses process boundaries: the transform works inside each
+worker's factory and around a ``SerialEnv``/``ParallelEnv`` or a collector alike.
 
 The noise of a step is a pure function of ``(episode_seed, step_count, action)``
 drawn with the counter-based Philox4x64-10 generator, so a seed fixes the realised
@@ -18,15 +22,27 @@ exactly the draws of ``np.random.Generator(np.random.Philox(key=..., counter=ste
 COUNTER_BLOCKS_PER_STEP)).uniform(tiny, 1, 3)``; :func:`philox_uniforms` computes
 them for a batch by resetting one cached bit generator per row (about 5 us a row)
 instead of building a generator per agent per step.
-Put the transform inside each worker's factory when using ``ParallelEnv``: the
-``"actuation"`` key is not part of the batched env's input spec.
 
-Presets (:data:`NOISE_PRESETS`):
+Presets (:data:`NOISE_PRESETS`); in all of them the agent translates along its
+current heading, then rotates, and translation and rotation noise are drawn
+independently:
 
-* ``none``: the nominal step.
-* ``paper``: the paper's N(0, 0.5^2) m forward and N(0, 1^2) rad rotation noise,
-  with the realised step clipped to +-20% of the nominal one, as in the authors'
-  lab code (forward steps become 0.24-0.36 m, turns 16-24 degrees).
+* ``none``: the nominal step (forward 0.3 m, turns 20 degrees).
+* ``paper``: the first author's ``NoisyAction.py`` (``Hwiyeon/RPF``, repository
+  root, clip ratio 0.2). With s = N(0, 1) rad (sd about 57 degrees):
+
+  - forward: translation clip(0.3 + N(0.3, 0.5^2), 0.24, 0.36) m (that code draws
+    the noise with mean 0.3 and adds it to the nominal 0.3, so the mean counts
+    twice: about two thirds of forward steps are 0.36 m), rotation
+    clip(s, -4, +4) degrees;
+  - left turn: translation clip(N(0, 0.5^2), 0, 0.06) m forward, rotation
+    clip(20 + s, 16, 24) degrees; right turn: the same translation, rotation
+    clip(-20 + s, -24, -16) degrees.
+* ``paper_symmetric``: N(0, 0.5^2) m forward and N(0, 1^2) rad rotation with the
+  realised step clipped to +-20% of the nominal one and no cross terms (forward
+  steps 0.24-0.36 m with no rotation, turns 16-24 degrees with no translation).
+  This was ``paper`` before the first author's code was followed; the checkpoints
+  and results made before that change were made under it.
 * ``paper_unclipped``: the literal reading of the paper, no clipping (forward
   steps can be negative, turns anything).
 * ``locobot``: habitat-sim's PyRobot LoCoBot ILQR model: truncated Gaussians
@@ -41,11 +57,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 from scipy import special
-from tensordict import TensorDictBase
+from tensordict import NestedKey, TensorDictBase
+from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
 from envs.demos import nominal_motion
-from envs.expert import FORWARD
+from envs.expert import FORWARD, TURN_LEFT, TURN_RIGHT
 
 #: Salt mixed into the Philox key so noise streams differ from other uses of the episode seed.
 NOISE_STREAM_SALT = 0x5EED_0F_A0
@@ -62,12 +79,32 @@ class GaussianMotionNoise:
     """Gaussian noise on one kind of motion (linear = forward, rotational = turns).
 
     Attributes:
-        mean: (forward m, lateral m, rotation rad) means.
+        mean: (forward m, lateral m, rotation rad) means, added to the nominal step.
         std: (forward m, lateral m, rotation rad) standard deviations.
+        forward_bounds_m: if set, the realised forward translation is clipped to
+            ``(low, high)`` metres and the lateral one is dropped.
+        rotation_bounds_rad: if set, the realised rotation is clipped to
+            ``(low, high)`` radians (for a left turn; a right turn uses the mirror
+            ``(-high, -low)``) and the lateral translation is dropped.
     """
 
     mean: tuple[float, float, float] = (0.0, 0.0, 0.0)
     std: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    forward_bounds_m: tuple[float, float] | None = None
+    rotation_bounds_rad: tuple[float, float] | None = None
+
+    def __post_init__(self) -> None:
+        if any(s < 0 for s in self.std):
+            raise ValueError(f"noise std must be >= 0, got {self.std}.")
+        for name in ("forward_bounds_m", "rotation_bounds_rad"):
+            bounds = getattr(self, name)
+            if bounds is not None and (len(bounds) != 2 or not bounds[0] <= bounds[1]):
+                raise ValueError(f"{name} must be a (low, high) pair with low <= high, got {bounds!r}.")
+
+    @property
+    def bounded(self) -> bool:
+        """True when the realised motion is clipped to explicit bounds."""
+        return self.forward_bounds_m is not None or self.rotation_bounds_rad is not None
 
 
 @dataclass(frozen=True)
@@ -79,7 +116,7 @@ class NoiseModel:
         rotational: noise of the turn actions.
         clip_fraction: if set, the realised forward step and turn are clipped to
             nominal * (1 +- clip_fraction), and the motion orthogonal to the
-            commanded one is dropped (the ``paper`` preset).
+            commanded one is dropped (the ``paper_symmetric`` preset).
         truncation_sigma: if set, Gaussians are truncated at this many standard
             deviations and the commanded step is never reversed (``locobot``).
         sign_follows_turn: flip rotation noise for right turns (habitat-sim: both
@@ -93,9 +130,8 @@ class NoiseModel:
     sign_follows_turn: bool = False
 
     def __post_init__(self) -> None:
-        for motion in (self.linear, self.rotational):
-            if any(s < 0 for s in motion.std):
-                raise ValueError(f"noise std must be >= 0, got {motion.std}.")
+        if self.clip_fraction is not None and (self.linear.bounded or self.rotational.bounded):
+            raise ValueError("clip_fraction and explicit motion bounds cannot be combined; give one of them.")
         if self.clip_fraction is not None and not 0 <= self.clip_fraction < 1:
             raise ValueError(f"clip_fraction must be in [0, 1), got {self.clip_fraction}.")
         if self.truncation_sigma is not None and self.truncation_sigma <= 0:
@@ -133,7 +169,7 @@ class NoiseModel:
         if self.sign_follows_turn:
             noise[:, 2] *= tables["turn_sign"][row]
         realised = nominal + noise
-        if self.clip_fraction is not None:
+        if "clip" in tables:
             bounds = tables["clip"][row]
             clipped = np.zeros_like(realised)
             clipped[:, 0] = np.minimum(np.maximum(realised[:, 0], bounds[:, 0]), bounds[:, 1])
@@ -178,10 +214,31 @@ class NoiseModel:
                 ],
                 axis=1,
             )
+        elif self.linear.bounded or self.rotational.bounded:
+            tables["clip"] = self._bounds_table(action)
         for value in tables.values():
             value.setflags(write=False)
         object.__setattr__(self, "_cached_tables", tables)  # frozen dataclass: not a field
         return tables
+
+    def _bounds_table(self, action: np.ndarray) -> np.ndarray:
+        """``(len(action), 4)`` clip bounds (forward low/high m, rotation low/high rad) per action row.
+
+        Unbounded parts of a motion are left free (+-inf); STOP and unknown actions
+        are pinned to no motion.
+        """
+        table = np.tile(np.array([-np.inf, np.inf, -np.inf, np.inf]), (len(action), 1))
+        for row, act in enumerate(action):
+            motion = self.linear if act == FORWARD else self.rotational
+            if act not in (FORWARD, TURN_LEFT, TURN_RIGHT):
+                table[row] = 0.0
+                continue
+            if motion.forward_bounds_m is not None:
+                table[row, 0:2] = motion.forward_bounds_m
+            if motion.rotation_bounds_rad is not None:
+                low, high = motion.rotation_bounds_rad
+                table[row, 2:4] = (-high, -low) if act == TURN_RIGHT else (low, high)
+        return table
 
 
 #: 2**-53: the spacing of the doubles numpy draws in [0, 1).
@@ -233,12 +290,41 @@ def _philox_uniforms(episode_seed: int, step: int, count: int) -> np.ndarray:
     return generator.uniform(np.finfo(np.float64).tiny, 1.0, size=count)
 
 
-_PAPER_MOTION = GaussianMotionNoise((0.0, 0.0, 0.0), (0.5, 0.0, 1.0))
+#: The first author's NoisyAction.py: forward translation clip(0.3 + N(0.3, 0.5^2), 0.24, 0.36) m.
+PAPER_FORWARD_NOISE_MEAN_M = 0.3
+PAPER_FORWARD_BOUNDS_M = (0.24, 0.36)
+#: ... and rotation clip(N(0, 1 rad), -4, 4) degrees on a forward step.
+PAPER_FORWARD_ROTATION_BOUND_DEG = 4.0
+#: Turns: translation clip(N(0, 0.5^2), 0, 0.06) m forward, rotation clip(20 + s, 16, 24) degrees.
+PAPER_TURN_FORWARD_BOUNDS_M = (0.0, 0.06)
+PAPER_TURN_BOUNDS_DEG = (16.0, 24.0)
+#: Standard deviations of the paper's noise: 0.5 m translation, 1 rad rotation.
+PAPER_TRANSLATION_STD_M = 0.5
+PAPER_ROTATION_STD_RAD = 1.0
+_PAPER_STD = (PAPER_TRANSLATION_STD_M, 0.0, PAPER_ROTATION_STD_RAD)
+_PAPER_SYMMETRIC_MOTION = GaussianMotionNoise((0.0, 0.0, 0.0), _PAPER_STD)
 
 #: Named noise models; see the module docstring.
 NOISE_PRESETS: dict[str, NoiseModel] = {
     "none": NoiseModel(),
-    "paper": NoiseModel(linear=_PAPER_MOTION, rotational=_PAPER_MOTION, clip_fraction=0.2),
+    "paper": NoiseModel(
+        linear=GaussianMotionNoise(
+            (PAPER_FORWARD_NOISE_MEAN_M, 0.0, 0.0),
+            _PAPER_STD,
+            forward_bounds_m=PAPER_FORWARD_BOUNDS_M,
+            rotation_bounds_rad=(
+                -np.deg2rad(PAPER_FORWARD_ROTATION_BOUND_DEG),
+                np.deg2rad(PAPER_FORWARD_ROTATION_BOUND_DEG),
+            ),
+        ),
+        rotational=GaussianMotionNoise(
+            (0.0, 0.0, 0.0),
+            _PAPER_STD,
+            forward_bounds_m=PAPER_TURN_FORWARD_BOUNDS_M,
+            rotation_bounds_rad=tuple(float(np.deg2rad(b)) for b in PAPER_TURN_BOUNDS_DEG),
+        ),
+    ),
+    "paper_symmetric": NoiseModel(linear=_PAPER_SYMMETRIC_MOTION, rotational=_PAPER_SYMMETRIC_MOTION, clip_fraction=0.2),
     "paper_unclipped": NoiseModel(
         linear=GaussianMotionNoise((0.0, 0.0, 0.0), (0.5, 0.0, 0.0)),
         rotational=GaussianMotionNoise((0.0, 0.0, 0.0), (0.0, 0.0, 1.0)),
@@ -254,6 +340,10 @@ NOISE_PRESETS: dict[str, NoiseModel] = {
 }
 
 
+#: The noise every recipe and config uses unless told otherwise.
+DEFAULT_NOISE = "paper"
+
+
 def make_noise_model(noise: str | NoiseModel) -> NoiseModel:
     """A preset by name, or a :class:`NoiseModel` as it is."""
     if isinstance(noise, NoiseModel):
@@ -263,8 +353,23 @@ def make_noise_model(noise: str | NoiseModel) -> NoiseModel:
     return NOISE_PRESETS[noise]
 
 
+#: Key of the realised-minus-nominal motion the transform writes and the env reads.
+ACTUATION_NOISE_KEY = "actuation_noise"
+
+
+def actuation_noise_spec(batch_shape: torch.Size | tuple[int, ...] = (), device: torch.device | str | None = None) -> Unbounded:
+    """Spec of ``"actuation_noise"``: (forward m, lateral m, rotation rad) float32 per agent."""
+    return Unbounded(shape=(*batch_shape, 3), dtype=torch.float32, device=device)
+
+
 class ActuationNoise(Transform):
     """Actuation noise for :class:`~envs.nav_env.PathFollowEnv` as an inverse transform.
+
+    Before each step it writes ``"actuation_noise"``: the realised motion of the
+    chosen action (see :class:`NoiseModel`) minus its nominal step, which the env
+    adds to the nominal step. The key is declared in the input (state) spec, so a
+    batched env (``SerialEnv``/``ParallelEnv``) sends it to its workers: the
+    transform may sit inside each worker's factory or around the batched env.
 
     Args:
         noise: a preset name from :data:`NOISE_PRESETS` or a :class:`NoiseModel`.
@@ -273,29 +378,41 @@ class ActuationNoise(Transform):
     Examples:
         >>> from torchrl.envs import TransformedEnv
         >>> from envs.nav_env import PathFollowEnv
-        >>> env = TransformedEnv(PathFollowEnv(num_houses=1, demo_length=5), ActuationNoise("paper"))
-        >>> env.set_seed(0)
-        0
+        >>> env = TransformedEnv(PathFollowEnv(num_houses=1, demo_length=5, render=False), ActuationNoise("paper"))
+        >>> "actuation_noise" in env.state_spec.keys()
+        True
         >>> td = env.rollout(3)
         >>> td["next", "pose"].shape
         torch.Size([3, 3])
     """
 
-    def __init__(self, noise: str | NoiseModel = "paper", action_key: str = "action") -> None:
+    def __init__(self, noise: str | NoiseModel = "paper", action_key: NestedKey = "action") -> None:
         super().__init__(in_keys_inv=[action_key], out_keys_inv=[action_key])
         self.noise_model = make_noise_model(noise)
         self.noise_name = noise if isinstance(noise, str) else "custom"
         self.action_key = action_key
 
+    def transform_input_spec(self, input_spec: Composite) -> Composite:
+        """Declare ``"actuation_noise"`` in the state spec (a no-op when the env already does)."""
+        state_spec = input_spec["full_state_spec"]
+        if ACTUATION_NOISE_KEY not in state_spec.keys():
+            state_spec[ACTUATION_NOISE_KEY] = actuation_noise_spec(state_spec.shape, state_spec.device)
+        return input_spec
+
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get(self.action_key)
         batch_shape = tensordict.batch_size
+        flat_action = action.reshape(-1).cpu().numpy()
         realised = self.noise_model.sample(
-            action.reshape(-1).cpu().numpy(),
+            flat_action,
             tensordict.get("episode_seed").reshape(-1).cpu().numpy(),
             tensordict.get("step_count").reshape(-1).cpu().numpy(),
         )
-        tensordict.set("actuation", torch.from_numpy(realised.astype(np.float32)).reshape(*batch_shape, 3))
+        noise = realised - nominal_motion(flat_action)
+        tensordict.set(
+            ACTUATION_NOISE_KEY,
+            torch.from_numpy(noise.astype(np.float32)).reshape(*batch_shape, 3).to(action.device),
+        )
         return tensordict
 
     def __repr__(self) -> str:

@@ -19,6 +19,11 @@ import logging
 import os
 from pathlib import Path
 
+from envs.scenes import SPLIT_SEED_OFFSETS
+from envs.transforms import DEFAULT_NOISE, NOISE_PRESETS
+
+SPLITS = tuple(SPLIT_SEED_OFFSETS)
+
 
 def evaluate_path(path: str, args: argparse.Namespace) -> dict:
     """Evaluate one checkpoint file (or ``open_loop``) and return its results dict."""
@@ -71,9 +76,9 @@ def evaluate_path(path: str, args: argparse.Namespace) -> dict:
 def main(argv: list[str] | None = None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("paths", nargs="+", help="checkpoint files, directories of *.pt, or 'open_loop'")
-    parser.add_argument("--split", default="test", help="train | val | test (default: test)")
+    parser.add_argument("--split", default="test", choices=SPLITS, help="house split (default: test)")
     parser.add_argument("--episodes", type=int, default=500)
-    parser.add_argument("--noise", default="paper")
+    parser.add_argument("--noise", default=DEFAULT_NOISE, choices=sorted(NOISE_PRESETS), help="actuation-noise preset")
     parser.add_argument("--seed", type=int, default=2)
     parser.add_argument("--num-agents", type=int, default=25)
     parser.add_argument("--max-steps", type=int, default=50)

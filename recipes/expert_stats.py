@@ -29,7 +29,9 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from envs.factory import make_path_follow_env  # noqa: E402
+from envs.scenes import SPLIT_SEED_OFFSETS  # noqa: E402
 from envs.scripted import ExpertPolicy, OpenLoopReplay, run_episodes  # noqa: E402
+from envs.transforms import NOISE_PRESETS  # noqa: E402
 
 logger = logging.getLogger("expert_stats")
 
@@ -38,9 +40,13 @@ RESULTS_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "results" / 
 DEFAULT_RUNS = (
     ("expert", "none"),
     ("expert", "paper"),
+    ("expert", "paper_symmetric"),
+    ("expert", "paper_unclipped"),
     ("expert", "locobot"),
     ("open_loop", "none"),
     ("open_loop", "paper"),
+    ("open_loop", "paper_symmetric"),
+    ("open_loop", "paper_unclipped"),
     ("open_loop", "locobot"),
 )
 
@@ -116,6 +122,13 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=1, help="worker processes (runs are independent)")
     parser.add_argument("--output", type=Path, default=RESULTS_PATH)
     args = parser.parse_args()
+    for run in args.runs:  # the whole config first, before any episode is played
+        policy_name, _, noise = run.partition(":")
+        if policy_name not in ("expert", "open_loop") or noise not in NOISE_PRESETS:
+            parser.error(f"--runs: {run!r} must be POLICY:NOISE with POLICY in (expert, open_loop) and NOISE in {sorted(NOISE_PRESETS)}")
+    for split in args.splits:
+        if split not in SPLIT_SEED_OFFSETS:
+            parser.error(f"--splits: {split!r} is not one of {list(SPLIT_SEED_OFFSETS)}")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     torch.set_num_threads(1)
 

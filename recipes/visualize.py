@@ -17,13 +17,18 @@ from __future__ import annotations
 
 import argparse
 
+from envs.scenes import SPLIT_SEED_OFFSETS
+from envs.transforms import DEFAULT_NOISE, NOISE_PRESETS
+
+SPLITS = tuple(SPLIT_SEED_OFFSETS)
+
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("checkpoint", help="a checkpoint file, a shipped name (spf_rl.list_checkpoints()) or 'open_loop'")
     parser.add_argument("--episodes", type=int, default=3)
-    parser.add_argument("--split", default="test")
-    parser.add_argument("--noise", default="paper")
+    parser.add_argument("--split", default="test", choices=SPLITS, help="house split (default: test)")
+    parser.add_argument("--noise", default=DEFAULT_NOISE, choices=sorted(NOISE_PRESETS), help="actuation-noise preset")
     parser.add_argument("--seed", type=int, default=7)
     parser.add_argument("--out", default="figures/rollouts")
     parser.add_argument("--no-gif", action="store_true")

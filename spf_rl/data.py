@@ -8,7 +8,7 @@ A dataset is a directory holding one memory-mapped TensorDict of ``E`` episodes
     <root>/progress.json    chunks written so far and their SHA-256 checksums
     <root>/episodes/        the memory-mapped tensors
 
-Per episode it stores the demonstration once (``demo_frames [n, 3, H, W]``,
+Per episode it stores the demonstration once (``demo_frames [n, H, W, 3]``,
 ``demo_actions [n]``) and the follow episode step by step (``steps`` with batch
 ``[T]``: ``pixels``, the executed ``action``, the expert's ``expert_action``
 label, ``mask`` for valid steps and ``is_init``).
@@ -38,10 +38,15 @@ from torchrl.data import SamplerWithoutReplacement, TensorDictReplayBuffer, Tens
 from torchrl.data.replay_buffers import ImmutableDatasetWriter
 from tqdm.auto import tqdm
 
+from envs.checks import check_episode_source, check_positive_ints
+from envs.specs import NUM_RGB_CHANNELS
+from envs.transforms import DEFAULT_NOISE
+from envs.version import ENV_VERSION, check_env_version
+
 logger = logging.getLogger(__name__)
 
 #: Version of the on-disk layout; bumped when it changes.
-DATASET_FORMAT_VERSION = 1
+DATASET_FORMAT_VERSION = 2  # 2: HWC frames, env version in meta.json
 NUM_DEMO_ACTIONS = 3
 
 
@@ -71,7 +76,7 @@ class DatasetConfig:
     num_episodes: int = 2000
     split: str = "train"
     num_houses: int | None = None
-    noise: str = "paper"
+    noise: str = DEFAULT_NOISE
     random_action_prob: float = 0.2
     demo_length: int = 30
     max_steps: int = 50
@@ -80,10 +85,8 @@ class DatasetConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        for name in ("num_episodes", "demo_length", "max_steps", "image_size", "chunk_size"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
-                raise ValueError(f"{name} must be a positive int, got {value!r}.")
+        check_episode_source(self.split, self.num_houses, self.noise)
+        check_positive_ints(self, ("num_episodes", "demo_length", "max_steps", "image_size", "chunk_size"))
         if not 0.0 <= self.random_action_prob <= 1.0:
             raise ValueError(f"random_action_prob must be in [0, 1], got {self.random_action_prob!r}.")
 
@@ -105,7 +108,7 @@ def _empty_episodes(config: DatasetConfig) -> TensorDict:
     e, t, n, s = config.num_episodes, config.max_steps, config.demo_length, config.image_size
     steps = TensorDict(
         {
-            "pixels": torch.zeros(e, t, 3, s, s, dtype=torch.uint8),
+            "pixels": torch.zeros(e, t, s, s, NUM_RGB_CHANNELS, dtype=torch.uint8),
             "action": torch.zeros(e, t, dtype=torch.int64),
             "expert_action": torch.zeros(e, t, dtype=torch.int64),
             "mask": torch.zeros(e, t, dtype=torch.bool),
@@ -116,7 +119,7 @@ def _empty_episodes(config: DatasetConfig) -> TensorDict:
     return TensorDict(
         {
             "steps": steps,
-            "demo_frames": torch.zeros(e, n, 3, s, s, dtype=torch.uint8),
+            "demo_frames": torch.zeros(e, n, s, s, NUM_RGB_CHANNELS, dtype=torch.uint8),
             "demo_actions": torch.zeros(e, n, dtype=torch.int64),
             "episode_seed": torch.zeros(e, dtype=torch.int64),
             "length": torch.zeros(e, dtype=torch.int64),
@@ -125,6 +128,19 @@ def _empty_episodes(config: DatasetConfig) -> TensorDict:
         },
         batch_size=[e],
     )
+
+
+def _check_versions(meta: dict, root: Path) -> None:
+    """Refuse a dataset of another on-disk layout or made by another env version."""
+    if meta.get("format_version") != DATASET_FORMAT_VERSION:
+        raise DatasetError(
+            f"dataset {root}: format version {meta.get('format_version')} is not {DATASET_FORMAT_VERSION} "
+            "(version 1 stored CHW frames; frames are HWC now); delete it and generate it again."
+        )
+    try:
+        check_env_version(meta.get("env_version"), f"dataset {root}")
+    except ValueError as err:
+        raise DatasetError(f"{err} Delete it and generate it again.") from err
 
 
 def _checksum(chunk: TensorDict) -> str:
@@ -252,10 +268,7 @@ class EpisodeDataset:
             raise DatasetError(f"{self.root} is not a dataset directory (missing {Path(err.filename).name}).") from err
         except json.JSONDecodeError as err:
             raise DatasetError(f"dataset {self.root}: corrupt metadata ({err}).") from err
-        if meta.get("format_version") != DATASET_FORMAT_VERSION:
-            raise DatasetError(
-                f"dataset {self.root}: format version {meta.get('format_version')} is not {DATASET_FORMAT_VERSION}."
-            )
+        _check_versions(meta, self.root)
         return DatasetConfig(**meta["config"]), progress
 
     def verify(self) -> None:
@@ -290,6 +303,7 @@ class EpisodeDataset:
                 stored = json.loads(meta_path.read_text())
             except json.JSONDecodeError as err:
                 raise DatasetError(f"dataset {root}: corrupt meta.json ({err}).") from err
+            _check_versions(stored, root)
             if stored.get("config") != asdict(config):
                 raise DatasetError(
                     f"dataset {root} was generated with another configuration ({stored.get('config')}); "
@@ -302,7 +316,9 @@ class EpisodeDataset:
             episodes = _empty_episodes(config).memmap_(root / "episodes")
             done = {}
             _atomic_write_json(progress_path, {"chunks": done})
-            _atomic_write_json(meta_path, {"format_version": DATASET_FORMAT_VERSION, "config": asdict(config)})
+            _atomic_write_json(
+                meta_path, {"format_version": DATASET_FORMAT_VERSION, "env_version": ENV_VERSION, "config": asdict(config)}
+            )
         todo = [c for c in range(config.num_chunks) if str(c) not in done]
         if todo:
             logger.info("generating %d of %d chunks into %s", len(todo), config.num_chunks, root)

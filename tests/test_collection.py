@@ -108,7 +108,7 @@ def test_parallel_env_mode_matches_spec():
     try:
         td = env.reset()
         assert td.batch_size == torch.Size([2])
-        assert td["demo_frames"].shape == (2, 5, 3, 32, 32)
+        assert td["demo_frames"].shape == (2, 5, 32, 32, 3)
         assert "spf_hidden" in td.keys() and "expert_action" in td.keys()
     finally:
         env.close()

@@ -22,8 +22,8 @@ def built(tmp_path_factory):
 def test_layout_and_labels(built):
     episodes = built.episodes
     assert episodes.batch_size == torch.Size([6])
-    assert episodes["steps", "pixels"].shape == (6, 8, 3, 32, 32)
-    assert episodes["demo_frames"].shape == (6, 5, 3, 32, 32)  # stored once per episode
+    assert episodes["steps", "pixels"].shape == (6, 8, 32, 32, 3)
+    assert episodes["demo_frames"].shape == (6, 5, 32, 32, 3)  # stored once per episode
     mask = episodes["steps", "mask"]
     assert torch.equal(mask.sum(1), episodes["length"])
     assert episodes["steps", "is_init"][:, 0].all() and not episodes["steps", "is_init"][:, 1:].any()
@@ -76,7 +76,13 @@ def test_missing_and_mismatched_datasets(built, tmp_path):
 
 @pytest.mark.parametrize(
     "kwargs, match",
-    [(dict(num_episodes=0), "num_episodes"), (dict(chunk_size=-1), "chunk_size"), (dict(random_action_prob=1.5), "random_action_prob")],
+    [
+        (dict(num_episodes=0), "num_episodes"),
+        (dict(chunk_size=-1), "chunk_size"),
+        (dict(random_action_prob=1.5), "random_action_prob"),
+        (dict(noise="lol"), r"noise must be one of \['locobot', 'none', 'paper', 'paper_symmetric', 'paper_unclipped'\]"),
+        (dict(split="dev"), r"split must be one of \['test', 'train', 'val'\]"),
+    ],
 )
 def test_bad_config(kwargs, match):
     with pytest.raises(ValueError, match=match):
@@ -90,3 +96,23 @@ def test_replay_buffer_yields_each_episode_once_per_epoch(built):
     with pytest.raises(RuntimeError):
         buffer.extend(built.episodes[:1])  # read-only dataset
     assert np.isfinite(built.statistics()["mean_length"])
+
+
+@pytest.mark.parametrize(
+    "changes, match",
+    [
+        (dict(format_version=1), "version 1 stored CHW frames"),
+        (dict(env_version=1), "made by env version 1, but this env is version 2"),
+        (dict(env_version=None), "made by env version None"),
+    ],
+    ids=["old-layout", "old-env", "no-env-version"],
+)
+def test_stale_datasets_are_refused(built, tmp_path, changes, match):
+    root = tmp_path / "stale"
+    shutil.copytree(built.root, root)
+    meta = json.loads((root / "meta.json").read_text())
+    (root / "meta.json").write_text(json.dumps({**meta, **changes}))
+    with pytest.raises(DatasetError, match=match):
+        EpisodeDataset(root)
+    with pytest.raises(DatasetError, match=match):  # and never resumed into
+        EpisodeDataset.build(root, DatasetConfig(**TINY), num_workers=1, progress=False)

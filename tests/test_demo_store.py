@@ -78,7 +78,7 @@ def test_build_is_deterministic_and_depends_on_the_seed(store, tmp_path):
 
 def test_stored_demonstrations_match_their_source(store):
     config = store.config
-    assert store.frames.shape == (20, 5, 3, 32, 32) and store.frames.dtype == torch.uint8
+    assert store.frames.shape == (20, 5, 32, 32, 3) and store.frames.dtype == torch.uint8
     assert store.poses.shape == (20, 6, 3) and store.actions.shape == (20, 5) and len(store) == 20
     assert set(store.house_seeds.tolist()) <= set(split_seeds("train", 2))
     renderer = FirstPersonRenderer(32, 32)
@@ -92,7 +92,7 @@ def test_stored_demonstrations_match_their_source(store):
             house = build_house(demo.house_seed)
             for i in (0, 4):
                 frame = renderer.render(house, store.poses[k][i].numpy())
-                assert torch.equal(store.frames[k][i], torch.from_numpy(frame).permute(2, 0, 1)), (k, i)
+                assert torch.equal(store.frames[k][i], torch.from_numpy(frame)), (k, i)
     finally:
         renderer.close()
     # frames differ along a route and between routes
@@ -206,6 +206,20 @@ def _edit_meta(root, **changes):
     (root / "meta.json").write_text(json.dumps(meta))
 
 
+@pytest.mark.parametrize(
+    "changes, match",
+    [
+        (dict(format_version=1), "version 1 stored CHW frames"),
+        (dict(env_version=1), "made by env version 1, but this env is version 2"),
+    ],
+    ids=["old-layout", "old-env"],
+)
+def test_stale_stores_are_refused(store_copy, changes, match):
+    _edit_meta(store_copy, **changes)
+    with pytest.raises(DemoStoreError, match=match):
+        DemoStore(store_copy)
+
+
 def test_missing_store_raises_demo_store_error(tmp_path):
     with pytest.raises(DemoStoreError, match="no meta.json"):
         DemoStore(tmp_path / "nowhere")
@@ -241,7 +255,7 @@ def test_store_pickles_as_its_path(store):
 def test_lookup_by_ids(store):
     ids = torch.tensor([[3], [0], [19], [3]])
     frames = store.lookup(ids)
-    assert frames.shape == (4, 5, 3, 32, 32) and frames.dtype == torch.uint8
+    assert frames.shape == (4, 5, 32, 32, 3) and frames.dtype == torch.uint8
     assert torch.equal(frames, store.frames[ids.squeeze(-1)])
     # a [B, T, 1] batch of ids (a collected batch) and a single [1] id (an unbatched env)
     batch = torch.tensor([[[1], [2], [3]], [[4], [5], [6]]])
@@ -269,7 +283,7 @@ def test_lookup_module_feeds_frames_to_the_policy_only(store):
     mean = TensorDictModule(lambda frames: frames.float().mean((-4, -3, -2, -1)).unsqueeze(-1), ["demo_frames"], ["out"])
     policy = TensorDictSequential(store.lookup_module(), mean, selected_out_keys=["out"])
     ids = torch.tensor([[5], [11], [0]])
-    td = TensorDict({"demo_id": ids, "pixels": torch.zeros(3, 3, 32, 32, dtype=torch.uint8)}, batch_size=[3])
+    td = TensorDict({"demo_id": ids, "pixels": torch.zeros(3, 32, 32, 3, dtype=torch.uint8)}, batch_size=[3])
     out = policy(td)
     assert "demo_frames" not in out.keys() and "out" in out.keys() and "pixels" in out.keys()
     expected = store.frames[ids.squeeze(-1)].float().mean((-4, -3, -2, -1)).unsqueeze(-1)

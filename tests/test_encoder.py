@@ -11,26 +11,26 @@ from spf_rl.modules import ImageEncoder
 @pytest.mark.parametrize("batch", [(), (2,), (2, 3)])
 def test_shapes(size, batch):
     enc = ImageEncoder(feature_dim=12, image_size=size)
-    x = torch.randint(0, 256, (*batch, 3, *size), dtype=torch.uint8)
+    x = torch.randint(0, 256, (*batch, *size, 3), dtype=torch.uint8)
     assert enc(x).shape == (*batch, 12)
 
 
 def test_uint8_equals_float_scaled():
     torch.manual_seed(0)
     enc = ImageEncoder(feature_dim=8, image_size=(16, 16))
-    x = torch.randint(0, 256, (4, 3, 16, 16), dtype=torch.uint8)
+    x = torch.randint(0, 256, (4, 16, 16, 3), dtype=torch.uint8)
     torch.testing.assert_close(enc(x), enc(x.float() / 255.0))
 
 
 def test_empty_batch():
     enc = ImageEncoder(feature_dim=8, image_size=(16, 16))
-    assert enc(torch.zeros(0, 3, 16, 16, dtype=torch.uint8)).shape == (0, 8)
+    assert enc(torch.zeros(0, 16, 16, 3, dtype=torch.uint8)).shape == (0, 8)
 
 
-@pytest.mark.parametrize("shape", [(2, 1, 16, 16), (2, 3, 16, 8), (2, 3, 32, 32), (16, 16)])
+@pytest.mark.parametrize("shape", [(2, 16, 16, 1), (2, 16, 8, 3), (2, 32, 32, 3), (16, 16)])
 def test_wrong_shape_raises(shape):
     enc = ImageEncoder(feature_dim=8, image_size=(16, 16))
-    with pytest.raises(ValueError, match=r"\[\*, 3, 16, 16\]"):
+    with pytest.raises(ValueError, match=r"\[\*, 16, 16, 3\]"):
         enc(torch.zeros(shape, dtype=torch.uint8))
 
 
@@ -43,7 +43,7 @@ def test_bad_config_raises():
 
 def test_gradients_reach_all_parameters():
     enc = ImageEncoder(feature_dim=8, image_size=(16, 16))
-    enc(torch.rand(3, 3, 16, 16)).sum().backward()
+    enc(torch.rand(3, 16, 16, 3)).sum().backward()
     for name, p in enc.named_parameters():
         assert p.grad is not None and p.grad.abs().sum() > 0, name
 

@@ -47,7 +47,7 @@ def test_memory_indices_properties(n, sparsity):
 def test_memory_bytes():
     # 12 frames of 3*64*64 uint8 + 30 one-byte actions
     assert memory_bytes(30, 0.4) == 12 * 3 * 64 * 64 + 30
-    assert memory_bytes(30, 1.0, frame_shape=(3, 16, 16), bytes_per_pixel=4, bytes_per_action=8) == (
+    assert memory_bytes(30, 1.0, frame_shape=(16, 16, 3), bytes_per_pixel=4, bytes_per_action=8) == (
         30 * 3 * 16 * 16 * 4 + 30 * 8
     )
     assert memory_bytes(30, 0.01) == 3 * 64 * 64 + 30  # at least one frame
@@ -71,7 +71,7 @@ def test_memory_encoder_gathers_and_encodes():
     idx = memory_indices(10, 0.3)  # [0, 4, 9] (4.5 rounds half to even)
     assert idx.tolist() == [0, 4, 9]
     mem = MemoryEncoder(enc, idx)
-    demo = torch.randint(0, 256, (2, 10, 3, 16, 16), dtype=torch.uint8)
+    demo = torch.randint(0, 256, (2, 10, 16, 16, 3), dtype=torch.uint8)
     out = mem(demo)
     assert out.shape == (2, 3, 8)
     torch.testing.assert_close(out, enc(demo[:, [0, 4, 9]]))
@@ -86,7 +86,7 @@ def test_memory_longer_than_demo_raises():
     enc = ImageEncoder(feature_dim=8, image_size=(16, 16))
     mem = MemoryEncoder(enc, memory_indices(30, 0.4))
     with pytest.raises(ValueError, match="memory longer than the demo"):
-        mem(torch.zeros(1, 20, 3, 16, 16, dtype=torch.uint8))
+        mem(torch.zeros(1, 20, 16, 16, 3, dtype=torch.uint8))
 
 
 if __name__ == "__main__":

@@ -36,7 +36,7 @@ def test_specs_serial_and_parallel():
     parallel.set_seed(0)
     check_env_specs(parallel)
     rollout = parallel.rollout(4, break_when_any_done=False)
-    assert rollout["demo_frames"].shape == (2, 4, 6, 3, 32, 32)
+    assert rollout["demo_frames"].shape == (2, 4, 6, 32, 32, 3)
     parallel.close(raise_if_closed=False)
 
 

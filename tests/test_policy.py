@@ -46,8 +46,8 @@ class DemoEnv(EnvBase):
         super().__init__()
         self.max_steps, self.n = max_steps, n
         self.observation_spec = Composite(
-            pixels=Bounded(0, 255, shape=(3, H, W), dtype=torch.uint8),
-            demo_frames=Bounded(0, 255, shape=(n, 3, H, W), dtype=torch.uint8),
+            pixels=Bounded(0, 255, shape=(H, W, 3), dtype=torch.uint8),
+            demo_frames=Bounded(0, 255, shape=(n, H, W, 3), dtype=torch.uint8),
             demo_actions=Categorical(3, shape=(n,)),
         )
         self.action_spec = Categorical(num_actions)
@@ -61,12 +61,12 @@ class DemoEnv(EnvBase):
         self.rng = torch.Generator().manual_seed(seed if seed is not None else 0)
 
     def _obs(self):
-        return torch.randint(0, 256, (3, H, W), dtype=torch.uint8, generator=self.rng)
+        return torch.randint(0, 256, (H, W, 3), dtype=torch.uint8, generator=self.rng)
 
     def _reset(self, td, **kwargs):
         self._t = 0
         self._demo = {
-            "demo_frames": torch.randint(0, 256, (self.n, 3, H, W), dtype=torch.uint8, generator=self.rng),
+            "demo_frames": torch.randint(0, 256, (self.n, H, W, 3), dtype=torch.uint8, generator=self.rng),
             "demo_actions": torch.randint(0, 3, (self.n,), generator=self.rng),
         }
         false = torch.zeros(1, dtype=torch.bool)
@@ -92,8 +92,8 @@ def make_env():
 def _random_td(batch, n=N, init=True, seed=0):
     g = torch.Generator().manual_seed(seed)
     return TensorDict(
-        pixels=torch.randint(0, 256, (*batch, 3, H, W), dtype=torch.uint8, generator=g),
-        demo_frames=torch.randint(0, 256, (*batch, n, 3, H, W), dtype=torch.uint8, generator=g),
+        pixels=torch.randint(0, 256, (*batch, H, W, 3), dtype=torch.uint8, generator=g),
+        demo_frames=torch.randint(0, 256, (*batch, n, H, W, 3), dtype=torch.uint8, generator=g),
         demo_actions=torch.randint(0, 3, (*batch, n), generator=g),
         is_init=torch.full((*batch, 1), init),
         batch_size=batch,
@@ -103,15 +103,15 @@ def _random_td(batch, n=N, init=True, seed=0):
 def _make_trajectory(B=2, T=7, inits=((0, 4), (0, 2)), seed=0):
     """[B, T] observations with episode starts at the given steps (demo changes at each start)."""
     g = torch.Generator().manual_seed(seed)
-    pixels = torch.randint(0, 256, (B, T, 3, H, W), dtype=torch.uint8, generator=g)
+    pixels = torch.randint(0, 256, (B, T, H, W, 3), dtype=torch.uint8, generator=g)
     is_init = torch.zeros(B, T, 1, dtype=torch.bool)
-    demo_f = torch.empty(B, T, N, 3, H, W, dtype=torch.uint8)
+    demo_f = torch.empty(B, T, N, H, W, 3, dtype=torch.uint8)
     demo_a = torch.empty(B, T, N, dtype=torch.long)
     for b in range(B):
         for t in range(T):
             if t in inits[b]:
                 is_init[b, t] = True
-                f = torch.randint(0, 256, (N, 3, H, W), dtype=torch.uint8, generator=g)
+                f = torch.randint(0, 256, (N, H, W, 3), dtype=torch.uint8, generator=g)
                 a = torch.randint(0, 3, (N,), generator=g)
             demo_f[b, t], demo_a[b, t] = f, a
     return TensorDict(pixels=pixels, demo_frames=demo_f, demo_actions=demo_a, is_init=is_init, batch_size=[B, T])
@@ -171,8 +171,8 @@ def test_memory_modes_lengths():
 def test_wrong_frame_shape_raises():
     policy = SPFPolicy(CFG)
     td = _random_td([2])
-    td["pixels"] = torch.zeros(2, 3, 32, 32, dtype=torch.uint8)
-    with pytest.raises(ValueError, match=r"pixels must have shape \[\*, 3, 16, 16\]"):
+    td["pixels"] = torch.zeros(2, 32, 32, 3, dtype=torch.uint8)
+    with pytest.raises(ValueError, match=r"pixels must have shape \[\*, 16, 16, 3\]"):
         policy(td)
     td = _random_td([2])
     td["demo_frames"] = torch.zeros(2, N, 1, H, W, dtype=torch.uint8)

@@ -88,7 +88,7 @@ def _check_batch(data, policy):
         data["memory_features"][:, 1:][same], data["next", "memory_features"][:, :-1][same]
     )
     assert data["pixels"].dtype == torch.uint8 and data["demo_frames"].dtype == torch.uint8
-    assert data["demo_frames"].shape[-4:] == (N, 3, SIZE, SIZE)
+    assert data["demo_frames"].shape[-4:] == (N, SIZE, SIZE, 3)
 
 
 def _check_sequence_replay(actor, data):

@@ -37,3 +37,20 @@ def test_shorthands_and_dotted_overrides():
 def test_bad_overrides_are_refused(override, match):
     with pytest.raises(ValueError, match=match):
         load_config(BCConfig, "bc", [override])
+
+
+@pytest.mark.parametrize(
+    "override, match",
+    [
+        ("noise=lol", r"noise must be one of \['locobot', 'none', 'paper', 'paper_symmetric', 'paper_unclipped'\]"),
+        ("test.split=dev", r"split must be one of \['test', 'train', 'val'\]"),
+        ("val.num_agents=0", "num_agents must be a positive int"),
+    ],
+)
+def test_bad_values_are_refused_before_any_work(override, match, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    import bc as bc_recipe
+
+    with pytest.raises(ValueError, match=match):
+        bc_recipe.main([override])
+    assert list(tmp_path.iterdir()) == []  # no dataset, no run directory

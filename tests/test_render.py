@@ -54,7 +54,7 @@ def test_render_many_matches_one_frame_at_a_time_across_houses():
     single.close()
     batched = FirstPersonRenderer(32, 32)
     chw = np.zeros((len(houses), 3, 32, 32), dtype=np.uint8)
-    frames = batched.render_many(houses, poses, out=chw.transpose(0, 2, 3, 1))  # strided output, as the env uses
+    frames = batched.render_many(houses, poses, out=chw.transpose(0, 2, 3, 1))  # a strided output view
     fresh = batched.render_many(houses[::-1], poses[::-1])
     batched.close()
     for row, reference in enumerate(expected):

@@ -10,6 +10,7 @@ from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.envs import Compose, InitTracker, ParallelEnv, SerialEnv, TransformedEnv, check_env_specs
 
+from envs.demos import nominal_motion
 from envs.expert import FORWARD, TURN_LEFT, TURN_RIGHT
 from envs.factory import make_path_follow_env
 from envs.nav_env import PathFollowEnv
@@ -31,15 +32,50 @@ def test_none_is_nominal():
     assert np.allclose(motion, [[0.3, 0, 0], [0, 0, TURN], [0, 0, -TURN]])
 
 
-def test_paper_is_clipped_to_20_percent():
-    forward = sample("paper", [FORWARD] * 2000)
+def test_paper_symmetric_is_clipped_to_20_percent():
+    forward = sample("paper_symmetric", [FORWARD] * 2000)
     assert forward[:, 0].min() >= 0.24 - 1e-9 and forward[:, 0].max() <= 0.36 + 1e-9
     assert forward[:, 0].std() > 0.03  # the clip binds: steps pile up at 0.24 and 0.36
     assert np.allclose(forward[:, 1:], 0)
-    left = sample("paper", [TURN_LEFT] * 2000)[:, 2]
-    assert left.min() >= 0.8 * TURN - 1e-9 and left.max() <= 1.2 * TURN + 1e-9
-    right = sample("paper", [TURN_RIGHT] * 2000)[:, 2]
+    left = sample("paper_symmetric", [TURN_LEFT] * 2000)
+    assert left[:, 2].min() >= 0.8 * TURN - 1e-9 and left[:, 2].max() <= 1.2 * TURN + 1e-9
+    assert np.allclose(left[:, :2], 0)  # no translation on a turn
+    right = sample("paper_symmetric", [TURN_RIGHT] * 2000)[:, 2]
     assert right.max() <= -0.8 * TURN + 1e-9 and right.min() >= -1.2 * TURN - 1e-9
+
+
+def test_paper_is_the_first_authors_noisy_action():
+    """NoisyAction.py (clip ratio 0.2): forward clip(0.3 + N(0.3, 0.5^2), 0.24, 0.36) m, clip(s, -4, 4) deg;
+    turns clip(N(0, 0.5^2), 0, 0.06) m, clip(+-20 + s, 16, 24) deg; s = N(0, 1) rad."""
+    count = 20000
+    forward = sample("paper", [FORWARD] * count)
+    assert forward[:, 0].min() >= 0.24 - 1e-9 and forward[:, 0].max() <= 0.36 + 1e-9
+    # the mean counts twice: P(0.6 + 0.5 z >= 0.36) = P(z >= -0.48) = 0.684 of steps are 0.36 m
+    assert abs(np.isclose(forward[:, 0], 0.36).mean() - 0.684) < 0.015
+    assert abs(np.isclose(forward[:, 0], 0.24).mean() - 0.236) < 0.015  # P(0.6 + 0.5 z <= 0.24) = P(z <= -0.72)
+    rotation_deg = np.rad2deg(forward[:, 2])
+    assert rotation_deg.min() >= -4 - 1e-9 and rotation_deg.max() <= 4 + 1e-9
+    assert abs(np.isclose(np.abs(rotation_deg), 4).mean() - 0.944) < 0.01  # P(|z| >= 4 deg in rad)
+    assert np.allclose(forward[:, 1], 0)
+    for action, sign in ((TURN_LEFT, 1), (TURN_RIGHT, -1)):
+        turn = sample("paper", [action] * count)
+        assert turn[:, 0].min() >= 0 and turn[:, 0].max() <= 0.06 + 1e-9
+        assert abs((turn[:, 0] == 0).mean() - 0.5) < 0.015  # N(0, 0.5^2) below 0 half the time
+        degrees = sign * np.rad2deg(turn[:, 2])
+        assert degrees.min() >= 16 - 1e-9 and degrees.max() <= 24 + 1e-9
+        assert np.allclose(turn[:, 1], 0)
+    # translation and rotation are drawn independently
+    moved = forward[:, 0] > 0.3
+    assert abs(np.mean(rotation_deg[moved] > 0) - np.mean(rotation_deg[~moved] > 0)) < 0.03
+
+
+def test_explicit_bounds_validation():
+    from envs.transforms import GaussianMotionNoise
+
+    with pytest.raises(ValueError, match="forward_bounds_m"):
+        GaussianMotionNoise(forward_bounds_m=(0.3, 0.2))
+    with pytest.raises(ValueError, match="clip_fraction and explicit motion bounds"):
+        NoiseModel(linear=GaussianMotionNoise(forward_bounds_m=(0.2, 0.3)), clip_fraction=0.2)
 
 
 def test_paper_unclipped_is_the_literal_gaussian():
@@ -106,10 +142,10 @@ def test_batch_of_agents_draws_as_one_agent_at_a_time(preset):
     td = TensorDict(
         action=torch.as_tensor(actions), episode_seed=torch.as_tensor(seeds)[:, None], step_count=torch.as_tensor(steps)[:, None], batch_size=[40]
     )
-    batched = transform.inv(td)["actuation"]
-    single = torch.stack([transform.inv(td[i])["actuation"] for i in range(40)])
+    batched = transform.inv(td)["actuation_noise"]
+    single = torch.stack([transform.inv(td[i])["actuation_noise"] for i in range(40)])
     assert torch.equal(batched, single)
-    assert torch.equal(batched, torch.as_tensor(batch, dtype=torch.float32))
+    assert torch.equal(batched, torch.as_tensor(batch - nominal_motion(actions), dtype=torch.float32))
 
 
 def test_transform_no_env_and_inverse():
@@ -118,8 +154,8 @@ def test_transform_no_env_and_inverse():
         action=torch.tensor([0, 1]), episode_seed=torch.tensor([[3], [4]]), step_count=torch.tensor([[0], [0]]), batch_size=[2]
     )
     out = transform.inv(td)
-    assert out["actuation"].shape == (2, 3)
-    assert "actuation" not in td.keys()  # inverse works on a copy: the policy's data is untouched
+    assert out["actuation_noise"].shape == (2, 3)
+    assert "actuation_noise" not in td.keys()  # inverse works on a copy: the policy's data is untouched
     assert torch.equal(out["action"], td["action"])
 
 
@@ -169,5 +205,6 @@ def test_transform_rb():
     )
     rb.extend(td)
     stored = rb[:2]
-    assert stored["actuation"].shape == (2, 3)
-    assert stored["actuation"][1, 2] < 0  # a right turn
+    assert stored["actuation_noise"].shape == (2, 3)
+    realised_turn_deg = np.rad2deg(float(stored["actuation_noise"][1, 2]) - TURN)  # a right turn
+    assert -24 - 1e-4 <= realised_turn_deg <= -16 + 1e-4

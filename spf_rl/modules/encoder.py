@@ -40,7 +40,11 @@ def _conv_out(size: int, kernel: int = _KERNEL_SIZE, stride: int = _STRIDE, padd
 
 
 class ImageEncoder(nn.Module):
-    """Small CNN mapping RGB frames ``[*, 3, H, W]`` to features ``[*, feature_dim]``.
+    """Small CNN mapping RGB frames ``[*, H, W, 3]`` to features ``[*, feature_dim]``.
+
+    Frames are HWC, as TorchRL's pixel envs emit them (``pixels``, ``demo_frames``
+    of :class:`~envs.nav_env.PathFollowEnv`); the encoder permutes them to the
+    ``[N, 3, H, W]`` view its convolutions read (channels_last in memory, no copy).
 
     A patchifying convolution (kernel = stride = ``patch_size``), then stride-2 3x3
     convolutions (ReLU after each), then a linear layer (ReLU).
@@ -61,7 +65,7 @@ class ImageEncoder(nn.Module):
         >>> import torch
         >>> from spf_rl.modules import ImageEncoder
         >>> enc = ImageEncoder(feature_dim=32, image_size=(16, 16))
-        >>> frames = torch.randint(0, 256, (2, 5, 3, 16, 16), dtype=torch.uint8)
+        >>> frames = torch.randint(0, 256, (2, 5, 16, 16, 3), dtype=torch.uint8)
         >>> enc(frames).shape
         torch.Size([2, 5, 32])
     """
@@ -107,23 +111,27 @@ class ImageEncoder(nn.Module):
 
     @property
     def frame_shape(self) -> tuple[int, int, int]:
-        """The expected frame shape ``(3, H, W)``."""
-        return (NUM_RGB_CHANNELS, *self.image_size)
+        """The expected frame shape ``(H, W, 3)`` (HWC)."""
+        return (*self.image_size, NUM_RGB_CHANNELS)
 
     def check_frames(self, frames: torch.Tensor, name: str = "frames") -> None:
-        """Raise a ``ValueError`` if ``frames`` is not ``[*, 3, H, W]`` with the configured H, W."""
+        """Raise a ``ValueError`` if ``frames`` is not ``[*, H, W, 3]`` with the configured H, W."""
         if frames.ndim < 3 or tuple(frames.shape[-3:]) != self.frame_shape:
+            hint = (
+                " The frames look CHW: frames are HWC (TorchRL's pixel convention)."
+                if tuple(frames.shape[-3:]) == (NUM_RGB_CHANNELS, *self.image_size)
+                else " Set image_size to the env's frame size."
+            )
             raise ValueError(
                 f"{name} must have shape [*, {', '.join(map(str, self.frame_shape))}] "
-                f"(channels, height, width), got {tuple(frames.shape)}. "
-                "Set image_size to the env's frame size."
+                f"(height, width, channels), got {tuple(frames.shape)}.{hint}"
             )
 
     def forward(self, frames: torch.Tensor) -> torch.Tensor:
-        """Encode ``frames`` of shape ``[*, 3, H, W]`` into ``[*, feature_dim]``."""
+        """Encode HWC ``frames`` of shape ``[*, H, W, 3]`` into ``[*, feature_dim]``."""
         self.check_frames(frames)
         batch_shape = frames.shape[:-3]
-        x = frames.reshape(-1, *self.frame_shape)
+        x = frames.reshape(-1, *self.frame_shape).permute(0, 3, 1, 2)
         if x.dtype == torch.uint8:
             x = x.float() / PIXEL_MAX
         elif not x.is_floating_point():

@@ -27,7 +27,7 @@ __all__ = [
 ]
 
 #: Default frame shape (channels, height, width) used for byte budgets.
-DEFAULT_FRAME_SHAPE = (3, 64, 64)
+DEFAULT_FRAME_SHAPE = (64, 64, 3)
 #: Bytes per uint8 pixel value.
 UINT8_BYTES = 1
 
@@ -169,8 +169,8 @@ def memory_bytes(
     Args:
         n (int): demonstration length (number of frames), positive.
         sparsity (float): fraction of frames kept, in ``(0, 1]``.
-        frame_shape (tuple of int, optional): shape of one frame, ``(channels, height,
-            width)`` in pixels. Defaults to ``(3, 64, 64)``.
+        frame_shape (tuple of int, optional): shape of one frame, ``(height, width,
+            channels)`` in pixels. Defaults to ``(64, 64, 3)``.
         bytes_per_pixel (int, optional): bytes per stored pixel value. Defaults to 1 (uint8).
         bytes_per_action (int, optional): bytes per stored action. Defaults to 1.
 
@@ -192,7 +192,7 @@ class MemoryEncoder(nn.Module):
     """Gathers the memory frames ``demo_frames[..., M*, :, :, :]`` and encodes them.
 
     Args:
-        encoder (nn.Module): image encoder phi mapping ``[*, 3, H, W]`` to ``[*, D]``.
+        encoder (nn.Module): image encoder phi mapping ``[*, H, W, 3]`` to ``[*, D]``.
         indices (torch.Tensor): 0-based memory indices ``M*`` of shape ``[l]``
             (see :func:`memory_indices`).
 
@@ -201,7 +201,7 @@ class MemoryEncoder(nn.Module):
         >>> from spf_rl.modules import ImageEncoder, MemoryEncoder, memory_indices
         >>> enc = ImageEncoder(feature_dim=8, image_size=(16, 16))
         >>> mem = MemoryEncoder(enc, memory_indices(10, 0.4))
-        >>> demo = torch.randint(0, 256, (2, 10, 3, 16, 16), dtype=torch.uint8)
+        >>> demo = torch.randint(0, 256, (2, 10, 16, 16, 3), dtype=torch.uint8)
         >>> mem(demo).shape
         torch.Size([2, 4, 8])
     """
@@ -222,7 +222,7 @@ class MemoryEncoder(nn.Module):
         return int(self.indices.numel())
 
     def gather(self, demo_frames: torch.Tensor) -> torch.Tensor:
-        """Select ``demo_frames[..., M*, :, :, :]``: ``[*, n, 3, H, W] -> [*, l, 3, H, W]``."""
+        """Select ``demo_frames[..., M*, :, :, :]``: ``[*, n, H, W, 3] -> [*, l, H, W, 3]``."""
         self._check_length(demo_frames)
         return demo_frames.index_select(-4, self.indices.to(demo_frames.device))
 
@@ -234,7 +234,7 @@ class MemoryEncoder(nn.Module):
         """Encode the memory frames.
 
         Args:
-            demo_frames (torch.Tensor): ``[*, n, 3, H, W]`` demonstration frames (may be
+            demo_frames (torch.Tensor): ``[*, n, H, W, 3]`` demonstration frames (may be
                 an expanded view).
             batch_index (tuple of torch.Tensor, optional): one 1-d index tensor per
                 leading batch dim of ``demo_frames``; only those rows are gathered and
@@ -256,7 +256,7 @@ class MemoryEncoder(nn.Module):
             batch_dims is not None and demo_frames.ndim != batch_dims + 4
         ):
             raise ValueError(
-                f"demo_frames must have shape [*, n, 3, H, W], got {tuple(demo_frames.shape)}."
+                f"demo_frames must have shape [*, n, H, W, 3], got {tuple(demo_frames.shape)}."
             )
         num_demo = demo_frames.shape[-4]
         largest = int(self.indices.max())

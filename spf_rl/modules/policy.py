@@ -276,7 +276,7 @@ class SPFPolicy(TensorDictModuleBase):
 
     Args:
         config (SPFConfig, optional): model configuration. Defaults to ``SPFConfig()``.
-        encoder (nn.Module, optional): image encoder phi mapping ``[*, 3, H, W]`` to
+        encoder (nn.Module, optional): image encoder phi mapping ``[*, H, W, 3]`` to
             ``[*, D]``; it is shared by observations and memory frames. Its output size
             is read from ``encoder.feature_dim`` if present, else ``config.feature_dim``.
             Defaults to :class:`ImageEncoder` built from the config.
@@ -300,8 +300,8 @@ class SPFPolicy(TensorDictModuleBase):
         >>> cfg = SPFConfig(demo_length=6, sparsity=0.5, feature_dim=16, hidden_size=16, image_size=(16, 16))
         >>> policy = SPFPolicy(cfg)
         >>> td = TensorDict({
-        ...     "pixels": torch.randint(0, 256, (2, 3, 16, 16), dtype=torch.uint8),
-        ...     "demo_frames": torch.randint(0, 256, (2, 6, 3, 16, 16), dtype=torch.uint8),
+        ...     "pixels": torch.randint(0, 256, (2, 16, 16, 3), dtype=torch.uint8),
+        ...     "demo_frames": torch.randint(0, 256, (2, 6, 16, 16, 3), dtype=torch.uint8),
         ...     "demo_actions": torch.randint(0, 3, (2, 6)),
         ...     "is_init": torch.ones(2, 1, dtype=torch.bool)}, batch_size=[2])
         >>> out = policy(td)
@@ -477,7 +477,7 @@ class SPFPolicy(TensorDictModuleBase):
         n = self.config.demo_length
         if demo_frames.ndim != batch_dims + 4 or demo_frames.shape[batch_dims] != n:
             raise ValueError(
-                f"demo_frames must have shape [*batch, n={n}, 3, H, W] (n = SPFConfig.demo_length), "
+                f"demo_frames must have shape [*batch, n={n}, H, W, 3] (n = SPFConfig.demo_length), "
                 f"got {tuple(demo_frames.shape)} for {batch_dims} batch dim(s)."
             )
         check = getattr(self.encoder, "check_frames", None)

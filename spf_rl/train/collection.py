@@ -35,7 +35,8 @@ from torchrl.envs import Compose, EnvBase, InitTracker, ParallelEnv, TensorDictP
 from torchrl.modules.utils import get_primers_from_module
 
 from envs.nav_env import PathFollowEnv
-from envs.transforms import ActuationNoise
+from envs.checks import check_episode_source, check_positive_ints
+from envs.transforms import DEFAULT_NOISE, ActuationNoise
 
 logger = logging.getLogger(__name__)
 
@@ -59,12 +60,16 @@ class CollectionEnvConfig:
     """
 
     split: str = "train"
-    noise: str = "paper"
+    noise: str = DEFAULT_NOISE
     num_houses: int | None = None
     demo_length: int = 30
     max_steps: int = 50
     image_size: int = 64
     with_expert: bool = True
+
+    def __post_init__(self) -> None:
+        check_episode_source(self.split, self.num_houses, self.noise)
+        check_positive_ints(self, ("demo_length", "max_steps", "image_size"))
 
 
 @dataclass

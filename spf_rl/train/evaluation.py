@@ -16,7 +16,8 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from envs.nav_env import PathFollowEnv
 from envs.scripted import run_episodes
-from envs.transforms import ActuationNoise
+from envs.checks import check_episode_source, check_positive_ints
+from envs.transforms import DEFAULT_NOISE, ActuationNoise
 from spf_rl.metrics import summarize
 
 
@@ -40,7 +41,7 @@ class EvalConfig:
 
     split: str = "test"
     num_episodes: int = 500
-    noise: str = "paper"
+    noise: str = DEFAULT_NOISE
     seed: int = 1234
     num_agents: int = 25
     demo_length: int = 30
@@ -48,6 +49,10 @@ class EvalConfig:
     image_size: int = 64
     num_houses: int | None = None
     render: bool = True
+
+    def __post_init__(self) -> None:
+        check_episode_source(self.split, self.num_houses, self.noise)
+        check_positive_ints(self, ("num_episodes", "num_agents", "demo_length", "max_steps", "image_size"))
 
 
 def with_episode_sizes(config: EvalConfig, sizes) -> EvalConfig:
@@ -140,10 +145,10 @@ def record_rollout(policy: TensorDictModuleBase, config: EvalConfig) -> dict:
     final = rollout[-1]["next"]
     poses = torch.cat([rollout["pose"], final["pose"][None]]).numpy()
     record = {
-        "frames": rollout["pixels"].permute(0, 2, 3, 1).numpy(),
+        "frames": rollout["pixels"].numpy(),
         "poses": poses,
         "demo_poses": demo.poses,
-        "demo_frames": rollout[0]["demo_frames"].permute(0, 2, 3, 1).numpy(),
+        "demo_frames": rollout[0]["demo_frames"].numpy(),
         "house_seed": demo.house_seed,
         "success": bool(final["success"].item()),
         "spl": float(final["spl"].item()),
