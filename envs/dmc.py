@@ -93,16 +93,9 @@ from dm_env import specs  # noqa: E402
 from envs.demos import DEFAULT_DEMO_LENGTH, Demonstration, apply_motion, default_min_route_length_m, nominal_motion
 from envs.expert import ACTION_NAMES, GeodesicExpert
 from envs.follow import MAX_EPISODE_SEED, FollowRules, StepOutcome, episode_for_seed
-from envs.nav_env import (
-    DEFAULT_IMAGE_SIZE,
-    DEFAULT_MAX_STEPS,
-    NUM_DEMO_ACTIONS,
-    PROGRESS_REWARD_PER_M,
-    STEP_PENALTY,
-    SUCCESS_FRACTION,
-    SUCCESS_RADIUS_M,
-    SUCCESS_REWARD,
-)
+from envs.follow import PROGRESS_REWARD_PER_M, STEP_PENALTY, SUCCESS_FRACTION, SUCCESS_RADIUS_M, SUCCESS_REWARD
+from envs.nav_env import DEFAULT_IMAGE_SIZE, DEFAULT_MAX_STEPS
+from envs.specs import NUM_DEMO_ACTIONS
 from envs.scenes import House, build_house, house_mjcf, split_seeds
 from envs.transforms import NoiseModel, make_noise_model
 

@@ -22,10 +22,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envs.demos import Demonstration, sample_demonstration
+from envs.demos import DEFAULT_SUCCESS_RADIUS_M, Demonstration, sample_demonstration
 from envs.expert import STOP
 from envs.scenes import House, build_house
 
+#: Success: within max(SUCCESS_RADIUS_M, SUCCESS_FRACTION x initial distance) of the end.
+SUCCESS_RADIUS_M = DEFAULT_SUCCESS_RADIUS_M
+SUCCESS_FRACTION = 0.1
+#: Dense reward terms: per metre of geodesic progress, on success, per step.
+PROGRESS_REWARD_PER_M = 1.0
+SUCCESS_REWARD = 2.5
+STEP_PENALTY = 0.01
 #: Episode seeds are drawn in [0, MAX_EPISODE_SEED) (they also key the actuation noise).
 MAX_EPISODE_SEED = 2**62
 #: SPL's denominator never goes below this, metres (a zero-length route and path).

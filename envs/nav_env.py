@@ -45,18 +45,20 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 
-from envs.demos import (
-    DEFAULT_DEMO_LENGTH,
-    DEFAULT_SUCCESS_RADIUS_M,
-    Demonstration,
-    apply_motion,
-    default_min_route_length_m,
-    nominal_motion,
-    sample_demonstration,
-)
 from envs.checks import check_action, check_actuation_noise, check_positive_int, resolve_houses
+from envs.demos import DEFAULT_DEMO_LENGTH, Demonstration, default_min_route_length_m, nominal_motion
 from envs.demo_store import DemoStore
-from envs.expert import STOP, GeodesicExpert
+from envs.expert import GeodesicExpert
+from envs.follow import (  # noqa: F401  (the protocol's constants, re-exported)
+    MAX_EPISODE_SEED,
+    PROGRESS_REWARD_PER_M,
+    STEP_PENALTY,
+    SUCCESS_FRACTION,
+    SUCCESS_RADIUS_M,
+    SUCCESS_REWARD,
+    FollowRules,
+    episode_for_seed,
+)
 from envs.geometry import DistanceField
 from envs.render import FirstPersonRenderer
 from envs.scenes import House, build_house
@@ -69,16 +71,8 @@ logger = logging.getLogger(__name__)
 DEFAULT_IMAGE_SIZE = 64
 #: Default follow-episode limit, steps (the paper's 50).
 DEFAULT_MAX_STEPS = 50
-#: Success: within max(SUCCESS_RADIUS_M, SUCCESS_FRACTION x initial distance) of the end.
-SUCCESS_RADIUS_M = DEFAULT_SUCCESS_RADIUS_M
-SUCCESS_FRACTION = 0.1
-#: Dense reward terms: per metre of geodesic progress, on success, per step.
-PROGRESS_REWARD_PER_M = 1.0
-SUCCESS_REWARD = 2.5
-STEP_PENALTY = 0.01
 #: Route distance fields kept per env in demo-store mode (about 0.2 MB each).
 DISTANCE_FIELD_CACHE_SIZE = 256
-_MAX_EPISODE_SEED = 2**62
 
 
 class PathFollowEnv(EnvBase):
@@ -114,8 +108,7 @@ class PathFollowEnv(EnvBase):
 
     Examples:
         >>> env = PathFollowEnv("train", num_houses=2, demo_length=10)
-        >>> env.set_seed(0)
-        0
+        >>> _ = env.set_seed(0)
         >>> td = env.reset()
         >>> td["pixels"].shape, td["demo_frames"].shape, td["demo_actions"].shape
         (torch.Size([64, 64, 3]), torch.Size([10, 64, 64, 3]), torch.Size([10]))
@@ -170,6 +163,15 @@ class PathFollowEnv(EnvBase):
         self.render_frames = bool(render)
         self.success_radius_m = float(success_radius_m)
         self.success_fraction = float(success_fraction)
+        self.rules = FollowRules(
+            max_steps=self.max_steps,
+            success_radius_m=self.success_radius_m,
+            success_fraction=self.success_fraction,
+            stop_action=self.stop_action,
+            progress_reward_per_m=PROGRESS_REWARD_PER_M,
+            success_reward=SUCCESS_REWARD,
+            step_penalty=STEP_PENALTY,
+        )
         self.demo_store = demo_store
         self.emit_demo_frames = bool(emit_demo_frames)
         self._field_cache: OrderedDict[int, DistanceField] = OrderedDict()
@@ -274,22 +276,18 @@ class PathFollowEnv(EnvBase):
         return self._observation(zeros, zeros, zeros, reward=None)
 
     def _start_episode(self, index: int, demo_frames: torch.Tensor, demo_actions: torch.Tensor, pixels: torch.Tensor) -> None:
-        episode_seed = int(self._agent_rngs[index].integers(_MAX_EPISODE_SEED))
-        episode_rng = np.random.default_rng(episode_seed)
+        episode_seed = int(self._agent_rngs[index].integers(MAX_EPISODE_SEED))
         if self.demo_store is not None:
-            demo_id = int(episode_rng.integers(len(self.demo_store)))
+            demo_id = int(np.random.default_rng(episode_seed).integers(len(self.demo_store)))
             demo = self._stored_demonstration(demo_id)
             house = build_house(demo.house_seed)
             self._demo_id[index] = demo_id
         else:
-            house = build_house(int(episode_rng.choice(self.house_seeds)))
-            demo = sample_demonstration(
-                house, episode_rng, self.demo_length, min_route_length_m=self._min_route_length_m
-            )
+            house, demo = episode_for_seed(episode_seed, self.house_seeds, self.demo_length, self._min_route_length_m)
         self._houses[index] = house
         self._demos[index] = demo
         self._experts[index] = GeodesicExpert(
-            house.occupancy, demo.end_field, stop_radius_m=self._radius(demo.shortest_length_m) if self.stop_action else None
+            house.occupancy, demo.end_field, stop_radius_m=self.rules.radius(demo.shortest_length_m) if self.stop_action else None
         )
         self._episode_seed[index] = episode_seed
         self._pose[index] = demo.start_pose
@@ -319,9 +317,6 @@ class PathFollowEnv(EnvBase):
             self._field_cache.popitem(last=False)
         return demo
 
-    def _radius(self, initial_distance_m: float | np.ndarray) -> float | np.ndarray:
-        return np.maximum(self.success_radius_m, self.success_fraction * initial_distance_m)
-
     # ------------------------------------------------------------------- step
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         if any(house is None for house in self._houses):
@@ -347,18 +342,20 @@ class PathFollowEnv(EnvBase):
             self._distance[index] = self._demos[index].end_field.at(self._pose[index])
         self._path_length += travelled
         self._steps += 1
-        inside = self._distance <= self._radius(self._initial_distance)
-        terminated = (action == STOP) if self.stop_action else inside
-        truncated = (self._steps >= self.max_steps) & ~terminated
-        done = terminated | truncated
-        self._success = done & inside
-        shortest = self._shortest
-        self._spl = np.where(self._success, shortest / np.maximum(np.maximum(self._path_length, shortest), 1e-9), 0.0)
-        reward = PROGRESS_REWARD_PER_M * (previous - self._distance) + SUCCESS_REWARD * self._success - STEP_PENALTY
+        outcome = self.rules.score(
+            action=action,
+            distance_m=self._distance,
+            previous_distance_m=previous,
+            initial_distance_m=self._initial_distance,
+            path_length_m=self._path_length,
+            shortest_length_m=self._shortest,
+            steps=self._steps,
+        )
+        self._success, self._spl = outcome.success, outcome.spl
         pixels = torch.empty((self._count, self.image_size, self.image_size, NUM_RGB_CHANNELS), dtype=torch.uint8)
         self._render(range(self._count), out=pixels.numpy())
         self._pixels = pixels
-        return self._observation(terminated, truncated, done, reward=reward)
+        return self._observation(outcome.terminated, outcome.truncated, outcome.done, reward=outcome.reward)
 
     # ------------------------------------------------------------ observation
     def _observation(

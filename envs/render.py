@@ -356,7 +356,7 @@ def draw_top_down_map(house, paths=None, points=None, ax=None, title: str | None
         >>> matplotlib.use("Agg")
         >>> from envs.scenes import build_house
         >>> ax = draw_top_down_map(build_house(0), paths={"route": np.array([[1.5, 1.5], [3.5, 1.5]])})
-        >>> ax.get_xlim()
+        >>> tuple(float(v) for v in ax.get_xlim())
         (0.0, 15.0)
     """
     import matplotlib.pyplot as plt

@@ -118,3 +118,9 @@ class HidePrivileged(ExcludeTransform):
 
     def __init__(self) -> None:
         super().__init__(*PRIVILEGED_KEYS)
+
+    def transform_output_spec(self, output_spec: Composite) -> Composite:
+        # exclude what the env emits: expert_action, for one, exists only with with_expert=True
+        present = set(output_spec["full_observation_spec"].keys())
+        self.excluded_keys = [key for key in PRIVILEGED_KEYS if key in present]
+        return super().transform_output_spec(output_spec)

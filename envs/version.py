@@ -9,7 +9,8 @@ History:
 
 * 1: CHW frames; ``paper`` noise symmetric (now ``paper_symmetric``).
 * 2: HWC frames (TorchRL's pixel convention); ``paper`` noise is the first
-  author's ``NoisyAction.py``.
+  author's ``NoisyAction.py``; the geodesic distance field agrees with the
+  collision model (distances and expert labels changed near walls).
 """
 from __future__ import annotations
 

@@ -233,7 +233,7 @@ class EpisodeDataset:
         >>> config = DatasetConfig(num_episodes=2, num_houses=1, demo_length=5, max_steps=6, image_size=32, chunk_size=2)
         >>> dataset = EpisodeDataset.build(root, config, num_workers=1, progress=False)
         >>> dataset.episodes["steps", "pixels"].shape
-        torch.Size([2, 6, 3, 32, 32])
+        torch.Size([2, 6, 32, 32, 3])
     """
 
     def __init__(self, root: str | os.PathLike, verify: bool = True) -> None:

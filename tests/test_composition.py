@@ -128,6 +128,10 @@ def test_hide_privileged_removes_them_from_the_policy_input() -> None:
     assert not set(env.rollout(3).keys(True, True)) & set(PRIVILEGED_KEYS)
     # without it they are there
     assert set(PRIVILEGED_KEYS) <= set(PathFollowEnv(**SMALL, with_expert=True).observation_spec.keys())
+    # an env without expert labels: the keys it has are hidden, the one it lacks ignored
+    env = TransformedEnv(PathFollowEnv(**SMALL), HidePrivileged())
+    check_env_specs(env)
+    assert not set(env.observation_spec.keys()) & set(PRIVILEGED_KEYS)
 
 
 def test_public_names_import_from_the_package() -> None:

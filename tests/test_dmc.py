@@ -99,12 +99,6 @@ class _FixedEpisodeSeed(np.random.RandomState):
         return self.episode_seed
 
 
-def _hwc(frames: torch.Tensor) -> np.ndarray:
-    """PathFollowEnv frames as an HWC array (it emitted CHW before the project's switch to HWC)."""
-    array = frames.numpy()
-    return array if array.shape[-1] == 3 else np.moveaxis(array, -3, -1)
-
-
 def test_matches_path_follow_env_for_the_same_episode_seed():
     torchrl_env = PathFollowEnv(**SMALL)
     torchrl_env.set_seed(5)
@@ -112,14 +106,14 @@ def test_matches_path_follow_env_for_the_same_episode_seed():
     episode_seed = int(td["episode_seed"])
     env = load("train", seed=_FixedEpisodeSeed(episode_seed), **SMALL)
     observation = env.reset().observation
-    assert np.array_equal(observation["demo_frames"], _hwc(td["demo_frames"]))
+    assert np.array_equal(observation["demo_frames"], td["demo_frames"].numpy())
     assert np.array_equal(observation["demo_actions"], td["demo_actions"].numpy())
-    assert np.array_equal(observation["pixels"], _hwc(td["pixels"]))
+    assert np.array_equal(observation["pixels"], td["pixels"].numpy())
     for action in [FORWARD, FORWARD, TURN_RIGHT, FORWARD, TURN_LEFT, FORWARD, FORWARD, FORWARD]:
         td = torchrl_env.step(td.set("action", torch.tensor(action)))["next"]
         timestep = env.step(action)
         observation = timestep.observation
-        assert np.array_equal(observation["pixels"], _hwc(td["pixels"]))
+        assert np.array_equal(observation["pixels"], td["pixels"].numpy())
         np.testing.assert_allclose(observation["pose"], td["pose"].numpy(), atol=1e-5)
         np.testing.assert_allclose(timestep.reward, float(td["reward"]), atol=1e-5)
         np.testing.assert_allclose(observation["goal_distance"], float(td["goal_distance"]), atol=1e-5)
