@@ -66,22 +66,22 @@ def test_house_is_one_textured_mesh_and_model_matches_its_mjcf():
 
 def test_atlas_quads_stay_inside_their_cells():
     """Every wall and floor quad samples one atlas cell (no GL_REPEAT across tiles)."""
-    from envs import scenes
+    from envs import house_mesh
 
     house = build_house(0)
-    height_tiles = house.wall_height_m / scenes.TEXTURE_TILE_M
-    for quads in scenes._wall_quads(house).values():
+    height_tiles = house.wall_height_m / house_mesh.TEXTURE_TILE_M
+    for quads in house_mesh._wall_quads(house).values():
         uv = np.stack([quad[:, 3:] for quad, _ in quads])
-        assert uv[..., 0].min() >= 0 and uv[..., 0].max() <= scenes.ATLAS_WALL_REPEATS + 1e-9
+        assert uv[..., 0].min() >= 0 and uv[..., 0].max() <= house_mesh.ATLAS_WALL_REPEATS + 1e-9
         assert uv[..., 1].min() >= 0 and uv[..., 1].max() <= height_tiles + 1e-9
     floor_cells = 0
-    for quads in scenes._floor_quads(house).values():
+    for quads in house_mesh._floor_quads(house).values():
         uv = np.stack([quad[:, 3:] for quad in quads])
-        assert uv.min() >= 0 and uv.max() <= scenes.ATLAS_FLOOR_REPEATS + 1e-9
+        assert uv.min() >= 0 and uv.max() <= house_mesh.ATLAS_FLOOR_REPEATS + 1e-9
         floor_cells += sum(np.prod(quad[2, :2] - quad[0, :2]) for quad in quads)
     assert floor_cells == pytest.approx((~house.walls).sum() * house.cell_size_m**2)  # the floor is covered once
-    atlas = scenes._house_atlas(house)
-    pixels = np.concatenate([polygon[:, 3:] for polygon in scenes.house_polygons(house, atlas)]) * atlas.pixels.shape[1::-1]
+    atlas = house_mesh._house_atlas(house)
+    pixels = np.concatenate([polygon[:, 3:] for polygon in house_mesh.house_polygons(house, atlas)]) * atlas.pixels.shape[1::-1]
     assert pixels.min() >= 0 and (pixels <= atlas.pixels.shape[1::-1]).all()
 
 
