@@ -49,7 +49,8 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from torchrl.envs import DMControlWrapper  # noqa: E402
 
-from bench_env import _median_fps, _other_processes_cpu_seconds, machine_info  # noqa: E402
+from bench_env_paths import median_fps  # noqa: E402
+from bench_env_report import machine_info, other_processes_cpu_seconds  # noqa: E402
 from envs.demos import apply_motion, nominal_motion  # noqa: E402
 from envs.dmc import HousePhysics, agent_house_model, load  # noqa: E402
 from envs.nav_env import DEFAULT_MAX_STEPS, PathFollowEnv  # noqa: E402
@@ -164,7 +165,7 @@ def bench_dmc(
     for name, (run, _) in paths.items():
         logger.info("warming up %s", name)
         run(WARMUP_FRAMES)
-    others_before = _other_processes_cpu_seconds() if Path("/proc").exists() else {}
+    others_before = other_processes_cpu_seconds() if Path("/proc").exists() else {}
     machine = machine_info()
     wall_start = time.perf_counter()
     seconds: dict[str, list[float]] = {name: [] for name in paths}
@@ -178,7 +179,7 @@ def bench_dmc(
 
     results = {}
     for name, (_, frames) in paths.items():
-        fps = _median_fps([frames] * chunks, seconds[name])
+        fps = median_fps([frames] * chunks, seconds[name])
         results[name] = {
             "fps": fps,
             "ms_per_frame": 1e3 / fps,
@@ -195,7 +196,7 @@ def bench_dmc(
     if others_before:
         used = {
             pid: (command, cpu - (others_before[pid][1] if pid in others_before else 0.0))
-            for pid, (command, cpu) in _other_processes_cpu_seconds().items()
+            for pid, (command, cpu) in other_processes_cpu_seconds().items()
         }
         busy = {command: round(cpu / wall, 2) for command, cpu in used.values() if cpu > 0.05 * wall}
         machine["other_processes_cpu_share"] = busy
