@@ -10,7 +10,7 @@ from tensordict import TensorDict
 from torch import nn
 from torchrl.collectors import Collector
 from torchrl.data import Bounded, Categorical, Composite
-from torchrl.envs import EnvBase, InitTracker, SerialEnv, TransformedEnv
+from torchrl.envs import Compose, EnvBase, InitTracker, SerialEnv, TransformedEnv
 from torchrl.envs.utils import ExplorationType, check_env_specs, set_exploration_type, step_mdp
 from torchrl.modules import set_recurrent_mode
 from torchrl.modules.utils import get_primers_from_module
@@ -218,8 +218,8 @@ def test_pointer_update_paper_and_rpf():
     for rule in ("paper", "rpf"):
         policy = SPFPolicy(dataclasses.replace(CFG, pointer_update=rule))
         with torch.no_grad():
-            policy.pointer_head.weight.zero_()
-            policy.pointer_head.bias.fill_(0.5)
+            policy.cell.pointer_head.weight.zero_()
+            policy.cell.pointer_head.bias.fill_(0.5)
         td = _random_td([3], init=False)
         td["eta"] = torch.tensor([[0.0], [2.25], [N - 1.2]])
         td["spf_hidden"] = torch.zeros(3, 16)
@@ -266,7 +266,7 @@ def test_memory_encoded_once_per_episode():
     out = policy(td)
     assert enc.frames == B + B * l
     memory = out["next", "memory_features"]
-    torch.testing.assert_close(memory, enc.inner(td["demo_frames"][:, policy.memory_encoder.indices]))
+    torch.testing.assert_close(memory, enc.inner(td["demo_frames"][:, policy.memory.indices]))
     # later steps of the episode: no memory frame is encoded, the stored memory is carried
     nxt = step_mdp(out)
     nxt["pixels"] = td["pixels"]
@@ -345,7 +345,7 @@ def test_sequence_memory_encodes_at_starts_only():
 def test_gradients_reach_every_parameter(name):
     torch.manual_seed(0)
     policy = FACTORIES[name](CFG)
-    assert policy.attention.soft_action_memory == (name == "action_only")
+    assert policy.attention.attention.soft_action_memory == (name == "action_only")
     traj = _make_trajectory(inits=((0,), (0,)), T=4)
     with set_recurrent_mode(True):
         out = policy(traj)
@@ -360,13 +360,13 @@ def test_action_only_without_soft_action_memory_has_no_pointer_gradient():
     """The hard window alone only sees floor(eta): why soft_action_memory defaults to True there."""
     torch.manual_seed(0)
     policy = make_action_only_policy(dataclasses.replace(CFG, soft_action_memory=False))
-    assert not policy.attention.soft_action_memory
+    assert not policy.attention.attention.soft_action_memory
     traj = _make_trajectory(inits=((0,), (0,)), T=4)
     with set_recurrent_mode(True):
         out = policy(traj)
     out["logits"].sum().backward()
     no_grad = [n for n, p in policy.named_parameters() if p.grad is None or p.grad.abs().sum() == 0]
-    assert sorted(no_grad) == ["pointer_head.bias", "pointer_head.weight"]
+    assert sorted(no_grad) == ["cell.pointer_head.bias", "cell.pointer_head.weight"]
 
 
 def test_soft_action_memory_config():
@@ -378,7 +378,7 @@ def test_soft_action_memory_config():
     assert make_rpf_policy(dataclasses.replace(CFG, memory_mode="none")).config.use_soft_action_memory is False
     # the flag works with visual memory too: psi takes D + window + C inputs
     policy = make_spf_policy(dataclasses.replace(CFG, soft_action_memory=True))
-    assert policy.attention.psi.in_features == 16 + 5 * 3 + 3
+    assert policy.attention.attention.psi.in_features == 16 + 5 * 3 + 3
     assert policy(_random_td([2]))["logits"].shape == (2, 3)
     with pytest.raises(ValueError, match="soft_action_memory"):
         SPFConfig(soft_action_memory="yes")
@@ -412,8 +412,9 @@ def test_actor_primer_rollout_and_replay_in_sequence_mode():
     torch.manual_seed(0)
     policy = SPFPolicy(CFG)
     actor = make_actor(policy, 3)
-    primer = get_primers_from_module(actor)
-    assert set(primer.primers.keys()) == {"spf_hidden", "eta", "memory_features"}
+    primer = get_primers_from_module(actor)  # the policy's and its parts' (the same keys)
+    primers = list(primer) if isinstance(primer, Compose) else [primer]
+    assert set().union(*(p.primers.keys() for p in primers)) == {"spf_hidden", "eta", "memory_features"}
     env = make_env().append_transform(primer)
     check_env_specs(env)
     with torch.no_grad():
@@ -503,10 +504,10 @@ def test_initial_pointer_step_sets_the_untrained_increment():
 
     policy = _Policy(_Config(demo_length=6, feature_dim=8, hidden_size=8, image_size=(16, 16), initial_pointer_step=0.9))
     hidden = torch.randn(4, 8)
-    b = policy.pointer_head(hidden)
+    b = policy.cell.pointer_head(hidden)
     assert torch.allclose(torch.tanh(b), torch.full_like(b, 0.9), atol=1e-6)
     eta = policy.update_pointer(torch.zeros(4, 1), b)
     assert torch.allclose(eta, torch.full_like(eta, 0.9), atol=1e-6)
-    assert math.isclose(policy.pointer_head.bias.item(), math.atanh(0.9), rel_tol=1e-6)
+    assert math.isclose(policy.cell.pointer_head.bias.item(), math.atanh(0.9), rel_tol=1e-6)
     with _pytest.raises(ValueError, match="initial_pointer_step must be in"):
         _Config(initial_pointer_step=1.0)

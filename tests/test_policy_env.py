@@ -79,7 +79,9 @@ def _check_batch(data, policy):
     init = data["is_init"].squeeze(-1)
     assert init.any()
     assert (data["eta"][init] == 0).all() and (data["spf_hidden"][init] == 0).all()
-    assert (data["memory_features"][init] == 0).all()  # the primer zeroes it; the policy re-encodes
+    # the memory in use: encoded where is_init (the primer's zeros replaced), then carried
+    assert (data["memory_features"][init] != 0).any()
+    torch.testing.assert_close(data["memory_features"], data["next", "memory_features"])
     assert data["memory_features"].shape[-2:] == (policy.memory_length, CFG.feature_dim)
     # inside an episode the state is carried: root at t+1 == next at t
     same = ~init[:, 1:]

@@ -175,7 +175,7 @@ def test_update_lowers_the_loss_and_changes_the_parameters(collected):
         optimizer.step()
     assert total().item() < first.item() - 1e-3
     changed = [name for name, p in policy.named_parameters() if not torch.equal(p, before[name])]
-    assert any(name.startswith("encoder") for name in changed) and any(name.startswith("gru") for name in changed)
+    assert any(name.startswith("encoder") for name in changed) and any(name.startswith("cell.gru") for name in changed)
 
 
 def test_end_to_end_interrupt_and_resume(tmp_path, checkpoint, monkeypatch):

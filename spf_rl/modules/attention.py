@@ -19,11 +19,16 @@ import logging
 
 import torch
 import torch.nn.functional as F
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import NestedKey
 from torch import nn
+
+from spf_rl.modules.td_utils import flat_or_zeros, init_flags, with_batch_dim
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["PointerAttention", "action_window", "attention_weights", "soft_action_memory"]
+__all__ = ["MemoryAttention", "PointerAttention", "action_window", "attention_weights", "soft_action_memory"]
 
 #: Default half-width k of the hard action window (window size 2k+1).
 DEFAULT_WINDOW_HALF_WIDTH = 2
@@ -235,3 +240,90 @@ class PointerAttention(nn.Module):
             )
         mu = self.psi(torch.cat(parts, -1))
         return (mu, window) if return_window else mu
+
+
+class MemoryAttention(TensorDictModuleBase):
+    """SPF's pointer attention as a TensorDict module (eq. 2): ``eta``, memory, demo actions -> ``mu``.
+
+    Reads the pointer ``eta`` (reset to 0 where ``is_init``; a missing key counts as
+    0), the memory features and their ``memory_mask`` (if any) and the demo actions;
+    writes ``mu``, the hard ``action_window`` ``[2k+1, C]`` and ``eta_used``, the
+    pointer this step read. The attention at step ``t`` reads the pointer of step
+    ``t - 1``, so over a sequence it runs inside the recurrent loop of
+    :class:`~spf_rl.modules.SPFPolicy` (:meth:`attend` on tensors); this module is
+    its single-step form.
+
+    Args:
+        attention (PointerAttention): the fusion layer psi and its settings.
+        indices (torch.Tensor, optional): demo index of each memory slot (``M*``);
+            ``None`` for the action-only baseline.
+
+    Keyword Args:
+        eta_key, is_init_key, memory_key, memory_mask_key, demo_actions_key (NestedKey): inputs.
+        mu_key, action_window_key, eta_used_key (NestedKey): outputs. Defaults ``"mu"``,
+            ``"action_window"``, ``"eta_used"``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from spf_rl.modules import MemoryAttention, PointerAttention, memory_indices
+        >>> attend = MemoryAttention(PointerAttention(feature_dim=8, out_dim=16), memory_indices(10, 0.4))
+        >>> td = TensorDict({"eta": torch.zeros(2, 1), "memory_features": torch.randn(2, 4, 8),
+        ...                  "demo_actions": torch.randint(0, 3, (2, 10))}, batch_size=[2])
+        >>> attend(td)["mu"].shape, td["action_window"].shape
+        (torch.Size([2, 16]), torch.Size([2, 5, 3]))
+    """
+
+    def __init__(
+        self,
+        attention: PointerAttention,
+        indices: torch.Tensor | None,
+        *,
+        eta_key: NestedKey = "eta",
+        is_init_key: NestedKey = "is_init",
+        memory_key: NestedKey = "memory_features",
+        memory_mask_key: NestedKey | None = None,
+        demo_actions_key: NestedKey = "demo_actions",
+        mu_key: NestedKey = "mu",
+        action_window_key: NestedKey = "action_window",
+        eta_used_key: NestedKey = "eta_used",
+    ) -> None:
+        super().__init__()
+        self.attention = attention
+        self.register_buffer("indices", None if indices is None else torch.as_tensor(indices, dtype=torch.long), persistent=False)
+        self.eta_key, self.is_init_key, self.demo_actions_key = eta_key, is_init_key, demo_actions_key
+        self.memory_key = None if indices is None else memory_key
+        self.memory_mask_key = memory_mask_key
+        self.mu_key, self.action_window_key, self.eta_used_key = mu_key, action_window_key, eta_used_key
+        optional = [key for key in (self.memory_key, memory_mask_key) if key is not None]
+        self.in_keys = [eta_key, is_init_key, demo_actions_key, *optional]
+        self.out_keys = [mu_key, action_window_key, eta_used_key]
+
+    def attend(
+        self,
+        memory: torch.Tensor | None,
+        demo_actions: torch.Tensor,
+        eta: torch.Tensor,
+        mask: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``mu`` ``[*, out_dim]`` and the action window ``[*, 2k+1, C]`` on tensors."""
+        return self.attention(memory, self.indices, demo_actions, eta, return_window=True, mask=mask)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """One step: read ``eta`` (0 where ``is_init``), write ``mu``, ``action_window``, ``eta_used``."""
+        return with_batch_dim(self._forward_step, tensordict)
+
+    def _forward_step(self, td: TensorDictBase) -> TensorDictBase:
+        batch = td.batch_size
+        demo_actions = td.get(self.demo_actions_key).long()
+        memory = td.get(self.memory_key) if self.memory_key is not None else None
+        like = memory if memory is not None else torch.zeros((), device=demo_actions.device)
+        eta = flat_or_zeros(td.get(self.eta_key, None), (*batch, 1), like)
+        is_init = init_flags(td, self.is_init_key, eta.device)
+        eta = torch.where(is_init.unsqueeze(-1), torch.zeros_like(eta), eta)
+        mask = td.get(self.memory_mask_key) if self.memory_mask_key is not None else None
+        mu, window = self.attend(memory, demo_actions, eta, mask)
+        td.set(self.mu_key, mu)
+        td.set(self.action_window_key, window)
+        td.set(self.eta_used_key, eta)
+        return td

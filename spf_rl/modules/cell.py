@@ -1,0 +1,144 @@
+"""The recurrent cell of the SPF policy (paper eqs. 3-4) as a TensorDict module.
+
+``h_{t+1}, b, logits = pi(h_t, mu_t, phi(o_t), a_window)`` with ``pi`` a GRU cell,
+then the pointer update ``eta_{t+1} = eta_t + tanh(b)`` (the paper) or
+``min(eta_t + 1 + tanh(b), n - 1)`` (the RPF authors' code).
+
+Why not torchrl's :class:`~torchrl.modules.GRUModule`: in sequence mode it runs
+``nn.GRU`` over inputs known for every step in advance. Here the GRU input at
+step ``t`` holds ``mu_t``, which the attention computes from the pointer that the
+cell itself produced at step ``t - 1``, so the attention and the cell must be
+unrolled together, one step at a time (:class:`~spf_rl.modules.SPFPolicy` does).
+A ``GRUCell`` serves both modes with one set of weights.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import NestedKey
+from torch import nn
+from torchrl.data import Unbounded
+from torchrl.envs import TensorDictPrimer
+
+from spf_rl.modules.config import POINTER_UPDATES
+from spf_rl.modules.td_utils import flat_or_zeros, init_flags, next_key, with_batch_dim
+
+__all__ = ["SPFCell"]
+
+
+class SPFCell(TensorDictModuleBase):
+    """GRU cell, action logits and pointer update of SPF, reading and writing TensorDict keys.
+
+    Reads ``mu``, ``pixel_features``, ``action_window``, the pointer ``eta_used``
+    and the hidden state ``spf_hidden`` (reset to 0 where ``is_init``; a missing key
+    counts as 0); writes ``logits``, ``features`` (the new hidden state, e.g. for a
+    value head) and the next ``spf_hidden`` and ``eta`` under ``"next"``.
+
+    Args:
+        input_dims (tuple of int): sizes of ``mu``, ``pixel_features`` and the
+            flattened ``action_window``.
+        hidden_size (int): GRU hidden size.
+        num_actions (int): number of action logits.
+        demo_length (int): demonstration length ``n`` (bounds the RPF pointer rule).
+        pointer_update (str): ``"paper"`` or ``"rpf"``.
+        initial_pointer_step (float): ``tanh(b)`` of the untrained network, in ``(-1, 1)``.
+
+    Keyword Args:
+        mu_key, pixel_features_key, action_window_key, eta_used_key, is_init_key (NestedKey): inputs.
+        hidden_key, eta_key (NestedKey): recurrent state. Defaults ``"spf_hidden"``, ``"eta"``.
+        logits_key, features_key (NestedKey): outputs. Defaults ``"logits"``, ``"features"``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from spf_rl.modules import SPFCell
+        >>> cell = SPFCell((16, 8, 15), hidden_size=32, num_actions=3, demo_length=10)
+        >>> td = TensorDict({"mu": torch.randn(2, 16), "pixel_features": torch.randn(2, 8),
+        ...                  "action_window": torch.zeros(2, 5, 3), "eta_used": torch.zeros(2, 1)}, [2])
+        >>> cell(td)["logits"].shape, td["next", "eta"].shape
+        (torch.Size([2, 3]), torch.Size([2, 1]))
+        >>> sorted(cell.make_tensordict_primer().primers.keys())
+        ['eta', 'spf_hidden']
+    """
+
+    def __init__(
+        self,
+        input_dims: tuple[int, int, int],
+        hidden_size: int,
+        num_actions: int,
+        demo_length: int,
+        pointer_update: str = "paper",
+        initial_pointer_step: float = 0.0,
+        *,
+        mu_key: NestedKey = "mu",
+        pixel_features_key: NestedKey = "pixel_features",
+        action_window_key: NestedKey = "action_window",
+        eta_used_key: NestedKey = "eta_used",
+        is_init_key: NestedKey = "is_init",
+        hidden_key: NestedKey = "spf_hidden",
+        eta_key: NestedKey = "eta",
+        logits_key: NestedKey = "logits",
+        features_key: NestedKey = "features",
+    ) -> None:
+        super().__init__()
+        if pointer_update not in POINTER_UPDATES:
+            raise ValueError(f"pointer_update must be one of {POINTER_UPDATES}, got {pointer_update!r}.")
+        self.hidden_size, self.num_actions, self.demo_length = hidden_size, num_actions, demo_length
+        self.pointer_update = pointer_update
+        self.gru = nn.GRUCell(sum(input_dims), hidden_size)
+        self.logits_head = nn.Linear(hidden_size, num_actions)
+        self.pointer_head = nn.Linear(hidden_size, 1)
+        if initial_pointer_step:
+            nn.init.zeros_(self.pointer_head.weight)
+            nn.init.constant_(self.pointer_head.bias, math.atanh(initial_pointer_step))
+        self.mu_key, self.pixel_features_key, self.action_window_key = mu_key, pixel_features_key, action_window_key
+        self.eta_used_key, self.is_init_key = eta_used_key, is_init_key
+        self.hidden_key, self.eta_key = hidden_key, eta_key
+        self.logits_key, self.features_key = logits_key, features_key
+        self.in_keys = [mu_key, pixel_features_key, action_window_key, eta_used_key, is_init_key, hidden_key]
+        self.out_keys = [logits_key, features_key, next_key(hidden_key), next_key(eta_key)]
+
+    def make_tensordict_primer(self) -> TensorDictPrimer:
+        """Primer for ``spf_hidden`` and ``eta`` (zeroed at every (partial) reset)."""
+        specs = {self.hidden_key: Unbounded(shape=(self.hidden_size,)), self.eta_key: Unbounded(shape=(1,))}
+        return TensorDictPrimer(specs, expand_specs=True)
+
+    def update_pointer(self, eta: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        """Pointer update (eq. 4, or the RPF code's clipped version)."""
+        if self.pointer_update == "paper":
+            return eta + torch.tanh(b)
+        return torch.clamp(eta + 1.0 + torch.tanh(b), max=float(self.demo_length - 1))
+
+    def step(
+        self, mu: torch.Tensor, phi: torch.Tensor, window: torch.Tensor, eta: torch.Tensor, h: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """One step on flat tensors -> (logits, next hidden state, next pointer)."""
+        h_next = self.gru(torch.cat([mu, phi, window.flatten(-2)], -1), h)
+        return self.logits_head(h_next), h_next, self.update_pointer(eta, self.pointer_head(h_next))
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """One step: hidden state reset where ``is_init``, then eqs. 3-4."""
+        return with_batch_dim(self._forward_step, tensordict)
+
+    def _forward_step(self, td: TensorDictBase) -> TensorDictBase:
+        batch = td.batch_size
+        mu = td.get(self.mu_key)
+        h = flat_or_zeros(td.get(self.hidden_key, None), (*batch, self.hidden_size), mu)
+        h = torch.where(init_flags(td, self.is_init_key, mu.device).unsqueeze(-1), torch.zeros_like(h), h)
+        eta = td.get(self.eta_used_key)
+        flat = mu.reshape(-1, mu.shape[-1]).shape[0]
+        logits, h_next, eta_next = self.step(
+            mu.reshape(flat, -1),
+            td.get(self.pixel_features_key).reshape(flat, -1),
+            td.get(self.action_window_key).reshape(flat, *td.get(self.action_window_key).shape[-2:]),
+            eta.reshape(flat, 1),
+            h.reshape(flat, self.hidden_size),
+        )
+        td.set(self.logits_key, logits.reshape(*batch, self.num_actions))
+        td.set(self.features_key, h_next.reshape(*batch, self.hidden_size))
+        td.set(next_key(self.hidden_key), h_next.reshape(*batch, self.hidden_size))
+        td.set(next_key(self.eta_key), eta_next.reshape(*batch, 1))
+        return td

@@ -1,0 +1,173 @@
+"""Configuration of the SPF policy and its baselines: :class:`SPFConfig` and the model's named constants."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import torch
+
+from spf_rl.modules.memory import memory_indices, memory_length, validate_sparsity, validate_sparsity_range
+
+__all__ = ["SPFConfig"]
+
+#: Paper action set: 0 forward, 1 turn left, 2 turn right.
+NUM_PAPER_ACTIONS = 3
+#: Action index of the optional STOP action.
+STOP_ACTION = 3
+#: Action index of "turn left" (a move that keeps the agent's position).
+TURN_LEFT_ACTION = 1
+ALLOWED_NUM_ACTIONS = (NUM_PAPER_ACTIONS, NUM_PAPER_ACTIONS + 1)
+#: Demonstration length n of the paper (Sec. 4.1).
+DEFAULT_DEMO_LENGTH = 30
+DEFAULT_SPARSITY = 0.4
+POINTER_UPDATES = ("paper", "rpf")
+MEMORY_MODES = ("sparse", "full", "none")
+#: Sparsity used by the full-memory (RPF) baseline.
+FULL_MEMORY_SPARSITY = 1.0
+
+
+@dataclass
+class SPFConfig:
+    """Configuration of :class:`SPFPolicy`.
+
+    Args:
+        num_actions (int): number of policy actions, 3 (forward, left, right) or 4
+            (with STOP = 3). Also the one-hot size of the demo actions in the window.
+        demo_length (int): demonstration length ``n`` (frames and actions).
+        sparsity (float): fraction of demo frames kept in memory, in ``(0, 1]``
+            (used when ``memory_mode="sparse"``). With ``sparsity_range`` it is the
+            default evaluation sparsity (:attr:`SPFPolicy.sparsity`).
+        k (int): half-width of the hard action window (``2k + 1`` actions).
+        feature_dim (int): size of the image features phi(o) and memory features.
+        hidden_size (int): GRU hidden size.
+        pointer_update (str): ``"paper"`` (``eta + tanh(b)``) or ``"rpf"``
+            (``min(eta + 1 + tanh(b), n - 1)``).
+        memory_mode (str): ``"sparse"`` (``l = round(sparsity * n)`` frames),
+            ``"full"`` (all ``n`` frames, RPF) or ``"none"`` (action only).
+        image_size (tuple of int): frame ``(height, width)`` in pixels.
+        mu_dim (int, optional): output size of psi; defaults to ``feature_dim``.
+        soft_action_memory (bool, optional): psi also takes the soft-attended action
+            memory ``sum_{j=0}^{n-1} exp(-|eta - j|) onehot(a_j)`` over all ``n`` demo
+            actions (the un-normalised weights of eq. 2; see
+            :func:`~spf_rl.modules.attention.soft_action_memory`). ``None`` (default)
+            means ``True`` for ``memory_mode="none"`` and ``False`` otherwise: without
+            visual memory the pointer would only enter through ``floor(eta)`` in the
+            hard window, get no gradient and never learn; with visual memory the soft
+            weights over the memory frames already make eta differentiable, and the
+            paper's eq. 2 has no such term. ``None`` is kept (so that
+            ``dataclasses.replace(cfg, memory_mode=...)`` re-resolves it); read the
+            resolved value from :attr:`use_soft_action_memory`. Not in the SPF paper:
+            it follows RPF's action memory.
+        initial_pointer_step (float): pointer increment ``tanh(b)`` of the untrained
+            network (the pointer head's bias is set to ``atanh`` of it), in ``(-1, 1)``.
+            0 (default) is PyTorch's usual initialisation; a value near 1 starts the
+            pointer moving along the demonstration about one index per step, as the
+            RPF code's rule does. The paper does not say how b is initialised.
+        sparsity_range (tuple of float, optional): ``(low, high)`` with
+            ``0 < low <= high <= 1``: train one model for many sparsities (needs
+            ``memory_mode="sparse"``). The memory then holds a slot for each of the
+            ``n`` demo frames and attends only to the slots at
+            ``memory_indices(n, s)``: in training mode, sequence mode draws
+            ``s ~ Uniform(low, high)`` per episode segment; otherwise ``s`` is
+            :attr:`SPFPolicy.sparsity`. Not in the SPF paper. Defaults to ``None``
+            (one fixed sparsity, ``l`` memory slots).
+
+    Examples:
+        >>> cfg = SPFConfig(sparsity=0.4)
+        >>> cfg.memory_length, cfg.memory_indices.tolist()[:4]
+        (12, [0, 3, 5, 8])
+        >>> cfg.use_soft_action_memory, SPFConfig(memory_mode="none").use_soft_action_memory
+        (False, True)
+        >>> SPFConfig(sparsity=0.8, sparsity_range=[0.2, 1]).sparsity_range
+        (0.2, 1.0)
+    """
+
+    num_actions: int = NUM_PAPER_ACTIONS
+    demo_length: int = DEFAULT_DEMO_LENGTH
+    sparsity: float = DEFAULT_SPARSITY
+    k: int = 2
+    feature_dim: int = 128
+    hidden_size: int = 128
+    pointer_update: Literal["paper", "rpf"] = "paper"
+    memory_mode: Literal["sparse", "full", "none"] = "sparse"
+    image_size: tuple[int, int] = field(default=(64, 64))
+    mu_dim: int | None = None
+    soft_action_memory: bool | None = None
+    initial_pointer_step: float = 0.0
+    sparsity_range: tuple[float, float] | None = None
+
+    def __post_init__(self) -> None:
+        if self.num_actions not in ALLOWED_NUM_ACTIONS:
+            raise ValueError(
+                f"num_actions must be one of {ALLOWED_NUM_ACTIONS} (3 without STOP, 4 with STOP), "
+                f"got {self.num_actions!r}."
+            )
+        if isinstance(self.demo_length, bool) or not isinstance(self.demo_length, int) or self.demo_length < 1:
+            raise ValueError(f"demo_length must be a positive int, got {self.demo_length!r}.")
+        validate_sparsity(self.sparsity)
+        if not isinstance(self.k, int) or self.k < 0:
+            raise ValueError(f"k must be an int >= 0, got {self.k!r}.")
+        for name in ("feature_dim", "hidden_size"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be a positive int, got {value!r}.")
+        if self.mu_dim is not None and (not isinstance(self.mu_dim, int) or self.mu_dim < 1):
+            raise ValueError(f"mu_dim must be a positive int or None, got {self.mu_dim!r}.")
+        if not -1.0 < float(self.initial_pointer_step) < 1.0:
+            raise ValueError(f"initial_pointer_step must be in (-1, 1), got {self.initial_pointer_step!r}.")
+        if self.pointer_update not in POINTER_UPDATES:
+            raise ValueError(
+                f"pointer_update must be one of {POINTER_UPDATES}, got {self.pointer_update!r}."
+            )
+        if self.memory_mode not in MEMORY_MODES:
+            raise ValueError(
+                f"memory_mode must be one of {MEMORY_MODES}, got {self.memory_mode!r}."
+            )
+        if self.sparsity_range is not None:
+            self.sparsity_range = validate_sparsity_range(self.sparsity_range)
+            if self.memory_mode != "sparse":
+                raise ValueError(
+                    f"sparsity_range needs memory_mode='sparse' (a random sparsity of the visual "
+                    f"memory), got memory_mode={self.memory_mode!r}; set sparsity_range=None."
+                )
+        if self.soft_action_memory is not None and not isinstance(self.soft_action_memory, bool):
+            raise ValueError(
+                f"soft_action_memory must be a bool or None (auto), got {self.soft_action_memory!r}."
+            )
+        self.image_size = tuple(self.image_size)  # type: ignore[assignment]
+        if len(self.image_size) != 2 or any(
+            not isinstance(s, int) or s < 1 for s in self.image_size
+        ):
+            raise ValueError(
+                f"image_size must be (height, width) in pixels, got {self.image_size!r}."
+            )
+
+    @property
+    def use_soft_action_memory(self) -> bool:
+        """Resolved ``soft_action_memory``: the flag, or ``memory_mode == "none"`` when ``None``."""
+        if self.soft_action_memory is None:
+            return self.memory_mode == "none"
+        return bool(self.soft_action_memory)
+
+    @property
+    def effective_sparsity(self) -> float:
+        """Sparsity actually used: ``sparsity`` for sparse memory, 1.0 for full, 0 for none."""
+        if self.memory_mode == "full":
+            return FULL_MEMORY_SPARSITY
+        if self.memory_mode == "none":
+            return 0.0
+        return float(self.sparsity)
+
+    @property
+    def memory_length(self) -> int:
+        """Number of memory frames ``l`` (0 when ``memory_mode="none"``)."""
+        if self.memory_mode == "none":
+            return 0
+        return memory_length(self.demo_length, self.effective_sparsity)
+
+    @property
+    def memory_indices(self) -> torch.Tensor:
+        """0-based memory indices ``M*`` (empty when ``memory_mode="none"``)."""
+        if self.memory_mode == "none":
+            return torch.zeros(0, dtype=torch.long)
+        return memory_indices(self.demo_length, self.effective_sparsity)
