@@ -338,13 +338,18 @@ class SPFPolicy(TensorDictModuleBase):
             return unroll_sequence(self, tensordict)
         return with_batch_dim(self._forward_step, tensordict)
 
+    def encode_pixels(self, td: TensorDictBase) -> None:
+        """Write the encoder's features (the module called on the tensor: no TensorDictModule overhead)."""
+        td.set(self.encoder.out_keys[0], self.encoder.module(td.get(self.encoder.in_keys[0])))
+
     def _forward_step(self, td: TensorDictBase) -> TensorDictBase:
+        # the parts' step forwards, called directly: the batch dim is already there
         self.check_inputs(td)
-        self.encoder(td)
+        self.encode_pixels(td)
         if self.use_memory:
-            self.memory(td)
-        self.attention(td)
-        return self.cell(td)
+            self.memory._forward_step(td)
+        self.attention._forward_step(td)
+        return self.cell._forward_step(td)
 
 
 def _rename_legacy_parameters(module, state_dict, prefix, *args) -> None:

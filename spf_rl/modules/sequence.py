@@ -30,7 +30,7 @@ def unroll_sequence(policy: SPFPolicy, tensordict: TensorDictBase) -> TensorDict
             "(batch shape [*B, T]); got a 0-d tensordict."
         )
     policy.check_inputs(tensordict)
-    policy.encoder(tensordict)
+    policy.encode_pixels(tensordict)
     if policy.use_memory:
         policy.memory(tensordict)  # in recurrent mode: per segment
     td = tensordict.reshape(-1, tensordict.shape[-1])
