@@ -11,6 +11,7 @@ Usage::
     python recipes/bc.py --quick               # the whole pipeline in a few minutes
     python recipes/bc.py model=rpf             # full memory baseline
     python recipes/bc.py model=spf sparsity=0.4 noise=paper optim.epochs=4
+    python recipes/bc.py device=cuda optim.amp=true   # GPU, bf16 mixed precision (default device=auto)
 """
 from __future__ import annotations
 

@@ -11,7 +11,8 @@ Usage::
     python recipes/dagger.py                                  # from checkpoints/spf-s0.8.pt
     python recipes/dagger.py --quick                          # a few-minute smoke run
     python recipes/dagger.py checkpoint=runs/bc/spf-s0.8-seed0/best.pt rounds=6
-    python recipes/dagger.py collector.backend=ray collector.num_collectors=2   # pip install '.[distributed]'
+    python recipes/dagger.py collector.backend=ray collector.num_collectors=2 device=cpu   # pip install '.[distributed]'
+    python recipes/dagger.py device=cuda:1                    # the learner on the second GPU (default device=auto)
 """
 from __future__ import annotations
 

@@ -10,6 +10,9 @@ Usage::
     python recipes/evaluate.py checkpoints/ --split test --episodes 500 --noise paper --out results/eval
     python recipes/evaluate.py open_loop --split test
     python recipes/evaluate.py checkpoints/spf_random-s0.2-1.pt --sparsity 0.6   # one model, any sparsity
+    python recipes/evaluate.py checkpoints/ --device cpu     # default --device auto: CUDA if available
+
+The policy runs on ``--device``; the env and its rendering on the CPU.
 """
 from __future__ import annotations
 
@@ -21,6 +24,7 @@ from pathlib import Path
 
 from envs.scenes import SPLIT_SEED_OFFSETS
 from envs.transforms import DEFAULT_NOISE, NOISE_PRESETS
+from spf_rl.device import DEFAULT_DEVICE, DEVICE_CHOICES, module_device, resolve_device
 
 SPLITS = tuple(SPLIT_SEED_OFFSETS)
 
@@ -37,7 +41,7 @@ def evaluate_path(path: str, args: argparse.Namespace) -> dict:
         policy, model_type, demo_length, image_size, sparsity = OpenLoopPolicy(), "open_loop", args.demo_length, args.image_size, 0.0
         memory = demo_length
     else:
-        policy, payload = policy_from_checkpoint(path, expected_model_type=args.model_type)
+        policy, payload = policy_from_checkpoint(path, expected_model_type=args.model_type, device=args.device)
         config = payload["model_config"]
         model_type = payload["model_type"]
         demo_length, image_size, sparsity = config.demo_length, config.image_size[0], config.effective_sparsity
@@ -67,6 +71,7 @@ def evaluate_path(path: str, args: argparse.Namespace) -> dict:
         "model": model_type,
         "sparsity": sparsity,
         "memory_bytes": memory,
+        "device": str(module_device(policy)),  # the CPU for open-loop replay, which has no weights
         **summary,
         "eval": vars(eval_config),
         "episodes_records": records,
@@ -88,12 +93,19 @@ def main(argv: list[str] | None = None) -> list[dict]:
         "--sparsity", type=float, default=None, help="memory sparsity to evaluate a random-sparsity (spf_random) model at"
     )
     parser.add_argument("--model-type", default=None, help="refuse checkpoints of another model type")
+    parser.add_argument(
+        "--device", default=DEFAULT_DEVICE, help=f"where the policy runs: {DEVICE_CHOICES} (default: %(default)s, CUDA if available)"
+    )
     parser.add_argument("--out", default="results/eval", help="output directory for the JSON files")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if args.episodes <= 0:
         parser.error(f"--episodes must be > 0, got {args.episodes}")
+    try:
+        args.device = resolve_device(args.device, name="--device")
+    except ValueError as err:
+        parser.error(str(err))
 
     targets: list[str] = []
     for path in args.paths:

@@ -14,7 +14,8 @@ Usage::
     python recipes/ppo_finetune.py --quick                  # the whole pipeline in a few minutes
     python recipes/ppo_finetune.py checkpoint=runs/bc/spf-s0.8-seed0/best.pt total_frames=25000
     python recipes/ppo_finetune.py kl_coef=0.05 bc_coef=0.1 noise=locobot
-    python recipes/ppo_finetune.py collector.backend=ray collector.num_collectors=2 collector.num_agents=8
+    python recipes/ppo_finetune.py collector.backend=ray collector.num_collectors=2 collector.num_agents=8 device=cpu
+    python recipes/ppo_finetune.py device=cuda amp=true     # GPU learner, bf16 mixed precision (default device=auto)
 """
 from __future__ import annotations
 

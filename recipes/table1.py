@@ -19,6 +19,9 @@ Usage::
     python recipes/table1.py                      # trains what is missing (hours on 2 CPU cores)
     python recipes/table1.py --from-checkpoints   # only evaluates the shipped checkpoints
     python recipes/table1.py optim.epochs=4 data.num_episodes=1500
+    python recipes/table1.py device=cuda optim.amp=true   # train and evaluate on a GPU (default device=auto)
+
+``device=`` (as for ``bc.py``) places training and the evaluated policies; envs stay on the CPU.
 """
 from __future__ import annotations
 
@@ -58,8 +61,8 @@ def checkpoint_name(model: str, sparsity: float | Sequence[float]) -> str:
 
 
 def load_or_train(path: Path, config, train: bool):
-    """The policy in checkpoint ``path``; if it is missing and ``train``, first train
-    ``config`` (a ``BCConfig``) with ``train_bc`` and copy its best checkpoint to ``path``."""
+    """The policy in checkpoint ``path``, on ``config.device``; if it is missing and ``train``,
+    first train ``config`` (a ``BCConfig``) with ``train_bc`` and copy its best checkpoint to ``path``."""
     from spf_rl.hub import policy_from_checkpoint
     from spf_rl.train.bc import train_bc
 
@@ -67,7 +70,7 @@ def load_or_train(path: Path, config, train: bool):
     if train and not path.exists():
         train_bc(config)
         shutil.copyfile(Path(config.output_dir) / "best.pt", path)
-    return policy_from_checkpoint(path, expected_model_type=model)[0]
+    return policy_from_checkpoint(path, expected_model_type=model, device=config.device)[0]
 
 
 def make_row(
@@ -102,11 +105,13 @@ def main(argv: list[str] | None = None) -> list[dict]:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
 
     import envs  # noqa: F401
+    from spf_rl.device import resolve_device
     from spf_rl.modules.policy import OpenLoopPolicy
     from spf_rl.train.bc import BCConfig, model_memory_bytes
     from spf_rl.train.evaluation import evaluate_policy
 
     base = load_config(BCConfig, "bc", args.overrides, preset="table1")
+    logging.info("training and evaluating on %s", resolve_device(base.device))  # a missing CUDA fails here, first
     checkpoints, out = Path(args.checkpoints), Path(args.out)
     checkpoints.mkdir(parents=True, exist_ok=True)
     out.mkdir(parents=True, exist_ok=True)

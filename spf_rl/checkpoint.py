@@ -7,6 +7,10 @@ and ``model_config`` (the :class:`~spf_rl.modules.policy.SPFConfig` as a dict).
 It is written to a temporary file in the same directory, flushed and fsynced,
 then moved over the target with :func:`os.replace`, so a crash never leaves a
 half-written checkpoint behind.
+
+Checkpoints are device-neutral: every tensor is saved from a CPU copy (a run on a
+GPU writes the same file a CPU run would), and :func:`load_checkpoint` maps the
+tensors onto any device (``map_location``, the CPU by default).
 """
 from __future__ import annotations
 
@@ -29,6 +33,24 @@ class CheckpointError(RuntimeError):
     """A checkpoint is missing, corrupt, or holds another kind of model."""
 
 
+def cpu_copy(value: Any) -> Any:
+    """``value`` with every tensor (in nested dicts, lists and tuples) on the CPU.
+
+    CPU tensors are kept as they are (no copy); others are copied to the CPU.
+
+    Examples:
+        >>> cpu_copy({"w": torch.ones(1), "opt": [{"step": torch.tensor(3.0)}], "epoch": 2})
+        {'w': tensor([1.]), 'opt': [{'step': tensor(3.)}], 'epoch': 2}
+    """
+    if isinstance(value, torch.Tensor):
+        return value if value.device.type == "cpu" else value.detach().cpu()
+    if isinstance(value, dict):
+        return type(value)((key, cpu_copy(item)) for key, item in value.items())
+    if isinstance(value, (list, tuple)):
+        return type(value)(cpu_copy(item) for item in value)
+    return value
+
+
 def save_checkpoint(path: str | os.PathLike, model_type: str, config: SPFConfig, state: dict[str, Any]) -> None:
     """Write ``state`` (``model`` state dict plus anything weights-only-safe) atomically.
 
@@ -37,6 +59,7 @@ def save_checkpoint(path: str | os.PathLike, model_type: str, config: SPFConfig,
         model_type: one of :data:`MODEL_TYPES`.
         config: the policy configuration.
         state: at least ``{"model": state_dict}``; may hold ``optimizer``, ``step``, metrics.
+            Tensors on any device are saved from CPU copies.
     """
     if model_type not in MODEL_TYPES:
         raise ValueError(f"model_type must be one of {MODEL_TYPES}, got {model_type!r}.")
@@ -50,7 +73,7 @@ def save_checkpoint(path: str | os.PathLike, model_type: str, config: SPFConfig,
         "format_version": CHECKPOINT_FORMAT_VERSION,
         "model_type": model_type,
         "model_config": config_dict,
-        **state,
+        **cpu_copy(state),
     }
     tmp = path.with_name(f".{path.name}.tmp")
     with open(tmp, "wb") as handle:
@@ -60,12 +83,18 @@ def save_checkpoint(path: str | os.PathLike, model_type: str, config: SPFConfig,
     os.replace(tmp, path)
 
 
-def load_checkpoint(path: str | os.PathLike, expected_model_type: str | None = None) -> dict[str, Any]:
+def load_checkpoint(
+    path: str | os.PathLike,
+    expected_model_type: str | None = None,
+    map_location: str | torch.device = "cpu",
+) -> dict[str, Any]:
     """Load a checkpoint with ``weights_only=True`` and check its header.
 
     Args:
         path: the checkpoint file.
         expected_model_type: if given, refuse a checkpoint of another model type.
+        map_location: the device its tensors are loaded onto (the CPU by default;
+            ``module.load_state_dict`` copies them to the module's device anyway).
 
     Returns:
         the payload, with ``model_config`` turned back into an :class:`SPFConfig`.
@@ -77,7 +106,7 @@ def load_checkpoint(path: str | os.PathLike, expected_model_type: str | None = N
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist.")
     try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
+        payload = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as err:  # noqa: BLE001 - any unpickling failure means a bad file
         raise CheckpointError(f"checkpoint {path} is corrupt or not a checkpoint ({type(err).__name__}: {err}).") from err
     if not isinstance(payload, dict) or payload.get("format_version") != CHECKPOINT_FORMAT_VERSION:

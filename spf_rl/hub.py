@@ -18,7 +18,10 @@ import os
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import torch
+
 from spf_rl.checkpoint import load_checkpoint
+from spf_rl.device import resolve_device
 from spf_rl.modules.policy import SPFConfig, SPFPolicy
 from spf_rl.train.models import build_policy
 
@@ -88,13 +91,18 @@ def resolve_checkpoint(path_or_name: str | os.PathLike) -> Path:
 
 
 def policy_from_checkpoint(
-    path: str | os.PathLike, expected_model_type: str | None = None
+    path: str | os.PathLike,
+    expected_model_type: str | None = None,
+    device: str | torch.device = "cpu",
 ) -> tuple[SPFPolicy, dict[str, Any]]:
-    """Build the policy a checkpoint file holds and load its weights (eval mode).
+    """Build the policy a checkpoint file holds and load its weights (eval mode) on ``device``.
 
     Args:
         path: a checkpoint file.
         expected_model_type: refuse a checkpoint of another model type.
+        device: where the policy goes: ``"cpu"`` (default), ``"auto"``, ``"cuda"``,
+            ``"cuda:N"`` (see :func:`~spf_rl.device.resolve_device`); any checkpoint
+            loads on any of them.
 
     Returns:
         (the policy, the checkpoint's payload as :func:`~spf_rl.checkpoint.load_checkpoint` returns it).
@@ -102,13 +110,16 @@ def policy_from_checkpoint(
     Raises:
         CheckpointError: missing or corrupt file, unknown format, wrong model type.
     """
-    payload = load_checkpoint(path, expected_model_type=expected_model_type)
-    policy = build_policy(payload["model_type"], payload["model_config"])
+    device = resolve_device(device)
+    payload = load_checkpoint(path, expected_model_type=expected_model_type, map_location=device)
+    policy = build_policy(payload["model_type"], payload["model_config"]).to(device)
     policy.load_state_dict(payload["model"])
     return policy.eval(), payload
 
 
-def load_policy(path_or_name: str | os.PathLike, *, model_type: str | None = None) -> LoadedPolicy:
+def load_policy(
+    path_or_name: str | os.PathLike, *, model_type: str | None = None, device: str | torch.device = "cpu"
+) -> LoadedPolicy:
     """A ready policy from a shipped checkpoint name or a checkpoint path.
 
     Args:
@@ -117,6 +128,9 @@ def load_policy(path_or_name: str | os.PathLike, *, model_type: str | None = Non
             written by the recipes (``runs/bc/<run>/best.pt``).
         model_type: if given, refuse a checkpoint of another model type
             (``"spf"``, ``"rpf"``, ``"action_only"``, ``"spf_random"``).
+        device: where the policy goes (``"cpu"`` by default; ``"auto"``, ``"cuda"``,
+            ``"cuda:N"``); feed it inputs on that device, or evaluate it with
+            :func:`~spf_rl.train.evaluation.evaluate_policy`, which moves them.
 
     Returns:
         ``(policy, config)``: the policy in eval mode (step by step in a collector,
@@ -124,11 +138,11 @@ def load_policy(path_or_name: str | os.PathLike, *, model_type: str | None = Non
         and its :class:`~spf_rl.modules.policy.SPFConfig`.
 
     Raises:
-        ValueError: an unknown name.
+        ValueError: an unknown name, or a device this machine does not have.
         FileNotFoundError: a path that does not exist.
         CheckpointError: a corrupt file or another model type.
     """
-    policy, _ = policy_from_checkpoint(resolve_checkpoint(path_or_name), expected_model_type=model_type)
+    policy, _ = policy_from_checkpoint(resolve_checkpoint(path_or_name), expected_model_type=model_type, device=device)
     return LoadedPolicy(policy, policy.config)
 
 

@@ -9,6 +9,11 @@ evaluate the best checkpoint on the ``test`` split.
 Everything needed to resume is in ``<output_dir>/last.pt`` (written atomically
 after every epoch): an interrupted run started again with the same config
 continues after the last finished epoch.
+
+The policy and its optimiser run on ``BCConfig.device`` (``"auto"``: CUDA if
+available, see :mod:`spf_rl.device`); each batch moves there
+(:func:`episodes_to_sequence`), the rollouts' envs stay on the CPU. With
+``optim.amp`` the loss is computed under bf16 autocast.
 """
 from __future__ import annotations
 
@@ -29,6 +34,7 @@ from tqdm.auto import tqdm
 
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.data import DatasetConfig, EpisodeDataset
+from spf_rl.device import DEFAULT_DEVICE, autocast, check_device, module_device, resolve_device, to_device
 from spf_rl.modules.memory import memory_bytes
 from spf_rl.modules.policy import SPFPolicy
 from spf_rl.train.evaluation import EvalConfig, evaluate_policy
@@ -49,6 +55,8 @@ class OptimConfig:
         max_grad_norm: gradient-norm clip.
         cosine_schedule: decay the learning rate to 0 over the run (cosine), which
             steadies the final checkpoints.
+        amp: compute the loss under bf16 autocast (mixed precision; see
+            :mod:`spf_rl.device`). Off by default; on the CPU allowed but usually slower.
     """
 
     lr: float = 1e-3
@@ -57,6 +65,7 @@ class OptimConfig:
     epochs: int = 8
     max_grad_norm: float = 1.0
     cosine_schedule: bool = True
+    amp: bool = False
 
 
 @dataclass
@@ -66,6 +75,8 @@ class BCConfig:
     Args:
         seed: seed of initialisation, batching and (through the sub-configs) data.
         output_dir: checkpoints, logs, results and figures.
+        device: where the policy trains and acts: ``"auto"`` (CUDA if available, else
+            the CPU), ``"cpu"``, ``"cuda"`` or ``"cuda:N"``; envs stay on the CPU.
         data_dir: the dataset directory (default ``data/<split>-<episodes>-<noise>-s<seed>``).
         num_workers: processes generating the dataset.
         logger: torchrl logger backend (``"csv"``, ``"tensorboard"``, ...) or ``""`` for none.
@@ -75,10 +86,17 @@ class BCConfig:
         optim: the optimiser (:class:`OptimConfig`).
         val: validation rollouts after each epoch.
         test: final evaluation of the best checkpoint.
+
+    Examples:
+        >>> BCConfig(device="gpu")
+        Traceback (most recent call last):
+        ...
+        ValueError: device must be one of 'auto', 'cpu', 'cuda' or 'cuda:N' (N = 0, 1, ...), got 'gpu'.
     """
 
     seed: int = 0
     output_dir: str = "runs/bc"
+    device: str = DEFAULT_DEVICE
     data_dir: str | None = None
     num_workers: int = 2
     logger: str = "csv"
@@ -89,6 +107,9 @@ class BCConfig:
     val: EvalConfig = field(default_factory=lambda: EvalConfig(split="val", num_episodes=100, seed=1))
     test: EvalConfig = field(default_factory=lambda: EvalConfig(split="test", num_episodes=500, seed=2))
 
+    def __post_init__(self) -> None:
+        check_device(self.device)
+
     def resolved_data_dir(self) -> Path:
         if self.data_dir:
             return Path(self.data_dir)
@@ -96,18 +117,36 @@ class BCConfig:
         return Path("data") / f"{d.split}-{d.num_episodes}ep-{d.noise}-rand{d.random_action_prob}-n{d.demo_length}-{d.image_size}px-s{d.seed}"
 
 
-def episodes_to_sequence(batch: TensorDict) -> TensorDict:
-    """Turn a batch of stored episodes ``[B]`` into the policy's sequence input ``[B, T]``.
+def episodes_to_sequence(batch: TensorDict, device: torch.device | str | None = None) -> TensorDict:
+    """Turn a batch of stored episodes ``[B]`` into the policy's sequence input ``[B, T]`` on ``device``.
 
-    Demonstration frames and actions are stored once per episode; here they are
-    broadcast over time as views (no copy). ``T`` is cut to the longest episode.
+    Demonstration frames and actions are stored once per episode; they move to
+    ``device`` once and are then broadcast over time as views (no copy). ``T`` is cut
+    to the longest episode (read on the batch's own device, before the move).
+
+    Args:
+        batch: stored episodes (:mod:`spf_rl.data` layout).
+        device: where the sequence goes (``None``: where the batch is).
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> mask = torch.tensor([[True, True, False], [True, False, False]])
+        >>> steps = TensorDict({"pixels": torch.zeros(2, 3, 8, 8, 3, dtype=torch.uint8), "mask": mask,
+        ...     "is_init": torch.zeros(2, 3, 1, dtype=torch.bool), "expert_action": torch.zeros(2, 3, dtype=torch.long)}, [2, 3])
+        >>> batch = TensorDict({"steps": steps, "demo_frames": torch.zeros(2, 4, 8, 8, 3, dtype=torch.uint8),
+        ...     "demo_actions": torch.zeros(2, 4, dtype=torch.long)}, [2])
+        >>> sequence = episodes_to_sequence(batch, device="meta")
+        >>> sequence.batch_size, sequence["demo_frames"].shape, sequence["pixels"].device
+        (torch.Size([2, 2]), torch.Size([2, 2, 4, 8, 8, 3]), device(type='meta'))
     """
     steps = batch.get("steps")
     length = int(steps.get("mask").sum(-1).max())
-    steps = steps[:, :length]
+    steps = to_device(steps[:, :length], device)
     b, t = steps.batch_size
     demo_frames = batch.get("demo_frames")
     demo_actions = batch.get("demo_actions")
+    if device is not None:
+        demo_frames, demo_actions = demo_frames.to(device), demo_actions.to(device)
     return TensorDict(
         {
             "pixels": steps.get("pixels"),
@@ -118,20 +157,29 @@ def episodes_to_sequence(batch: TensorDict) -> TensorDict:
             "mask": steps.get("mask"),
         },
         batch_size=[b, t],
+        device=device,
     )
 
 
-def bc_loss(policy: SPFPolicy, batch: TensorDict) -> tuple[torch.Tensor, torch.Tensor]:
+def bc_loss(policy: SPFPolicy, batch: TensorDict, amp: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """Cross-entropy between the policy's logits and the expert's actions on valid steps.
+
+    The batch moves to the device of the policy's weights first.
+
+    Args:
+        policy: the policy (sequence mode is switched on here).
+        batch: stored episodes (:mod:`spf_rl.data` layout), on any device.
+        amp: run the forward pass under bf16 autocast (the cross-entropy is float32).
 
     Returns:
         (loss, accuracy of the arg-max action).
     """
-    sequence = episodes_to_sequence(batch)
-    with set_recurrent_mode(True):
+    device = module_device(policy)
+    sequence = episodes_to_sequence(batch, device)
+    with set_recurrent_mode(True), autocast(device, amp):
         sequence = policy(sequence)
     mask = sequence.get("mask")
-    logits = sequence.get("logits")[mask]
+    logits = sequence.get("logits")[mask].float()
     labels = sequence.get("expert_action")[mask]
     loss = F.cross_entropy(logits, labels)
     accuracy = (logits.argmax(-1) == labels).float().mean()
@@ -153,6 +201,7 @@ def model_memory_bytes(model_type: str, demo_length: int, sparsity: float, image
 def train_bc(config: BCConfig) -> dict:
     """Run (or resume) a behaviour-cloning run and return its results dict (also written to ``results.json``)."""
     start_time = time.time()
+    device = resolve_device(config.device)
     output = Path(config.output_dir)
     output.mkdir(parents=True, exist_ok=True)
     (output / "config.json").write_text(json.dumps(asdict(config), indent=2, default=str))
@@ -162,7 +211,8 @@ def train_bc(config: BCConfig) -> dict:
 
     model_type = config.model.name
     policy_config = spf_config(config.model, config.data.demo_length, config.data.image_size)
-    policy = build_policy(model_type, policy_config)
+    policy = build_policy(model_type, policy_config).to(device)
+    logger.info("training on %s%s", device, " with bf16 autocast" if config.optim.amp else "")
     optimizer = torch.optim.Adam(policy.parameters(), lr=config.optim.lr, weight_decay=config.optim.weight_decay)
     batches_per_epoch = -(-len(dataset) // config.optim.batch_size)
     total_steps = batches_per_epoch * config.optim.epochs
@@ -197,7 +247,7 @@ def train_bc(config: BCConfig) -> dict:
         bar = tqdm(range(batches_per_epoch), desc=f"epoch {epoch + 1}/{config.optim.epochs}", disable=not config.progress)
         for _ in bar:
             batch = buffer.sample()
-            loss, accuracy = bc_loss(policy, batch)
+            loss, accuracy = bc_loss(policy, batch, amp=config.optim.amp)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(policy.parameters(), config.optim.max_grad_norm)

@@ -174,8 +174,16 @@ def make_collector(
     total_frames: int = -1,
     seed: int = 0,
     reset_at_each_iter: bool = False,
+    device: torch.device | str | None = None,
+    storing_device: torch.device | str | None = None,
 ):
     """A TorchRL collector running ``policy`` in the path-following env.
+
+    The envs (and their rendering) run on the CPU; the policy runs on ``device``
+    (TorchRL's ``policy_device``; ``env_device`` is the CPU): the collector moves each
+    step's data to the policy's device and its output back. Move the policy to
+    ``device`` first (``policy.to(device)``), so that the collector acts with the
+    learner's own weights instead of a copy.
 
     Args:
         policy: a TensorDict module writing ``"action"``; its recurrent-state primer
@@ -191,6 +199,10 @@ def make_collector(
         seed: seed of the envs (each collector's envs get their own seed from it).
         reset_at_each_iter: reset every env at the start of each batch (batches
             then hold whole episodes from their start).
+        device: where the policy runs (``None``: the CPU, as is).
+        storing_device: where the yielded batches are stored (``None``: ``device``
+            for the local backend, so that a learner on a GPU gets its batch there;
+            pass ``"cpu"`` for batches that go to disk).
 
     Returns:
         a :class:`~torchrl.collectors.Collector`, :class:`~torchrl.collectors.MultiSyncCollector`
@@ -198,6 +210,8 @@ def make_collector(
 
     Raises:
         ImportError: for ``backend="ray"`` without ray installed.
+        ValueError: ``backend="ray"`` with a ``device`` other than the CPU (the Ray
+            actors act on the CPU; use the local backend for a GPU learner).
 
     Examples:
         >>> import torch
@@ -221,9 +235,18 @@ def make_collector(
         total_frames=total_frames,
         reset_at_each_iter=reset_at_each_iter,
     )
+    device = None if device is None else torch.device(device)
+    if device is not None and config.backend != "ray":
+        storing_device = device if storing_device is None else torch.device(storing_device)
+        common.update(policy_device=device, env_device=torch.device("cpu"), storing_device=storing_device)
     if config.backend == "ray":
         if not _HAS_RAY:
             raise ImportError("collector.backend='ray' needs ray: pip install '.[distributed]' (or pip install ray).")
+        if device is not None and device.type != "cpu":
+            raise ValueError(
+                f"collector.backend='ray' acts on CPU-only Ray actors, but the policy is on {device}: "
+                "use device=cpu with the Ray backend, or collector.backend=local for a GPU learner."
+            )
         ray_init_config = {"address": config.ray_address} if config.ray_address else {}
         collector = Collector(
             [env_factory] * config.num_collectors,

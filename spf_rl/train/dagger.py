@@ -16,6 +16,12 @@ interrupted run started again with the same config rebuilds the aggregate from
 them and continues with the next round. Collection is deterministic: the env's
 per-agent episode streams, the mixing coin (a Philox draw of the episode seed
 and step) and the greedy learner fix every visited state.
+
+The learner and its optimiser run on ``DAggerConfig.device`` (see
+:mod:`spf_rl.device`): the collector gets it as ``policy_device`` with the envs on
+the CPU and stores the round's episodes on the CPU (they go to disk); training
+batches move to the device in :func:`~spf_rl.train.bc.bc_loss`. ``optim.amp``
+computes the retraining loss under bf16 autocast; collection and scoring stay float32.
 """
 from __future__ import annotations
 
@@ -39,6 +45,7 @@ from tqdm.auto import tqdm
 from envs.transforms import philox_uniforms
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.data import DatasetConfig, EpisodeDataset
+from spf_rl.device import DEFAULT_DEVICE, check_device, module_device, resolve_device
 from spf_rl.train.bc import BCConfig, OptimConfig, _atomic_json, bc_loss
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig, collect_episodes, make_collector
 from spf_rl.train.evaluation import EvalConfig, evaluate_policy, with_episode_sizes
@@ -95,9 +102,9 @@ class ExpertMixturePolicy(TensorDictModuleBase):
         action = tensordict.get("logits").argmax(-1)
         if self.beta > 0.0:
             expert = tensordict.get("expert_action").reshape(action.shape).to(action.dtype)
-            seeds = tensordict.get("episode_seed").reshape(-1).numpy() ^ MIXING_STREAM_SALT
-            steps = tensordict.get("step_count").reshape(-1).numpy()
-            coin = torch.from_numpy(philox_uniforms(seeds, steps, 1)[:, 0]).reshape(action.shape)
+            seeds = tensordict.get("episode_seed").reshape(-1).cpu().numpy() ^ MIXING_STREAM_SALT
+            steps = tensordict.get("step_count").reshape(-1).cpu().numpy()
+            coin = torch.from_numpy(philox_uniforms(seeds, steps, 1)[:, 0]).reshape(action.shape).to(action.device)
             action = torch.where(coin < self.beta, expert, action)
         tensordict.set("action", action)
         return tensordict
@@ -111,6 +118,8 @@ class DAggerConfig:
         checkpoint: the BC checkpoint to start from.
         output_dir: checkpoints, round data, logs, results and figures.
         seed: seed of collection and batching.
+        device: where the learner trains and acts: ``"auto"`` (CUDA if available, else
+            the CPU), ``"cpu"``, ``"cuda"`` or ``"cuda:N"``; envs stay on the CPU.
         rounds: DAgger rounds after the starting model.
         episodes_per_round: learner episodes collected per round.
         beta0: expert probability in round 1.
@@ -127,7 +136,8 @@ class DAggerConfig:
         progress: progress bars.
         env: the collection episodes (split, noise, sizes).
         collector: collection backend and layout.
-        optim: optimiser (``epochs`` is ignored: see ``epochs_per_round``).
+        optim: optimiser (``epochs`` is ignored: see ``epochs_per_round``; ``amp``:
+            bf16 autocast for the retraining loss).
         val: validation after every round.
         test: test evaluation.
     """
@@ -135,6 +145,7 @@ class DAggerConfig:
     checkpoint: str = "checkpoints/spf-s0.8.pt"
     output_dir: str = "runs/dagger"
     seed: int = 0
+    device: str = DEFAULT_DEVICE
     rounds: int = 4
     episodes_per_round: int = 256
     beta0: float = 0.5
@@ -154,6 +165,7 @@ class DAggerConfig:
     test: EvalConfig = field(default_factory=lambda: EvalConfig(split="test", num_episodes=500, seed=2))
 
     def __post_init__(self) -> None:
+        check_device(self.device)
         for name in ("rounds", "episodes_per_round", "epochs_per_round"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < (0 if name == "rounds" else 1):
@@ -233,6 +245,7 @@ class _Aggregate:
 def train_dagger(config: DAggerConfig) -> dict:
     """Run (or resume) DAgger and return its results (also written to ``results.json``)."""
     start_time = time.time()
+    device = resolve_device(config.device)
     output = Path(config.output_dir)
     (output / "rounds").mkdir(parents=True, exist_ok=True)
     (output / "config.json").write_text(json.dumps(asdict(config), indent=2, default=str))
@@ -244,8 +257,9 @@ def train_dagger(config: DAggerConfig) -> dict:
             f"env.demo_length / env.image_size ({env.demo_length}, {env.image_size}) must match the checkpoint's "
             f"({policy_config.demo_length}, {policy_config.image_size})."
         )
-    policy = build_policy(model_type, policy_config)
+    policy = build_policy(model_type, policy_config).to(device)
     policy.load_state_dict(payload["model"])
+    logger.info("DAgger on %s%s", device, " with bf16 autocast for retraining" if config.optim.amp else "")
     optimizer = torch.optim.Adam(policy.parameters(), lr=config.optim.lr, weight_decay=config.optim.weight_decay)
     val_config, test_config = with_episode_sizes(config.val, env), with_episode_sizes(config.test, env)
 
@@ -342,7 +356,14 @@ def _collect_round(policy: TensorDictModuleBase, config: DAggerConfig, beta: flo
     policy.eval()
     behaviour = ExpertMixturePolicy(policy, beta)
     collector = make_collector(
-        behaviour, env, layout, frames_per_batch=frames_per_batch, seed=seed, reset_at_each_iter=True
+        behaviour,
+        env,
+        layout,
+        frames_per_batch=frames_per_batch,
+        seed=seed,
+        reset_at_each_iter=True,
+        device=module_device(policy),
+        storing_device="cpu",  # the round's episodes go to disk
     )
     episodes, count = [], 0
     bar = tqdm(total=config.episodes_per_round, desc=f"collect (beta {beta:.2f})", disable=not config.progress)
@@ -368,7 +389,7 @@ def _train_round(policy, optimizer, aggregate: _Aggregate, config: DAggerConfig,
         buffer = aggregate.sampler(config.optim.batch_size, seed=config.seed * 100_003 + round_index * 101 + epoch)
         bar = tqdm(range(batches), desc=f"round {round_index} epoch {epoch + 1}", disable=not config.progress)
         for _ in bar:
-            loss, _ = bc_loss(policy, buffer.sample())
+            loss, _ = bc_loss(policy, buffer.sample(), amp=config.optim.amp)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(policy.parameters(), config.optim.max_grad_norm)

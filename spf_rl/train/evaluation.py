@@ -3,6 +3,12 @@
 Every policy evaluated with the same ``seed``, split and number of episodes
 plays the same episodes (the env gives each agent its own episode stream), so
 scores are comparable across models and reproducible.
+
+The env and its rendering run on the CPU; the policy runs where its weights are
+(move it with ``policy.to(device)`` first): each step's inputs go to that device and
+the logits, action and next recurrent state come back
+(:func:`~spf_rl.device.act_on_device`). Evaluation is always float32, also for runs
+trained with mixed precision.
 """
 from __future__ import annotations
 
@@ -18,6 +24,7 @@ from envs.nav_env import PathFollowEnv
 from envs.scripted import run_episodes
 from envs.checks import check_episode_source, check_positive_ints
 from envs.transforms import DEFAULT_NOISE, ActuationNoise
+from spf_rl.device import act_on_device, module_device
 from spf_rl.metrics import summarize
 
 
@@ -78,6 +85,18 @@ def greedy(policy: TensorDictModuleBase):
     return act
 
 
+def greedy_on_device(policy: TensorDictModuleBase):
+    """:func:`greedy` run on the device of ``policy``'s weights, for an env on the CPU.
+
+    The arg-max is taken on that device; the logits, the action and the next
+    recurrent state come back to the env's device. A policy without weights (open-loop
+    replay) or on the CPU is called as :func:`greedy` calls it.
+    """
+    device = module_device(policy) if isinstance(policy, torch.nn.Module) else None
+    out_keys = list(dict.fromkeys([*policy.out_keys, "action"]))
+    return act_on_device(greedy(policy), device, in_keys=policy.in_keys, out_keys=out_keys)
+
+
 def make_eval_env(config: EvalConfig, policy: TensorDictModuleBase | None = None) -> TransformedEnv:
     """Batched env with noise, ``is_init`` and the policy's recurrent-state primer."""
     transforms = [ActuationNoise(config.noise), InitTracker()]
@@ -103,7 +122,8 @@ def evaluate_policy(policy: TensorDictModuleBase, config: EvalConfig, progress: 
     """Play ``config.num_episodes`` episodes greedily (arg-max action) and summarise them.
 
     Args:
-        policy: a module writing ``"logits"`` (then the arg-max is taken) or ``"action"``.
+        policy: a module writing ``"logits"`` (then the arg-max is taken) or ``"action"``;
+            it runs on the device of its weights, the env on the CPU.
         config: the evaluation set-up.
         progress: show a progress bar.
 
@@ -112,7 +132,7 @@ def evaluate_policy(policy: TensorDictModuleBase, config: EvalConfig, progress: 
     """
     env = make_eval_env(config, policy)
 
-    act = greedy(policy)
+    act = greedy_on_device(policy)
     was_training = policy.training
     policy.eval()
     try:
@@ -137,7 +157,7 @@ def record_rollout(policy: TensorDictModuleBase, config: EvalConfig) -> dict:
     config = dataclasses.replace(config, num_agents=1, num_episodes=1)
     env = make_eval_env(config, policy)
 
-    act = greedy(policy)
+    act = greedy_on_device(policy)
     policy.eval()
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         rollout = env.rollout(config.max_steps, act, break_when_any_done=True)[0]
