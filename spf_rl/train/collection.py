@@ -240,13 +240,13 @@ def make_collector(
         storing_device = device if storing_device is None else torch.device(storing_device)
         common.update(policy_device=device, env_device=torch.device("cpu"), storing_device=storing_device)
     if config.backend == "ray":
-        if not _HAS_RAY:
-            raise ImportError("collector.backend='ray' needs ray: pip install '.[distributed]' (or pip install ray).")
         if device is not None and device.type != "cpu":
             raise ValueError(
                 f"collector.backend='ray' acts on CPU-only Ray actors, but the policy is on {device}: "
                 "use device=cpu with the Ray backend, or collector.backend=local for a GPU learner."
             )
+        if not _HAS_RAY:
+            raise ImportError("collector.backend='ray' needs ray: pip install '.[distributed]' (or pip install ray).")
         ray_init_config = {"address": config.ray_address} if config.ray_address else {}
         collector = Collector(
             [env_factory] * config.num_collectors,

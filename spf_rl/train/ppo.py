@@ -137,12 +137,12 @@ class _PPORun:
 
     def __init__(self, config: PPOConfig) -> None:
         self.config = config
+        self.device = resolve_device(config.device)  # first: a missing GPU fails before anything is written
         self.output = Path(config.output_dir)
         self.output.mkdir(parents=True, exist_ok=True)
         _atomic_json(self.output / "config.json", asdict(config))
         self.last_path, self.best_path = self.output / "last.pt", self.output / "best.pt"
 
-        self.device = resolve_device(config.device)
         payload = load_checkpoint(config.checkpoint)
         self.model_type, self.policy_config = payload["model_type"], payload["model_config"]
         self.env_config = checked_env_config(config, self.policy_config)
