@@ -6,6 +6,10 @@ first ``n`` actions of the noise-free :class:`~envs.expert.GeodesicExpert` drivi
 from the start towards that goal. The route's end (where the agent must arrive
 when following it) is the pose after those ``n`` actions. Frames are rendered by
 the environment along the recorded poses.
+
+:func:`drive_expert` (the noise-free expert driving towards a goal) and
+:func:`demonstration_from_route` (poses and actions -> :class:`Demonstration`) are
+the route logic shared with the demonstrations users give (:mod:`envs.user_demos`).
 """
 from __future__ import annotations
 
@@ -155,7 +159,6 @@ def _sample_route(
     house: House, rng: np.random.Generator, length: int, starts: np.ndarray, nodes: np.ndarray, node_xy: np.ndarray
 ) -> Demonstration:
     graph = house.graph
-    occupancy = house.occupancy
     min_goal_distance = length * FORWARD_STEP_M + 1.0
     for _ in range(MAX_SAMPLING_ATTEMPTS):
         start_xy = graph.node_xy(int(rng.choice(starts)))
@@ -169,18 +172,72 @@ def _sample_route(
         )
     goal_xy = graph.node_xy(int(rng.choice(far)))
     heading = rng.uniform(-np.pi, np.pi)
-    expert = GeodesicExpert(occupancy, graph.distance_field(goal_xy))
-    poses = np.zeros((length + 1, 3))
-    poses[0] = (start_xy[0], start_xy[1], heading)
-    actions = np.zeros(length, dtype=np.int64)
-    for step in range(length):
+    start_pose = np.array([start_xy[0], start_xy[1], heading])
+    poses, actions = drive_expert(house, graph.distance_field(goal_xy), start_pose, length)
+    return demonstration_from_route(house, poses, actions)
+
+
+def drive_expert(
+    house: House, field: DistanceField, start_pose: np.ndarray, max_steps: int, arrival_radius_m: float | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Drive the noise-free :class:`~envs.expert.GeodesicExpert` from ``start_pose`` towards ``field``'s goal.
+
+    Each step takes the expert's action at the current pose and applies its nominal
+    motion (:func:`nominal_motion`, :func:`apply_motion`: collisions and sliding).
+
+    Args:
+        house: the house.
+        field: geodesic distances to the goal (``house.graph.distance_field(goal_xy)``).
+        start_pose: (x m, y m, heading rad).
+        max_steps: steps driven at most.
+        arrival_radius_m: if given, stop as soon as the pose is within this distance
+            (geodesic, metres) of the goal; otherwise drive exactly ``max_steps`` steps.
+
+    Returns:
+        ``(k + 1, 3)`` poses (the start, then after each action) and ``(k,)`` int64
+        actions, with ``k <= max_steps`` steps.
+
+    Examples:
+        >>> from envs.scenes import build_house
+        >>> house = build_house(0)
+        >>> field = house.graph.distance_field(np.array([10.5, 1.5]))
+        >>> poses, actions = drive_expert(house, field, np.array([7.5, 1.5, 0.0]), 30, arrival_radius_m=0.3)
+        >>> actions.tolist(), poses[-1].round(2).tolist()
+        ([0, 0, 0, 0, 0, 0, 0, 0, 0], [10.2, 1.5, 0.0])
+    """
+    expert = GeodesicExpert(house.occupancy, field)
+    poses = np.zeros((max_steps + 1, 3))
+    poses[0] = start_pose
+    actions = np.zeros(max_steps, dtype=np.int64)
+    for step in range(max_steps):
+        if arrival_radius_m is not None and field.at(poses[step, :2]) <= arrival_radius_m:
+            return poses[: step + 1], actions[:step]
         actions[step] = expert.action(poses[step])
         poses[step + 1] = apply_motion(house, poses[step : step + 1], nominal_motion(actions[step : step + 1]))[0][0]
-    end_field = graph.distance_field(poses[-1, :2])
+    return poses, actions
+
+
+def demonstration_from_route(house: House, poses: np.ndarray, actions: np.ndarray) -> Demonstration:
+    """The :class:`Demonstration` of a driven route: its end's distance field and its shortest length.
+
+    Args:
+        house: the house the route was driven in.
+        poses: ``(n + 1, 3)`` poses (x m, y m, heading rad): the start, then after each action.
+        actions: ``(n,)`` actions.
+
+    Examples:
+        >>> from envs.scenes import build_house
+        >>> house = build_house(0)
+        >>> poses = np.array([[7.5, 1.5, 0.0], [7.8, 1.5, 0.0], [8.1, 1.5, 0.0]])
+        >>> demo = demonstration_from_route(house, poses, np.array([0, 0]))
+        >>> demo.length, demo.end_xy.tolist(), bool(0.5 < demo.shortest_length_m < 0.7)
+        (2, [8.1, 1.5], True)
+    """
+    end_field = house.graph.distance_field(poses[-1, :2])
     return Demonstration(
         house_seed=house.seed,
         poses=poses,
-        actions=actions,
+        actions=np.asarray(actions, dtype=np.int64),
         end_field=end_field,
         shortest_length_m=end_field.at(poses[0, :2]),
     )
