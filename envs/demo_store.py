@@ -5,10 +5,10 @@ Sampling a demonstration at each episode start costs a route search and
 emitting its frames at every step makes each collected frame carry 30 more. A
 :class:`DemoStore` does that work once: ``K`` demonstrations of a split are
 sampled and rendered ahead of time and written to a directory as a
-memory-mapped TensorDict (TensorDict's memmap format; no pickle)::
+:class:`~envs.tensor_store.TensorStore` (TensorDict's memmap format; no pickle)::
 
-    <root>/meta.json     configuration, format version, SHA-256 of every tensor
-    <root>/demos/        frames [K, n, H, W, 3] uint8, actions [K, n], poses [K, n + 1, 3],
+    <root>/meta.json     kind, format and env versions, configuration, SHA-256 of every tensor
+    <root>/data/         frames [K, n, H, W, 3] uint8, actions [K, n], poses [K, n + 1, 3],
                          house_seed [K], shortest_length_m [K]
 
 A :class:`~envs.nav_env.PathFollowEnv` given ``demo_store=root`` draws each
@@ -17,42 +17,41 @@ nothing at reset, and emits ``demo_id`` at every step; with ``emit_demo_frames=F
 it emits the id instead of the frames, and the policy looks the frames up in the
 store where it needs them (:meth:`DemoStore.lookup_module`). The store is a pure
 function of its :class:`DemoStoreConfig` (demonstration ``k`` is drawn from the
-generator seeded with ``(seed, k)``), is written to a temporary directory and
-renamed into place when complete, and is verified against its checksums when
-opened by path (``DemoStore(root)``, and envs given a directory).
+generator seeded with ``(seed, k)``), is built in chunks into ``<root>.partial``
+(an interrupted build resumes, to the same bytes) and renamed into place when
+complete, and is verified against its checksums when opened by path
+(``DemoStore(root)``, and envs given a directory).
 """
 from __future__ import annotations
 
-import hashlib
-import json
+import dataclasses
 import logging
 import os
-import shutil
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
-from pathlib import Path
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
-from tqdm.auto import tqdm
 
 from envs.demos import Demonstration, default_min_route_length_m, sample_demonstration
 from envs.geometry import DistanceField
 from envs.render import FirstPersonRenderer
 from envs.scenes import build_house, split_seeds
 from envs.specs import NUM_RGB_CHANNELS
-from envs.version import ENV_VERSION, check_env_version
+from envs.tensor_store import StoreError, TensorStore
 
 logger = logging.getLogger(__name__)
 
 #: Version of the on-disk layout; bumped when it changes.
-DEMO_STORE_FORMAT_VERSION = 2  # 2: HWC frames
+DEMO_STORE_FORMAT_VERSION = 3
+#: Demonstrations rendered per chunk of a build (the unit an interrupted build resumes from).
+DEMO_CHUNK_ROWS = 32
 
 
-class DemoStoreError(RuntimeError):
-    """A demo-store directory is missing, corrupt, or of another configuration."""
+class DemoStoreError(StoreError):
+    """A demo-store directory is missing, corrupt, stale, or of another configuration."""
 
 
 @dataclass
@@ -103,11 +102,6 @@ def sample_store_demonstration(config: DemoStoreConfig, index: int) -> Demonstra
     return sample_demonstration(house, rng, config.demo_length, min_route_length_m=config.min_route_length_m)
 
 
-def _checksums(demos: TensorDict) -> dict[str, str]:
-    # hashed straight from the (memory-mapped) buffers: no copy of the store in memory
-    return {key: hashlib.sha256(demos.get(key).contiguous().numpy()).hexdigest() for key in sorted(demos.keys())}
-
-
 def _empty(config: DemoStoreConfig) -> TensorDict:
     k, n, s = config.num_demos, config.demo_length, config.image_size
     return TensorDict(
@@ -122,15 +116,36 @@ def _empty(config: DemoStoreConfig) -> TensorDict:
     )
 
 
-class DemoStore:
+def make_demo_chunk(config: DemoStoreConfig, chunk: int) -> TensorDict:
+    """Demonstrations ``[chunk * DEMO_CHUNK_ROWS, ...)`` of a store, sampled and rendered (a pure function)."""
+    first = chunk * DEMO_CHUNK_ROWS
+    indices = range(first, min(first + DEMO_CHUNK_ROWS, config.num_demos))
+    out = _empty(dataclasses.replace(config, num_demos=len(indices)))
+    n = config.demo_length
+    renderer = FirstPersonRenderer(config.image_size, config.image_size)
+    try:
+        for row, index in enumerate(indices):
+            demo = sample_store_demonstration(config, index)
+            house = build_house(demo.house_seed)
+            renderer.render_many([house] * n, demo.poses[:n], out=out["frames"][row].numpy())
+            out["actions"][row] = torch.from_numpy(demo.actions)
+            out["poses"][row] = torch.from_numpy(demo.poses)
+            out["house_seed"][row] = demo.house_seed
+            out["shortest_length_m"][row] = demo.shortest_length_m
+    finally:
+        renderer.close()
+    return out
+
+
+class DemoStore(TensorStore):
     """Pre-rendered demonstrations in a directory, memory-mapped and shared between processes.
 
     Open an existing store with ``DemoStore(root)``; create one with
     :meth:`build` (which opens an existing, matching store instead of rebuilding
-    it). The store pickles as its path, so it can be passed to env factories that
-    run in ``spawn`` worker processes; every process maps the same files. The
-    tensors it exposes are those shared maps: read them (the env and
-    :meth:`lookup` copy out of them), never write to them.
+    it). A :class:`~envs.tensor_store.TensorStore`: it pickles as its path, so it can
+    be passed to env factories that run in ``spawn`` worker processes, and every
+    process maps the same files. Read its tensors (the env and :meth:`lookup` copy
+    out of them), never write to them.
 
     Args:
         root: the store directory.
@@ -150,165 +165,58 @@ class DemoStore:
         torch.Size([2, 5, 32, 32, 3])
     """
 
-    def __init__(self, root: str | os.PathLike, verify: bool = True) -> None:
-        self.root = Path(root)
-        self.config, self._checksums = self._read_meta()
-        self._demos: TensorDict | None = None
-        self._open()
-        if verify:
-            self.verify()
+    KIND = "demo"
+    FORMAT_VERSION = DEMO_STORE_FORMAT_VERSION
+    ERROR = DemoStoreError
+    FORMAT_HISTORY = "(version 1 stored CHW frames; version 2 had no chunked, resumable build)"
 
-    # ---------------------------------------------------------------- opening
-    def _read_meta(self) -> tuple[DemoStoreConfig, dict[str, str]]:
-        try:
-            meta = json.loads((self.root / "meta.json").read_text())
-        except (FileNotFoundError, NotADirectoryError) as err:
-            raise DemoStoreError(
-                f"{self.root} is not a demo store (no meta.json); create it with DemoStore.build "
-                "or `python recipes/make_demo_store.py`."
-            ) from err
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-            raise DemoStoreError(f"demo store {self.root}: corrupt or unreadable meta.json ({err}).") from err
-        if not isinstance(meta, dict):
-            raise DemoStoreError(f"demo store {self.root}: corrupt meta.json (a {type(meta).__name__}, not an object).")
-        if meta.get("format_version") != DEMO_STORE_FORMAT_VERSION:
-            raise DemoStoreError(
-                f"demo store {self.root}: format version {meta.get('format_version')!r} is not "
-                f"{DEMO_STORE_FORMAT_VERSION} (version 1 stored CHW frames; frames are HWC now); build it again."
-            )
-        try:
-            check_env_version(meta.get("env_version"), f"demo store {self.root}")
-        except ValueError as err:
-            raise DemoStoreError(str(err)) from err
-        try:
-            return DemoStoreConfig(**meta["config"]), dict(meta["checksums"])
-        except (KeyError, TypeError, ValueError) as err:
-            raise DemoStoreError(f"demo store {self.root}: invalid meta.json ({err}).") from err
+    @staticmethod
+    def config_from_dict(config: dict) -> DemoStoreConfig:
+        return DemoStoreConfig(**config)
 
-    def _open(self) -> None:
-        try:
-            demos = TensorDict.load_memmap(self.root / "demos")
-        except Exception as err:  # noqa: BLE001 - any failure to map means a damaged store
-            raise DemoStoreError(f"demo store {self.root}: cannot read the tensors ({err}).") from err
-        expected = _empty(self.config)
-        for key in expected.keys():
-            if key not in demos.keys() or demos.get(key).shape != expected.get(key).shape:
-                raise DemoStoreError(
-                    f"demo store {self.root}: tensor {key!r} is missing or has the wrong shape "
-                    f"(expected {tuple(expected.get(key).shape)})."
-                )
-        self._demos = demos.lock_()
+    @staticmethod
+    def empty(config: DemoStoreConfig) -> TensorDict:
+        return _empty(config)
 
-    def verify(self) -> None:
-        """Recompute every tensor's checksum; raise :class:`DemoStoreError` on a mismatch."""
-        actual = _checksums(self._demos)
-        for key, digest in self._checksums.items():
-            if actual.get(key) != digest:
-                raise DemoStoreError(
-                    f"demo store {self.root}: tensor {key!r} is corrupt (checksum mismatch). "
-                    "Delete the directory and build the store again."
-                )
-
-    def __getstate__(self) -> dict:
-        return {"root": str(self.root)}
-
-    def __setstate__(self, state: dict) -> None:
-        self.__init__(state["root"], verify=False)
-
-    # --------------------------------------------------------------- building
     @classmethod
-    def build(cls, root: str | os.PathLike, config: DemoStoreConfig, progress: bool = True) -> DemoStore:
+    def build(
+        cls, root: str | os.PathLike, config: DemoStoreConfig, progress: bool = True, num_workers: int = 1
+    ) -> DemoStore:
         """Sample and render the store's demonstrations into ``root`` (or open it if it exists).
 
-        The tensors are written into ``<root>.tmp`` and renamed to ``root`` when
-        complete, so an interrupted build leaves no half-written store (the next
-        call starts it again).
+        Built in chunks of :data:`DEMO_CHUNK_ROWS` into ``<root>.partial`` and renamed to
+        ``root`` when complete; an interrupted build resumes where it stopped.
 
         Raises:
             DemoStoreError: if ``root`` holds a store of another configuration.
         """
-        root = Path(root)
-        if (root / "meta.json").exists():
-            store = cls(root, verify=False)
-            if asdict(store.config) != asdict(config):
-                raise DemoStoreError(
-                    f"demo store {root} was built with another configuration ({asdict(store.config)}); "
-                    "choose another directory or delete it."
-                )
-            return store
-        if root.exists() and (not root.is_dir() or any(root.iterdir())):
-            raise DemoStoreError(
-                f"{root} exists and is not a demo store (no meta.json); choose another directory or delete it."
-            )
-        tmp = root.with_name(root.name + ".tmp")
-        if tmp.exists():
-            shutil.rmtree(tmp)
-        tmp.mkdir(parents=True)
-        demos = _empty(config).memmap_(tmp / "demos")
-        renderer = FirstPersonRenderer(config.image_size, config.image_size)
-        n = config.demo_length
-        completed = False
-        try:
-            for index in tqdm(range(config.num_demos), desc="demonstrations", disable=not progress):
-                demo = sample_store_demonstration(config, index)
-                house = build_house(demo.house_seed)
-                # rendered straight into the memory-mapped (n, H, W, 3) frames
-                renderer.render_many([house] * n, demo.poses[:n], out=demos["frames"][index].numpy())
-                demos["actions"][index] = torch.from_numpy(demo.actions)
-                demos["poses"][index] = torch.from_numpy(demo.poses)
-                demos["house_seed"][index] = demo.house_seed
-                demos["shortest_length_m"][index] = demo.shortest_length_m
-            completed = True
-        finally:
-            renderer.close()
-            if not completed:  # an interrupted or failed build leaves nothing behind
-                del demos
-                shutil.rmtree(tmp, ignore_errors=True)
-        meta = {
-            "format_version": DEMO_STORE_FORMAT_VERSION,
-            "env_version": ENV_VERSION,
-            "config": asdict(config),
-            "checksums": _checksums(demos),
-        }
-        with open(tmp / "meta.json", "w") as handle:
-            json.dump(meta, handle, indent=2, sort_keys=True)
-            handle.flush()
-            os.fsync(handle.fileno())
-        del demos
-        if root.exists():  # an empty directory the caller created
-            root.rmdir()
-        os.replace(tmp, root)
-        logger.info("wrote %d demonstrations to %s", config.num_demos, root)
-        return cls(root, verify=False)
+        return cls.create(root, config, make_demo_chunk, DEMO_CHUNK_ROWS, num_workers=num_workers, progress=progress)
 
     # ---------------------------------------------------------------- reading
-    def __len__(self) -> int:
-        return self.config.num_demos
-
     @property
     def frames(self) -> torch.Tensor:
         """``[K, n, H, W, 3]`` uint8 frames (memory-mapped)."""
-        return self._demos.get("frames")
+        return self.data.get("frames")
 
     @property
     def actions(self) -> torch.Tensor:
         """``[K, n]`` int64 actions."""
-        return self._demos.get("actions")
+        return self.data.get("actions")
 
     @property
     def poses(self) -> torch.Tensor:
         """``[K, n + 1, 3]`` float64 poses (x m, y m, heading rad) before each action, then the end pose."""
-        return self._demos.get("poses")
+        return self.data.get("poses")
 
     @property
     def house_seeds(self) -> torch.Tensor:
         """``[K]`` house seed of each demonstration."""
-        return self._demos.get("house_seed")
+        return self.data.get("house_seed")
 
     @property
     def shortest_lengths_m(self) -> torch.Tensor:
         """``[K]`` geodesic length (metres) from each route's start to its end."""
-        return self._demos.get("shortest_length_m")
+        return self.data.get("shortest_length_m")
 
     def lookup(self, demo_id: torch.Tensor) -> torch.Tensor:
         """Frames of demonstrations by id: ``[*, 1]`` int64 (the env's ``demo_id``) -> ``[*, n, H, W, 3]`` uint8 (a copy).

@@ -1,12 +1,11 @@
 """Episode datasets on disk: perturbed follow episodes labelled by the expert.
 
-A dataset is a directory holding one memory-mapped TensorDict of ``E`` episodes
-(TensorDict's memmap format, read back through TorchRL's
-:class:`~torchrl.data.TensorStorage`), plus two small JSON files::
+A dataset is a :class:`~envs.tensor_store.TensorStore` (the project's one on-disk
+store, shared with the demo store) holding one memory-mapped TensorDict of ``E``
+episodes, read back through TorchRL's :class:`~torchrl.data.TensorStorage`::
 
-    <root>/meta.json        configuration, shapes, format version
-    <root>/progress.json    chunks written so far and their SHA-256 checksums
-    <root>/episodes/        the memory-mapped tensors
+    <root>/meta.json     kind, format and env versions, configuration, SHA-256 of every tensor
+    <root>/data/         the memory-mapped tensors
 
 Per episode it stores the demonstration once (``demo_frames [n, H, W, 3]``,
 ``demo_actions [n]``) and the follow episode step by step (``steps`` with batch
@@ -15,18 +14,14 @@ label, ``mask`` for valid steps and ``is_init``).
 
 Episodes are generated in chunks, in parallel worker processes; chunk ``c`` is a
 pure function of ``(seed, c)``, so an interrupted run resumes where it stopped
-and gives the same bytes as an uninterrupted one. ``progress.json`` is replaced
-atomically after each chunk; a chunk whose bytes do not match its checksum, a
-missing file or a shape that disagrees with ``meta.json`` raises
+(from ``<root>.partial``) and gives the same bytes as an uninterrupted one. A
+tensor whose bytes do not match its checksum, a missing file, a shape that
+disagrees with the configuration, or data made by another env version raises
 :class:`DatasetError`.
 """
 from __future__ import annotations
 
-import concurrent.futures
-import hashlib
-import json
 import logging
-import multiprocessing
 import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -36,21 +31,20 @@ import torch
 from tensordict import TensorDict
 from torchrl.data import SamplerWithoutReplacement, TensorDictReplayBuffer, TensorStorage
 from torchrl.data.replay_buffers import ImmutableDatasetWriter
-from tqdm.auto import tqdm
 
 from envs.checks import check_episode_source, check_positive_ints
 from envs.specs import NUM_RGB_CHANNELS
 from envs.transforms import DEFAULT_NOISE
-from envs.version import ENV_VERSION, check_env_version
+from envs.tensor_store import StoreError, TensorStore
 
 logger = logging.getLogger(__name__)
 
 #: Version of the on-disk layout; bumped when it changes.
-DATASET_FORMAT_VERSION = 2  # 2: HWC frames, env version in meta.json
+DATASET_FORMAT_VERSION = 3
 NUM_DEMO_ACTIONS = 3
 
 
-class DatasetError(RuntimeError):
+class DatasetError(StoreError):
     """A dataset directory is missing, half-written, corrupt or of another configuration."""
 
 
@@ -95,15 +89,6 @@ class DatasetConfig:
         return -(-self.num_episodes // self.chunk_size)
 
 
-def _atomic_write_json(path: Path, payload: dict) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    with open(tmp, "w") as handle:
-        json.dump(payload, handle, indent=2, sort_keys=True)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(tmp, path)
-
-
 def _empty_episodes(config: DatasetConfig) -> TensorDict:
     e, t, n, s = config.num_episodes, config.max_steps, config.demo_length, config.image_size
     steps = TensorDict(
@@ -128,27 +113,6 @@ def _empty_episodes(config: DatasetConfig) -> TensorDict:
         },
         batch_size=[e],
     )
-
-
-def _check_versions(meta: dict, root: Path) -> None:
-    """Refuse a dataset of another on-disk layout or made by another env version."""
-    if meta.get("format_version") != DATASET_FORMAT_VERSION:
-        raise DatasetError(
-            f"dataset {root}: format version {meta.get('format_version')} is not {DATASET_FORMAT_VERSION} "
-            "(version 1 stored CHW frames; frames are HWC now); delete it and generate it again."
-        )
-    try:
-        check_env_version(meta.get("env_version"), f"dataset {root}")
-    except ValueError as err:
-        raise DatasetError(f"{err} Delete it and generate it again.") from err
-
-
-def _checksum(chunk: TensorDict) -> str:
-    digest = hashlib.sha256()
-    for key in sorted(chunk.keys(include_nested=True, leaves_only=True), key=str):
-        digest.update(str(key).encode())
-        digest.update(chunk.get(key).contiguous().numpy().tobytes())
-    return digest.hexdigest()
 
 
 def generate_chunk(config: DatasetConfig, chunk: int) -> TensorDict:
@@ -221,67 +185,44 @@ def _chunk_env(config: DatasetConfig, count: int):
     return _CHUNK_ENVS[key]
 
 
-class EpisodeDataset:
-    """An episode dataset directory: create, resume, verify, and sample from it.
+class EpisodeDataset(TensorStore):
+    """An episode dataset directory (a :class:`~envs.tensor_store.TensorStore`): build, resume, verify, sample.
 
     Args:
         root: the dataset directory.
+        verify: recompute the SHA-256 of every tensor and compare with ``meta.json``.
 
     Examples:
         >>> import tempfile
-        >>> root = tempfile.mkdtemp()
+        >>> root = tempfile.mkdtemp() + "/tiny"
         >>> config = DatasetConfig(num_episodes=2, num_houses=1, demo_length=5, max_steps=6, image_size=32, chunk_size=2)
         >>> dataset = EpisodeDataset.build(root, config, num_workers=1, progress=False)
         >>> dataset.episodes["steps", "pixels"].shape
         torch.Size([2, 6, 32, 32, 3])
     """
 
-    def __init__(self, root: str | os.PathLike, verify: bool = True) -> None:
-        self.root = Path(root)
-        self.config, self.progress = self._read_json()
-        if len(self.progress["chunks"]) != self.config.num_chunks:
-            missing = self.config.num_chunks - len(self.progress["chunks"])
-            raise DatasetError(
-                f"dataset {self.root} is half-written: {missing} of {self.config.num_chunks} chunks missing. "
-                "Run the generation again to resume it."
-            )
-        try:
-            self.episodes = TensorDict.load_memmap(self.root / "episodes")
-        except Exception as err:  # noqa: BLE001 - any failure to map means a damaged dataset
-            raise DatasetError(f"dataset {self.root}: cannot read the episode tensors ({err}).") from err
-        expected = _empty_episodes(self.config)
-        for key in expected.keys(include_nested=True, leaves_only=True):
-            if key not in self.episodes.keys(include_nested=True, leaves_only=True) or self.episodes.get(key).shape != expected.get(key).shape:
-                raise DatasetError(f"dataset {self.root}: tensor {key!r} is missing or has the wrong shape.")
-        if verify:
-            self.verify()
+    KIND = "dataset"
+    FORMAT_VERSION = DATASET_FORMAT_VERSION
+    ERROR = DatasetError
+    FORMAT_HISTORY = "(version 1 stored CHW frames; version 2 was built in place)"
+
+    @staticmethod
+    def config_from_dict(config: dict) -> DatasetConfig:
+        return DatasetConfig(**config)
+
+    @staticmethod
+    def empty(config: DatasetConfig) -> TensorDict:
+        return _empty_episodes(config)
+
+    @property
+    def episodes(self) -> TensorDict:
+        """The episodes, ``[E]`` (memory-mapped, read-only)."""
+        return self.data
 
     @staticmethod
     def exists(root: str | os.PathLike) -> bool:
+        """Whether ``root`` holds a complete dataset (its ``meta.json``)."""
         return (Path(root) / "meta.json").exists()
-
-    def _read_json(self) -> tuple[DatasetConfig, dict]:
-        try:
-            meta = json.loads((self.root / "meta.json").read_text())
-            progress = json.loads((self.root / "progress.json").read_text())
-        except FileNotFoundError as err:
-            raise DatasetError(f"{self.root} is not a dataset directory (missing {Path(err.filename).name}).") from err
-        except json.JSONDecodeError as err:
-            raise DatasetError(f"dataset {self.root}: corrupt metadata ({err}).") from err
-        _check_versions(meta, self.root)
-        return DatasetConfig(**meta["config"]), progress
-
-    def verify(self) -> None:
-        """Recompute every chunk's checksum; raise :class:`DatasetError` on a mismatch."""
-        size = self.config.chunk_size
-        for chunk, expected in sorted(self.progress["chunks"].items(), key=lambda kv: int(kv[0])):
-            start = int(chunk) * size
-            actual = _checksum(self.episodes[start : start + size])
-            if actual != expected:
-                raise DatasetError(
-                    f"dataset {self.root}: chunk {chunk} (episodes {start}-{start + size - 1}) is corrupt "
-                    "(checksum mismatch). Delete the dataset directory and generate it again."
-                )
 
     @classmethod
     def build(
@@ -293,58 +234,13 @@ class EpisodeDataset:
     ) -> EpisodeDataset:
         """Create the dataset at ``root``, or resume a partial one, then open it.
 
+        Chunks of ``config.chunk_size`` episodes are generated in ``num_workers``
+        ``spawn`` processes into ``<root>.partial``, renamed to ``root`` when complete.
+
         Raises:
             DatasetError: if ``root`` holds a dataset of another configuration.
         """
-        root = Path(root)
-        meta_path, progress_path = root / "meta.json", root / "progress.json"
-        if meta_path.exists():
-            try:
-                stored = json.loads(meta_path.read_text())
-            except json.JSONDecodeError as err:
-                raise DatasetError(f"dataset {root}: corrupt meta.json ({err}).") from err
-            _check_versions(stored, root)
-            if stored.get("config") != asdict(config):
-                raise DatasetError(
-                    f"dataset {root} was generated with another configuration ({stored.get('config')}); "
-                    "choose another directory or delete it."
-                )
-            done = json.loads(progress_path.read_text())["chunks"] if progress_path.exists() else {}
-            episodes = TensorDict.load_memmap(root / "episodes")
-        else:
-            root.mkdir(parents=True, exist_ok=True)
-            episodes = _empty_episodes(config).memmap_(root / "episodes")
-            done = {}
-            _atomic_write_json(progress_path, {"chunks": done})
-            _atomic_write_json(
-                meta_path, {"format_version": DATASET_FORMAT_VERSION, "env_version": ENV_VERSION, "config": asdict(config)}
-            )
-        todo = [c for c in range(config.num_chunks) if str(c) not in done]
-        if todo:
-            logger.info("generating %d of %d chunks into %s", len(todo), config.num_chunks, root)
-        bar = tqdm(total=config.num_chunks, initial=config.num_chunks - len(todo), desc="dataset chunks", disable=not progress)
-
-        def store(chunk: int, data: TensorDict) -> None:
-            start = chunk * config.chunk_size
-            episodes[start : start + data.shape[0]].update_(data)
-            done[str(chunk)] = _checksum(data)
-            _atomic_write_json(progress_path, {"chunks": done})
-            bar.update(1)
-
-        if num_workers <= 1:
-            for chunk in todo:
-                store(chunk, generate_chunk(config, chunk))
-        else:
-            context = multiprocessing.get_context("spawn")
-            with concurrent.futures.ProcessPoolExecutor(num_workers, mp_context=context) as pool:
-                futures = {pool.submit(generate_chunk, config, chunk): chunk for chunk in todo}
-                for future in concurrent.futures.as_completed(futures):
-                    store(futures[future], future.result())
-        bar.close()
-        return cls(root, verify=False)
-
-    def __len__(self) -> int:
-        return self.config.num_episodes
+        return cls.create(root, config, generate_chunk, config.chunk_size, num_workers=num_workers, progress=progress)
 
     def replay_buffer(self, batch_size: int, seed: int = 0, drop_last: bool = False) -> TensorDictReplayBuffer:
         """A read-only TorchRL replay buffer over whole episodes (one epoch without replacement at a time)."""

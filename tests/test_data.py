@@ -39,16 +39,31 @@ def test_chunks_are_deterministic(built):
     assert torch.equal(again["steps", "expert_action"], built.episodes[2:4]["steps", "expert_action"])
 
 
-def test_interrupted_build_resumes_to_the_same_bytes(built, tmp_path):
+def test_interrupted_build_resumes_to_the_same_bytes(built, tmp_path, monkeypatch):
+    import spf_rl.data as data_module
+
     root = tmp_path / "resumed"
-    shutil.copytree(built.root, root)
-    progress = json.loads((root / "progress.json").read_text())
-    del progress["chunks"]["2"]  # as if stopped before the last chunk was stored
-    (root / "progress.json").write_text(json.dumps(progress))
-    with pytest.raises(DatasetError, match="half-written"):
+    real = data_module.generate_chunk
+    calls: list[int] = []
+
+    def stop_at_last_chunk(config, chunk):
+        calls.append(chunk)
+        if chunk == 2:
+            raise RuntimeError("stopped")  # as if the run were killed here
+        return real(config, chunk)
+
+    monkeypatch.setattr(data_module, "generate_chunk", stop_at_last_chunk)
+    with pytest.raises(RuntimeError, match="stopped"):
+        EpisodeDataset.build(root, DatasetConfig(**TINY), num_workers=1, progress=False)
+    assert not root.exists() and (tmp_path / "resumed.partial").exists()
+    with pytest.raises(DatasetError, match="resume"):
         EpisodeDataset(root)
+    calls.clear()
+    monkeypatch.setattr(data_module, "generate_chunk", lambda config, chunk: calls.append(chunk) or real(config, chunk))
     resumed = EpisodeDataset.build(root, DatasetConfig(**TINY), num_workers=1, progress=False)
-    assert torch.equal(resumed.episodes["steps", "pixels"], built.episodes["steps", "pixels"])
+    assert calls == [2]  # chunks 0 and 1 were kept
+    for key in built.episodes.keys(include_nested=True, leaves_only=True):
+        assert torch.equal(resumed.episodes[key], built.episodes[key]), key
     resumed.verify()
 
 
@@ -57,12 +72,12 @@ def test_corruption_is_detected(built, tmp_path):
     shutil.copytree(built.root, root)
     dataset = EpisodeDataset(root, verify=False)
     dataset.episodes["steps", "expert_action"][3, 0] = (dataset.episodes["steps", "expert_action"][3, 0] + 1) % 3
-    with pytest.raises(DatasetError, match="chunk 1 .* corrupt"):
+    with pytest.raises(DatasetError, match="'steps/expert_action' is corrupt"):
         EpisodeDataset(root)
 
 
 def test_missing_and_mismatched_datasets(built, tmp_path):
-    with pytest.raises(DatasetError, match="not a dataset directory"):
+    with pytest.raises(DatasetError, match="not a dataset store"):
         EpisodeDataset(tmp_path / "nothing")
     other = DatasetConfig(**{**TINY, "noise": "locobot"})
     with pytest.raises(DatasetError, match="another configuration"):

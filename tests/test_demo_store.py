@@ -110,7 +110,7 @@ def test_demonstration_has_the_stored_route(store):
 
 
 def test_build_reopens_a_matching_store_and_refuses_another_config(store_root):
-    frames_file = store_root / "demos" / "frames.memmap"
+    frames_file = store_root / "data" / "frames.memmap"
     before = (frames_file.stat().st_mtime_ns, (store_root / "meta.json").stat().st_mtime_ns)
     reopened = DemoStore.build(store_root, DemoStoreConfig(**vars(STORE_CONFIG)), progress=False)
     assert (frames_file.stat().st_mtime_ns, (store_root / "meta.json").stat().st_mtime_ns) == before
@@ -121,32 +121,43 @@ def test_build_reopens_a_matching_store_and_refuses_another_config(store_root):
         DemoStore.build(store_root, DemoStoreConfig(**{**vars(STORE_CONFIG), "num_demos": 3}), progress=False)
 
 
-def test_interrupted_build_leaves_no_store(tmp_path, monkeypatch):
-    config = DemoStoreConfig(num_demos=3, num_houses=1, demo_length=5, image_size=32)
+def test_interrupted_build_resumes_to_the_same_bytes(tmp_path, monkeypatch):
+    config = DemoStoreConfig(num_demos=5, num_houses=1, demo_length=5, image_size=32)
+    monkeypatch.setattr(demo_store_module, "DEMO_CHUNK_ROWS", 2)  # chunks {0, 1}, {2, 3}, {4}
+    reference = DemoStore.build(tmp_path / "reference", config, progress=False)
     root = tmp_path / "store"
     real = demo_store_module.sample_store_demonstration
+    calls: list[int] = []
 
     def failing(config, index):
-        if index == 2:
+        calls.append(index)
+        if index == 3:
             raise KeyboardInterrupt
         return real(config, index)
 
     monkeypatch.setattr(demo_store_module, "sample_store_demonstration", failing)
     with pytest.raises(KeyboardInterrupt):
         DemoStore.build(root, config, progress=False)
-    assert not root.exists()
-    assert not (tmp_path / "store.tmp").exists()  # the half-written tensors are removed
-    with pytest.raises(DemoStoreError):
+    assert not root.exists() and (tmp_path / "store.partial").exists()  # root only ever holds a whole store
+    with pytest.raises(DemoStoreError, match="resume"):
         DemoStore(root)
-    monkeypatch.setattr(demo_store_module, "sample_store_demonstration", real)
-    # a <root>.tmp left by a killed build (no cleanup possible) is replaced
-    (tmp_path / "store.tmp").mkdir()
-    (tmp_path / "store.tmp" / "junk").write_text("left over")
+    monkeypatch.setattr(demo_store_module, "sample_store_demonstration", lambda c, i: calls.append(i) or real(c, i))
+    calls.clear()
     store = DemoStore.build(root, config, progress=False)
-    assert not (tmp_path / "store.tmp").exists()
-    assert sorted(os.listdir(tmp_path)) == ["store"]
-    assert torch.equal(store.actions[2], torch.from_numpy(real(config, 2).actions))
+    assert calls == [2, 3, 4]  # chunk 0 was kept, chunk 1 redone
+    assert sorted(os.listdir(tmp_path)) == ["reference", "store"]
+    for key, value in _tensors(reference).items():
+        assert torch.equal(_tensors(store)[key], value), key
     DemoStore(root)  # complete and verified
+
+
+def test_a_damaged_partial_build_is_rebuilt(tmp_path, monkeypatch):
+    config = DemoStoreConfig(num_demos=3, num_houses=1, demo_length=5, image_size=32)
+    partial = tmp_path / "store.partial"
+    partial.mkdir()
+    (partial / "progress.json").write_text("{ not json")
+    store = DemoStore.build(tmp_path / "store", config, progress=False)
+    assert len(store) == 3 and not partial.exists()
 
 
 def test_build_into_an_empty_existing_directory(tmp_path):
@@ -159,7 +170,7 @@ def test_build_into_an_empty_existing_directory(tmp_path):
 # ---------------------------------------------------------------- corruption
 @pytest.mark.parametrize("name", TENSOR_FILES)
 def test_flipped_byte_is_detected(store_copy, name):
-    path = store_copy / "demos" / f"{name}.memmap"
+    path = store_copy / "data" / f"{name}.memmap"
     data = bytearray(path.read_bytes())
     data[len(data) // 2 + 1] ^= 0xFF
     path.write_bytes(bytes(data))
@@ -171,14 +182,14 @@ def test_flipped_byte_is_detected(store_copy, name):
 @pytest.mark.parametrize(
     "damage",
     [
-        pytest.param(lambda root: os.truncate(root / "demos" / "frames.memmap", 1000), id="truncated-frames"),
-        pytest.param(lambda root: os.truncate(root / "demos" / "poses.memmap", 0), id="emptied-poses"),
-        pytest.param(lambda root: (root / "demos" / "actions.memmap").unlink(), id="deleted-actions"),
+        pytest.param(lambda root: os.truncate(root / "data" / "frames.memmap", 1000), id="truncated-frames"),
+        pytest.param(lambda root: os.truncate(root / "data" / "poses.memmap", 0), id="emptied-poses"),
+        pytest.param(lambda root: (root / "data" / "actions.memmap").unlink(), id="deleted-actions"),
         pytest.param(lambda root: (root / "meta.json").unlink(), id="deleted-meta"),
         pytest.param(lambda root: (root / "meta.json").write_text("{ not json"), id="garbage-meta"),
         pytest.param(lambda root: (root / "meta.json").write_text(""), id="empty-meta"),
-        pytest.param(lambda root: (root / "demos" / "meta.json").write_text("]"), id="garbage-tensordict-meta"),
-        pytest.param(lambda root: shutil.rmtree(root / "demos"), id="deleted-demos"),
+        pytest.param(lambda root: (root / "data" / "meta.json").write_text("]"), id="garbage-tensordict-meta"),
+        pytest.param(lambda root: shutil.rmtree(root / "data"), id="deleted-data"),
         pytest.param(lambda root: _edit_meta(root, format_version=99), id="other-format-version"),
         pytest.param(lambda root: _edit_meta(root, config={**vars(STORE_CONFIG), "num_demos": 21}), id="wrong-shape"),
         pytest.param(lambda root: _edit_meta(root, config={**vars(STORE_CONFIG), "split": "nope"}), id="invalid-config"),
@@ -238,7 +249,7 @@ def test_build_refuses_a_non_empty_directory_that_is_not_a_store(tmp_path):
     (root / "data").mkdir(parents=True)
     with pytest.raises(DemoStoreError, match=str(root)):
         DemoStore.build(root, DemoStoreConfig(num_demos=1, num_houses=1, demo_length=5, image_size=32), progress=False)
-    assert (root / "data").exists() and not (tmp_path / "store.tmp").exists()
+    assert (root / "data").exists() and not (tmp_path / "store.partial").exists()
 
 
 # ------------------------------------------------------------------ pickling
