@@ -11,7 +11,7 @@ from torch import nn
 from torchrl.modules import set_recurrent_mode
 
 from spf_rl.modules import MemoryAttention, SparseMemory, SPFCell, SPFConfig, SPFPolicy
-from spf_rl.modules.policy import make_action_only_policy, make_rpf_policy
+from spf_rl.modules import make_action_only_policy, make_rpf_original_policy, make_rpf_policy
 
 CFG = SPFConfig(demo_length=6, sparsity=0.5, feature_dim=16, hidden_size=16, image_size=(16, 16))
 
@@ -107,3 +107,40 @@ def test_legacy_parameter_names_load() -> None:
     fresh = SPFPolicy(CFG)
     fresh.load_state_dict(legacy)
     torch.testing.assert_close(fresh(_inputs())["logits"], policy(_inputs())["logits"])
+
+
+def test_rpf_original_memory_network() -> None:
+    """bareblackfoot/RobustPathFollow: MLP slots over [phi, onehot(a)], GRU on [phi, mu], eta <- min(eta + 1 + tanh(b), n - 1)."""
+    torch.manual_seed(0)
+    policy = make_rpf_original_policy(dataclasses.replace(CFG, mu_dim=12))
+    assert policy.memory_length == CFG.demo_length and policy.config.pointer_update == "rpf"
+    assert policy.cell.gru.input_size == 12 + 16  # mu and phi, no action window
+    assert isinstance(policy.cell.logits_head, nn.Sequential) and isinstance(policy.cell.pointer_head, nn.Sequential)
+    out = policy(_inputs())
+    assert out["memory_features"].shape == (3, 6, 12) and out["action_window"].shape == (3, 0, 3)
+    eta = out["next", "eta"]
+    assert ((eta >= 0) & (eta <= CFG.demo_length - 1)).all()
+    # the memory depends on the demo actions
+    other = _inputs()
+    other["demo_actions"] = (other["demo_actions"] + 1) % 3
+    assert not torch.allclose(policy(other)["memory_features"], out["memory_features"])
+    with pytest.raises(ValueError, match="rpf_original"):
+        SPFConfig(architecture="rpf_original")
+
+
+def test_rpf_original_sequence_mode_matches_step_mode() -> None:
+    torch.manual_seed(0)
+    policy = make_rpf_original_policy(CFG).eval()
+    steps = torch.stack([_inputs((2,), seed=t) for t in range(4)], dim=1)
+    steps["demo_frames"] = steps["demo_frames"][:, :1].expand(-1, 4, -1, -1, -1, -1).clone()
+    steps["demo_actions"] = steps["demo_actions"][:, :1].expand(-1, 4, -1).clone()
+    steps["is_init"] = torch.zeros(2, 4, 1, dtype=torch.bool)
+    steps["is_init"][:, 0] = True
+    with torch.no_grad(), set_recurrent_mode(True):
+        sequence = policy(steps.clone())
+    state = TensorDict({}, batch_size=[2])
+    with torch.no_grad():
+        for t in range(4):
+            out = policy(steps[:, t].clone().update(state))
+            torch.testing.assert_close(out["logits"], sequence["logits"][:, t])
+            state = out["next"].select("spf_hidden", "eta", "memory_features")

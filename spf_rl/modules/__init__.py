@@ -22,13 +22,15 @@ from spf_rl.modules.memory import (
 )
 from spf_rl.modules.open_loop import OpenLoopPolicy
 from spf_rl.modules.sparse_memory import SparseMemory
-from spf_rl.modules.policy import (
-    SPFPolicy,
+from spf_rl.modules.factories import (
     make_action_only_policy,
     make_actor,
+    make_rpf_original_policy,
     make_rpf_policy,
     make_spf_policy,
 )
+from spf_rl.modules.policy import SPFPolicy
+from spf_rl.modules.rpf import RPFAttention, SlotMLP
 
 __all__ = [
     "ImageEncoder",
@@ -36,14 +38,17 @@ __all__ = [
     "MemoryEncoder",
     "OpenLoopPolicy",
     "PointerAttention",
+    "RPFAttention",
     "SPFCell",
     "SPFConfig",
     "SPFPolicy",
+    "SlotMLP",
     "SparseMemory",
     "action_window",
     "attention_weights",
     "make_action_only_policy",
     "make_actor",
+    "make_rpf_original_policy",
     "make_rpf_policy",
     "make_spf_policy",
     "memory_bytes",

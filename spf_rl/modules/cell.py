@@ -45,6 +45,8 @@ class SPFCell(TensorDictModuleBase):
         demo_length (int): demonstration length ``n`` (bounds the RPF pointer rule).
         pointer_update (str): ``"paper"`` or ``"rpf"``.
         initial_pointer_step (float): ``tanh(b)`` of the untrained network, in ``(-1, 1)``.
+        head_hidden (int, optional): hidden units of 2-layer action and pointer heads (the
+            RPF lab code's); ``None`` (default): linear heads.
 
     Keyword Args:
         mu_key, pixel_features_key, action_window_key, eta_used_key, is_init_key (NestedKey): inputs.
@@ -72,6 +74,7 @@ class SPFCell(TensorDictModuleBase):
         demo_length: int,
         pointer_update: str = "paper",
         initial_pointer_step: float = 0.0,
+        head_hidden: int | None = None,
         *,
         mu_key: NestedKey = "mu",
         pixel_features_key: NestedKey = "pixel_features",
@@ -89,11 +92,12 @@ class SPFCell(TensorDictModuleBase):
         self.hidden_size, self.num_actions, self.demo_length = hidden_size, num_actions, demo_length
         self.pointer_update = pointer_update
         self.gru = nn.GRUCell(sum(input_dims), hidden_size)
-        self.logits_head = nn.Linear(hidden_size, num_actions)
-        self.pointer_head = nn.Linear(hidden_size, 1)
+        self.logits_head = _head(hidden_size, num_actions, head_hidden)
+        self.pointer_head = _head(hidden_size, 1, head_hidden)
         if initial_pointer_step:
-            nn.init.zeros_(self.pointer_head.weight)
-            nn.init.constant_(self.pointer_head.bias, math.atanh(initial_pointer_step))
+            last = self.pointer_head if head_hidden is None else self.pointer_head[-1]
+            nn.init.zeros_(last.weight)
+            nn.init.constant_(last.bias, math.atanh(initial_pointer_step))
         self.mu_key, self.pixel_features_key, self.action_window_key = mu_key, pixel_features_key, action_window_key
         self.eta_used_key, self.is_init_key = eta_used_key, is_init_key
         self.hidden_key, self.eta_key = hidden_key, eta_key
@@ -142,3 +146,10 @@ class SPFCell(TensorDictModuleBase):
         td.set(next_key(self.hidden_key), h_next.reshape(*batch, self.hidden_size))
         td.set(next_key(self.eta_key), eta_next.reshape(*batch, 1))
         return td
+
+
+def _head(in_features: int, out_features: int, hidden: int | None) -> nn.Module:
+    """A linear head, or a 2-layer MLP (ReLU) when ``hidden`` is given."""
+    if hidden is None:
+        return nn.Linear(in_features, out_features)
+    return nn.Sequential(nn.Linear(in_features, hidden), nn.ReLU(), nn.Linear(hidden, out_features))

@@ -22,6 +22,8 @@ DEFAULT_DEMO_LENGTH = 30
 DEFAULT_SPARSITY = 0.4
 POINTER_UPDATES = ("paper", "rpf")
 MEMORY_MODES = ("sparse", "full", "none")
+#: Memory networks: SPF's (psi over attended features + action window) or the RPF lab code's.
+ARCHITECTURES = ("spf", "rpf_original")
 #: Sparsity used by the full-memory (RPF) baseline.
 FULL_MEMORY_SPARSITY = 1.0
 
@@ -71,6 +73,9 @@ class SPFConfig:
             ``s ~ Uniform(low, high)`` per episode segment; otherwise ``s`` is
             :attr:`SPFPolicy.sparsity`. Not in the SPF paper. Defaults to ``None``
             (one fixed sparsity, ``l`` memory slots).
+        architecture (str): ``"spf"`` (default) or ``"rpf_original"``, the RPF lab
+            code's memory network (:mod:`spf_rl.modules.rpf`; needs full memory and
+            the ``"rpf"`` pointer rule). ``mu_dim`` is then the memory-slot size.
 
     Examples:
         >>> cfg = SPFConfig(sparsity=0.4)
@@ -95,8 +100,19 @@ class SPFConfig:
     soft_action_memory: bool | None = None
     initial_pointer_step: float = 0.0
     sparsity_range: tuple[float, float] | None = None
+    architecture: Literal["spf", "rpf_original"] = "spf"
 
     def __post_init__(self) -> None:
+        if self.architecture not in ARCHITECTURES:
+            raise ValueError(f"architecture must be one of {ARCHITECTURES}, got {self.architecture!r}.")
+        if self.architecture == "rpf_original" and (
+            self.memory_mode != "full" or self.pointer_update != "rpf" or self.sparsity_range is not None
+        ):
+            raise ValueError(
+                "architecture='rpf_original' needs memory_mode='full', pointer_update='rpf' and no sparsity_range "
+                f"(got {self.memory_mode!r}, {self.pointer_update!r}, {self.sparsity_range!r}); "
+                "use spf_rl.modules.make_rpf_original_policy."
+            )
         if self.num_actions not in ALLOWED_NUM_ACTIONS:
             raise ValueError(
                 f"num_actions must be one of {ALLOWED_NUM_ACTIONS} (3 without STOP, 4 with STOP), "

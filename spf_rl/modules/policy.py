@@ -15,12 +15,11 @@ that a user can take out, replace or reuse:
   ``spf_hidden`` and ``eta``).
 
 Step mode runs the four in order; sequence mode is :func:`~spf_rl.modules.sequence.unroll_sequence`.
-Baselines from the same parts: :func:`make_rpf_policy` (full memory: SPF at sparsity 1
-with the SPF pointer) and :func:`make_action_only_policy` (no frames in memory).
+Baselines from the same parts (:mod:`spf_rl.modules.factories`): RPF as SPF at
+sparsity 1, the RPF lab code's memory network, and action-only.
 """
 from __future__ import annotations
 
-import dataclasses
 import logging
 import re
 
@@ -29,31 +28,22 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import nn
-from torchrl.data import Categorical
 from torchrl.envs import TensorDictPrimer
-from torchrl.modules import ProbabilisticActor
 from torchrl.modules.tensordict_module.rnn import recurrent_mode
 
 from spf_rl.modules.attention import MemoryAttention, PointerAttention
 from spf_rl.modules.cell import SPFCell
-from spf_rl.modules.config import FULL_MEMORY_SPARSITY, NUM_PAPER_ACTIONS, SPFConfig
+from spf_rl.modules.config import SPFConfig
 from spf_rl.modules.encoder import ImageEncoder
 from spf_rl.modules.open_loop import OpenLoopPolicy  # noqa: F401  (re-exported)
+from spf_rl.modules.rpf import RPF_HEAD_HIDDEN, RPFAttention, SlotMLP
 from spf_rl.modules.sparse_memory import SparseMemory
 from spf_rl.modules.sequence import unroll_sequence
 from spf_rl.modules.td_utils import next_key, with_batch_dim
 
 logger = logging.getLogger(__name__)
 
-__all__ = [
-    "OpenLoopPolicy",
-    "SPFConfig",
-    "SPFPolicy",
-    "make_action_only_policy",
-    "make_actor",
-    "make_rpf_policy",
-    "make_spf_policy",
-]
+__all__ = ["SPFPolicy"]
 
 #: Parameter names of checkpoints saved before the policy was split into parts -> today's.
 _LEGACY_PARAMETER_PREFIXES = (
@@ -187,6 +177,8 @@ class SPFPolicy(TensorDictModuleBase):
         self.use_memory = config.memory_mode != "none"
         self.random_sparsity = config.sparsity_range is not None
         self.encoder = encoder
+        mu_dim = config.mu_dim or config.feature_dim
+        lab_rpf = config.architecture == "rpf_original"
         self.memory = (
             SparseMemory(
                 phi,
@@ -194,6 +186,8 @@ class SPFPolicy(TensorDictModuleBase):
                 config.effective_sparsity,
                 config.sparsity_range,
                 feature_dim=self.feature_dim,
+                slot_mlp=SlotMLP(self.feature_dim, config.num_actions, mu_dim) if lab_rpf else None,
+                demo_actions_key=demo_actions_key,
                 demo_frames_key=demo_frames_key,
                 is_init_key=is_init_key,
                 memory_key=memory_key,
@@ -202,15 +196,17 @@ class SPFPolicy(TensorDictModuleBase):
             if self.use_memory
             else None
         )
-        mu_dim = config.mu_dim or config.feature_dim
-        pointer_attention = PointerAttention(
-            self.feature_dim,
-            mu_dim,
-            k=config.k,
-            num_action_classes=config.num_actions,
-            action_only=not self.use_memory,
-            soft_action_memory=config.use_soft_action_memory,
-        )
+        if lab_rpf:
+            pointer_attention: nn.Module = RPFAttention(mu_dim, config.num_actions)
+        else:
+            pointer_attention = PointerAttention(
+                self.feature_dim,
+                mu_dim,
+                k=config.k,
+                num_action_classes=config.num_actions,
+                action_only=not self.use_memory,
+                soft_action_memory=config.use_soft_action_memory,
+            )
         self.attention = MemoryAttention(
             pointer_attention,
             self.memory.indices if self.use_memory else None,
@@ -228,6 +224,7 @@ class SPFPolicy(TensorDictModuleBase):
             config.demo_length,
             config.pointer_update,
             config.initial_pointer_step,
+            RPF_HEAD_HIDDEN if lab_rpf else None,
             pixel_features_key=pixel_features_key,
             eta_used_key=eta_used_key,
             is_init_key=is_init_key,
@@ -360,97 +357,3 @@ def _rename_legacy_parameters(module, state_dict, prefix, *args) -> None:
             if pattern.match(local):
                 state_dict[prefix + pattern.sub(replacement, local, count=1)] = state_dict.pop(key)
                 break
-
-
-# ---------------------------------------------------------------------- factories
-def make_spf_policy(config: SPFConfig | None = None, encoder: nn.Module | None = None, **kwargs) -> SPFPolicy:
-    """Build the SPF policy (sparse memory) from a config.
-
-    Args:
-        config (SPFConfig, optional): configuration. Defaults to ``SPFConfig()``.
-        encoder (nn.Module, optional): image encoder phi. Defaults to :class:`ImageEncoder`.
-        **kwargs: key overrides forwarded to :class:`SPFPolicy`.
-
-    Examples:
-        >>> policy = make_spf_policy(SPFConfig(feature_dim=8, hidden_size=8))
-        >>> policy.memory_length
-        12
-    """
-    return SPFPolicy(config, encoder, **kwargs)
-
-
-def make_rpf_policy(
-    config: SPFConfig | None = None, encoder: nn.Module | None = None, **kwargs
-) -> SPFPolicy:
-    """RPF baseline: the same network with the full visual memory (sparsity 1.0).
-
-    The pointer update is taken from ``config`` (pass
-    ``dataclasses.replace(config, pointer_update="rpf")`` for the RPF code's rule);
-    ``sparsity_range`` is dropped (the memory is always full).
-
-    Examples:
-        >>> make_rpf_policy(SPFConfig(feature_dim=8, hidden_size=8)).memory_length
-        30
-    """
-    config = SPFConfig() if config is None else config
-    config = dataclasses.replace(
-        config, memory_mode="full", sparsity=FULL_MEMORY_SPARSITY, sparsity_range=None
-    )
-    return SPFPolicy(config, encoder, **kwargs)
-
-
-def make_action_only_policy(
-    config: SPFConfig | None = None, encoder: nn.Module | None = None, **kwargs
-) -> SPFPolicy:
-    """RPF action-only baseline: no frames in memory; psi sees only the demo actions.
-
-    psi takes the hard action window and, unless ``config.soft_action_memory`` is
-    ``False``, the soft action memory ``sum_j exp(-|eta - j|) onehot(a_j)``, through
-    which the pointer gets a gradient (``soft_action_memory=None``, the default,
-    resolves to ``True`` here). With ``soft_action_memory=False`` the pointer
-    only enters through ``floor(eta)`` and the pointer head receives no gradient.
-    ``sparsity_range`` is dropped (there are no memory frames).
-
-    Examples:
-        >>> make_action_only_policy(SPFConfig(feature_dim=8, hidden_size=8)).memory_length
-        0
-    """
-    config = SPFConfig() if config is None else config
-    config = dataclasses.replace(config, memory_mode="none", sparsity_range=None)
-    return SPFPolicy(config, encoder, **kwargs)
-
-
-def make_actor(
-    policy: TensorDictModuleBase,
-    num_actions: int = NUM_PAPER_ACTIONS,
-    *,
-    logits_key: NestedKey = "logits",
-    action_key: NestedKey = "action",
-) -> ProbabilisticActor:
-    """Wrap a logits-producing policy in a :class:`~torchrl.modules.ProbabilisticActor`.
-
-    Samples from ``Categorical(logits)`` (greedy argmax under
-    ``ExplorationType.DETERMINISTIC``) and writes ``action`` and its log-probability.
-
-    Args:
-        policy (TensorDictModuleBase): module writing ``logits_key``.
-        num_actions (int, optional): number of actions. Defaults to 3.
-
-    Keyword Args:
-        logits_key (NestedKey): logits key. Defaults to ``"logits"``.
-        action_key (NestedKey): action key. Defaults to ``"action"``.
-
-    Examples:
-        >>> from spf_rl.modules import SPFConfig, make_spf_policy, make_actor
-        >>> actor = make_actor(make_spf_policy(SPFConfig(feature_dim=8, hidden_size=8)), 3)
-        >>> "action" in actor.out_keys
-        True
-    """
-    return ProbabilisticActor(
-        module=policy,
-        in_keys=[logits_key],
-        out_keys=[action_key],
-        spec=Categorical(num_actions),
-        distribution_class=torch.distributions.Categorical,
-        return_log_prob=True,
-    )

@@ -47,6 +47,10 @@ class SparseMemory(TensorDictModuleBase):
 
     Keyword Args:
         feature_dim (int, optional): size ``D`` of a feature; defaults to ``encoder.feature_dim``.
+        slot_mlp (nn.Module, optional): maps ``(features [*, D], actions [*])`` to a memory
+            slot (the RPF lab code's memory, :class:`~spf_rl.modules.rpf.SlotMLP`); the
+            module then also reads ``demo_actions`` and ``D`` is ``slot_mlp.feature_dim``.
+        demo_actions_key (NestedKey): read only with ``slot_mlp``. Defaults ``"demo_actions"``.
         demo_frames_key, is_init_key (NestedKey): inputs. Defaults ``"demo_frames"``, ``"is_init"``.
         memory_key (NestedKey): the memory state ``[l, D]`` (``[n, D]`` with random
             sparsity). Defaults ``"memory_features"``.
@@ -71,6 +75,8 @@ class SparseMemory(TensorDictModuleBase):
         sparsity_range: tuple[float, float] | None = None,
         *,
         feature_dim: int | None = None,
+        slot_mlp: nn.Module | None = None,
+        demo_actions_key: NestedKey = "demo_actions",
         demo_frames_key: NestedKey = "demo_frames",
         is_init_key: NestedKey = "is_init",
         memory_key: NestedKey = "memory_features",
@@ -83,10 +89,14 @@ class SparseMemory(TensorDictModuleBase):
         slots = torch.arange(self.demo_length) if self.random_sparsity else memory_indices(self.demo_length, sparsity)
         self.encoder = MemoryEncoder(encoder, slots)
         self.feature_dim = int(feature_dim if feature_dim is not None else getattr(encoder, "feature_dim"))
+        self.slot_mlp = slot_mlp
+        if slot_mlp is not None:
+            self.feature_dim = int(slot_mlp.feature_dim)
+        self.demo_actions_key = demo_actions_key
         self._sparsity = validate_sparsity(sparsity)
         self.demo_frames_key, self.is_init_key = demo_frames_key, is_init_key
         self.memory_key, self.memory_mask_key = memory_key, memory_mask_key
-        self.in_keys = [demo_frames_key, is_init_key, memory_key]
+        self.in_keys = [demo_frames_key, is_init_key, memory_key] + ([demo_actions_key] if slot_mlp is not None else [])
         self.out_keys = [memory_key, next_key(memory_key)] + ([memory_mask_key] if self.random_sparsity else [])
 
     @property
@@ -140,10 +150,15 @@ class SparseMemory(TensorDictModuleBase):
         draws = low + (high - low) * torch.rand(count, dtype=torch.float64)
         return torch.stack([memory_mask(n, s) for s in draws.tolist()]).to(device)
 
-    def encode_where(self, demo_frames: torch.Tensor, where: torch.Tensor) -> torch.Tensor:
-        """Features ``[K, slots, D]`` of the ``K`` rows where the batch-shaped ``where`` is true."""
+    def encode_where(self, td: TensorDictBase, where: torch.Tensor) -> torch.Tensor:
+        """Memory ``[K, slots, D]`` of the ``K`` rows of ``td`` where the batch-shaped ``where`` is true."""
+        demo_frames = td.get(self.demo_frames_key)
         self.check_demo_frames(demo_frames, where.ndim)
-        return self.encoder(demo_frames, where.nonzero(as_tuple=True))
+        features = self.encoder(demo_frames, where.nonzero(as_tuple=True))
+        if self.slot_mlp is None:
+            return features
+        actions = td.get(self.demo_actions_key)[where].index_select(-1, self.indices.to(features.device))
+        return self.slot_mlp(features, actions)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Write the memory in use (step mode) or per step of a ``[*B, T]`` sequence (recurrent mode)."""
@@ -165,7 +180,7 @@ class SparseMemory(TensorDictModuleBase):
         else:
             fresh, memory = is_init, stored.reshape(shape).to(self._dtype())
         if fresh.any():
-            feats = self.encode_where(td.get(self.demo_frames_key), fresh)
+            feats = self.encode_where(td, fresh)
             memory = memory.clone()
             memory[fresh] = feats.to(memory.dtype)
         td.set(self.memory_key, memory)
@@ -182,7 +197,7 @@ class SparseMemory(TensorDictModuleBase):
         rows, steps = td.batch_size
         start = init_flags(td, self.is_init_key, self.indices.device).clone()
         start[:, 0] = True
-        feats = self.encode_where(td.get(self.demo_frames_key), start)  # [K, slots, D]
+        feats = self.encode_where(td, start)  # [K, slots, D]
         segment = start.reshape(-1).long().cumsum(0) - 1
         memory = feats.index_select(0, segment).reshape(rows, steps, self.num_slots, self.feature_dim)
         shape = tensordict.batch_size

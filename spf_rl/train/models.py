@@ -5,10 +5,11 @@ import dataclasses
 from dataclasses import dataclass, field
 
 from spf_rl.modules.memory import validate_sparsity_range
-from spf_rl.modules.policy import (
+from spf_rl.modules import (
     SPFConfig,
     SPFPolicy,
     make_action_only_policy,
+    make_rpf_original_policy,
     make_rpf_policy,
     make_spf_policy,
 )
