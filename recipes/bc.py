@@ -9,6 +9,7 @@ Usage::
 
     python recipes/bc.py                       # SPF, sparsity 0.8 (about 30 min on 2 CPU cores)
     python recipes/bc.py --quick               # the whole pipeline in a few minutes
+    python recipes/bc.py --preset bc_long      # 20,000 gradient steps on 8,000 episodes (hours on 2 CPU cores)
     python recipes/bc.py model=rpf             # full memory baseline
     python recipes/bc.py model=spf sparsity=0.4 noise=paper optim.epochs=4
     python recipes/bc.py device=cuda optim.amp=true   # GPU, bf16 mixed precision (default device=auto)
@@ -25,10 +26,19 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from config_utils import load_config  # noqa: E402
 
+#: Schedules in recipes/configs/ that --preset accepts.
+PRESETS = ("bc_quick", "bc_long")
+
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="small preset that runs in a few minutes")
+    parser.add_argument("--quick", action="store_true", help="small preset that runs in a few minutes (= --preset bc_quick)")
+    parser.add_argument(
+        "--preset",
+        choices=PRESETS,
+        default=None,
+        help="a schedule from recipes/configs/: bc_quick (smoke run) or bc_long (20,000 gradient steps on 8,000 episodes)",
+    )
     parser.add_argument("overrides", nargs="*", help="key=value config overrides")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -36,7 +46,9 @@ def main(argv: list[str] | None = None) -> dict:
     import envs  # noqa: F401  (selects the headless GL back-end first)
     from spf_rl.train.bc import BCConfig, train_bc
 
-    config = load_config(BCConfig, "bc", args.overrides, preset="bc_quick" if args.quick else None)
+    if args.quick and args.preset not in (None, "bc_quick"):
+        parser.error(f"--quick is --preset bc_quick; it cannot be combined with --preset {args.preset}")
+    config = load_config(BCConfig, "bc", args.overrides, preset="bc_quick" if args.quick else args.preset)
     results = train_bc(config)
     test = results["test"]
     summary = {

@@ -54,3 +54,11 @@ def test_bad_values_are_refused_before_any_work(override, match, tmp_path, monke
     with pytest.raises(ValueError, match=match):
         bc_recipe.main([override])
     assert list(tmp_path.iterdir()) == []  # no dataset, no run directory
+
+
+def test_long_preset_is_at_least_20k_steps_on_8k_episodes():
+    config = load_config(BCConfig, "bc", [], preset="bc_long")
+    steps = config.optim.epochs * (config.data.num_episodes // config.optim.batch_size)
+    assert config.data.num_episodes >= 8000 and steps >= 20_000
+    assert config.val.num_episodes >= 300  # checkpoints picked on at least 300 validation episodes
+    assert config.output_dir.startswith("runs/bc_long/")
