@@ -7,7 +7,7 @@ OpenGL back-end (``MUJOCO_GL``) is selected at the first render, and envs with
 Examples:
     >>> from envs import PathFollowEnv, ActuationNoise, make_path_follow_env
     >>> env = make_path_follow_env(noise="paper", num_houses=1, demo_length=5, render=False)
-    >>> env.rollout(3)["pixels"].shape
+    >>> env.rollout(3, break_when_any_done=False)["pixels"].shape
     torch.Size([3, 64, 64, 3])
 """
 from __future__ import annotations
@@ -17,6 +17,13 @@ from envs.factory import make_parallel_path_follow_env, make_path_follow_env
 from envs.nav_env import PathFollowEnv
 from envs.specs import PRIVILEGED_KEYS, HidePrivileged
 from envs.transforms import NOISE_PRESETS, ActuationNoise, NoiseModel
+from envs.user_demos import (
+    DemonstrationPlaylist,
+    RouteError,
+    RouteRecorder,
+    demonstration_from_actions,
+    demonstration_from_waypoints,
+)
 from envs.version import ENV_VERSION
 
 __all__ = [
@@ -26,9 +33,14 @@ __all__ = [
     "ActuationNoise",
     "DemoStore",
     "DemoStoreConfig",
+    "DemonstrationPlaylist",
     "HidePrivileged",
     "NoiseModel",
     "PathFollowEnv",
+    "RouteError",
+    "RouteRecorder",
+    "demonstration_from_actions",
+    "demonstration_from_waypoints",
     "make_parallel_path_follow_env",
     "make_path_follow_env",
 ]

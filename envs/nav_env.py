@@ -64,6 +64,7 @@ from envs.render import FirstPersonRenderer
 from envs.scenes import House, build_house
 from envs.specs import NUM_DEMO_ACTIONS, NUM_RGB_CHANNELS, path_follow_specs
 from envs.transforms import ACTUATION_NOISE_KEY
+from envs.user_demos import DemonstrationPlaylist
 
 logger = logging.getLogger(__name__)
 
@@ -103,6 +104,8 @@ class PathFollowEnv(EnvBase):
         emit_demo_frames: emit ``demo_frames`` at every step (default). ``False``
             (only with ``demo_store``) leaves them out: policies look them up from
             ``demo_id``.
+        demonstrations: demonstrations of ``demo_length`` steps to play instead of sampled
+            ones (:class:`~envs.user_demos.DemonstrationPlaylist`; ``reset(demonstration=demo)``).
         seed: optional seed (same as calling :meth:`set_seed`).
         device: torch device of the outputs.
 
@@ -134,6 +137,7 @@ class PathFollowEnv(EnvBase):
         success_fraction: float = SUCCESS_FRACTION,
         demo_store: DemoStore | str | os.PathLike | None = None,
         emit_demo_frames: bool = True,
+        demonstrations: Sequence[Demonstration] | None = None,
         seed: int | None = None,
         device: torch.device | str = "cpu",
     ) -> None:
@@ -178,6 +182,7 @@ class PathFollowEnv(EnvBase):
         self.num_actions = NUM_DEMO_ACTIONS + int(self.stop_action)
         self._min_route_length_m = default_min_route_length_m(self.demo_length, self.success_radius_m)
         self._renderer: FirstPersonRenderer | None = None  # created at the first reset
+        self._playlist = DemonstrationPlaylist(demonstrations, self.demo_length, self._count, demo_store is not None)
         self._cpu = self.device is not None and torch.device(self.device).type == "cpu"
         self._set_seed(seed)
         self._make_specs()
@@ -230,6 +235,7 @@ class PathFollowEnv(EnvBase):
         # not on when the other agents' episodes end.
         entropy = np.random.SeedSequence(seed).entropy
         self._agent_rngs = [np.random.default_rng([entropy, index]) for index in range(self._count)]
+        self._playlist.restart()
 
     # ------------------------------------------------------------- rendering
     @property
@@ -259,6 +265,7 @@ class PathFollowEnv(EnvBase):
         else:
             mask = np.ones(self._count, dtype=bool)
         indices = np.flatnonzero(mask)
+        self._playlist.begin_reset(kwargs.get("demonstration"))
         if len(indices):
             # returned tensors are never mutated later: new ones, holding the other agents' data
             if len(indices) == self._count:
@@ -277,7 +284,9 @@ class PathFollowEnv(EnvBase):
 
     def _start_episode(self, index: int, demo_frames: torch.Tensor, demo_actions: torch.Tensor, pixels: torch.Tensor) -> None:
         episode_seed = int(self._agent_rngs[index].integers(MAX_EPISODE_SEED))
-        if self.demo_store is not None:
+        if (given := self._playlist.next(index)) is not None:
+            house, demo = build_house(given.house_seed), given
+        elif self.demo_store is not None:
             demo_id = int(np.random.default_rng(episode_seed).integers(len(self.demo_store)))
             demo = self._stored_demonstration(demo_id)
             house = build_house(demo.house_seed)
