@@ -8,7 +8,8 @@ forward/backward/update time.
 
 ``--device cpu`` (or ``auto`` on a machine without CUDA) measures the CPU and writes
 ``benchmarks/results/train.json``. ``--device cuda`` measures, in the same run on the
-same machine, the CPU (float32), then CUDA in float32 and with bf16 autocast, and
+same machine, the CPU (float32), then CUDA in float32 (no TF32, as training without
+``amp`` runs) and with bf16 autocast (``amp``), and
 writes ``benchmarks/results/train-cuda.json``: every run labelled with its device,
 precision and threads, and each CUDA run's speed-up over the CPU run per model.
 
@@ -32,7 +33,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from spf_rl.device import DEFAULT_DEVICE, DEVICE_CHOICES, resolve_device  # noqa: E402
+from spf_rl.device import DEFAULT_DEVICE, DEVICE_CHOICES, exact_float32, resolve_device  # noqa: E402
 
 #: (model name, sparsity) of the benchmarked models.
 MODELS = (("spf", 0.8), ("spf", 0.4), ("rpf", 1.0), ("action_only", 0.0))
@@ -122,8 +123,9 @@ def main(argv: list[str] | None = None) -> dict:
     if device.type == "cuda":
         results["device"] = str(device)
         results["runs"] = [{"device": "cpu", "precision": "float32", "torch_threads": torch.get_num_threads(), "models": results["models"]}]
-        for amp in (False, True):
-            models = bench_models(dataset, device, amp, steps, batch_size)
+        for amp in (False, True):  # as the training loops run: full float32 (no TF32), or bf16 autocast
+            with exact_float32(device, enabled=not amp):
+                models = bench_models(dataset, device, amp, steps, batch_size)
             results["runs"].append(
                 {"device": str(device), "device_name": torch.cuda.get_device_name(device),
                  "precision": "bf16-autocast" if amp else "float32", "models": models}

@@ -17,7 +17,10 @@ batches move with :func:`to_device`.
 Mixed precision (``amp``, off by default) is bf16 :func:`torch.autocast` on the
 device's type (:func:`autocast`): on CUDA for speed; on the CPU it is allowed (and
 used by the tests) but is usually slower than float32 on CPUs without native bf16.
-bf16 keeps float32's exponent range, so no gradient scaler is needed.
+bf16 keeps float32's exponent range, so no gradient scaler is needed. Without
+``amp``, training on CUDA is full float32 (:func:`exact_float32` turns TF32 off), so
+that step mode and sequence mode agree as closely as on the CPU (PPO's ratio check
+relies on it).
 
 Examples:
     >>> resolve_device("cpu")
@@ -32,7 +35,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import torch
 from tensordict import TensorDictBase
@@ -55,6 +58,7 @@ __all__ = [
     "act_on_device",
     "autocast",
     "check_device",
+    "exact_float32",
     "module_device",
     "resolve_device",
     "to_device",
@@ -185,6 +189,32 @@ def autocast(device: torch.device | str, enabled: bool) -> contextlib.AbstractCo
     if not enabled:
         return contextlib.nullcontext()
     return torch.autocast(device_type=torch.device(device).type, dtype=AMP_DTYPE)
+
+
+@contextlib.contextmanager
+def exact_float32(device: torch.device | str, enabled: bool = True) -> Iterator[None]:
+    """Full float32 convolutions and matrix products on CUDA inside (no TF32); restored after.
+
+    Training loops enter it with ``enabled=not amp``: mixed precision is the fast path.
+
+    PyTorch lets cuDNN convolutions use TF32 (10-bit mantissa) by default; step mode
+    (one frame per row) and sequence mode (all frames at once) may then pick other
+    kernels and differ by ~1e-3. Nothing changes on other devices.
+
+    Examples:
+        >>> with exact_float32("cpu"):
+        ...     torch.ones(1).dtype
+        torch.float32
+    """
+    if not enabled or torch.device(device).type != "cuda":
+        yield
+        return
+    saved = torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False
+    try:
+        yield
+    finally:
+        torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = saved
 
 
 def act_on_device(

@@ -20,6 +20,7 @@ def tiny_config(tmp_path, epochs: int, model: str = "spf") -> BCConfig:
     return BCConfig(
         output_dir=str(tmp_path / "run"),
         data_dir=str(tmp_path / "data"),
+        device="cpu",  # the CPU suite everywhere; tests/test_device_cuda.py runs BC on CUDA
         num_workers=1,
         logger="csv",
         progress=False,

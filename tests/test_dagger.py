@@ -74,6 +74,7 @@ def tiny_config(tmp_path, checkpoint, **overrides) -> DAggerConfig:
     base = dict(
         checkpoint=str(checkpoint),
         output_dir=str(tmp_path / "dagger"),
+        device="cpu",  # the CPU suite everywhere; tests/test_device_cuda.py runs DAgger on CUDA
         rounds=2,
         episodes_per_round=4,
         aggregate_bc_data=False,

@@ -18,12 +18,18 @@ from torchrl.modules import set_recurrent_mode
 
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.data import DatasetConfig, _empty_episodes
-from spf_rl.device import AMP_DTYPE, autocast, resolve_device, to_device
+from spf_rl.device import AMP_DTYPE, autocast, exact_float32, resolve_device, to_device
 from spf_rl.hub import policy_from_checkpoint
 from spf_rl.modules import SPFConfig
 from spf_rl.train import collection, dagger, ppo
 from spf_rl.train.bc import BCConfig, bc_loss, episodes_to_sequence, train_bc
-from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig, make_collection_env, make_collector
+from spf_rl.train.collection import (
+    CollectionEnvConfig,
+    CollectorConfig,
+    collection_device,
+    make_collection_env,
+    make_collector,
+)
 from spf_rl.train.dagger import DAggerConfig, train_dagger
 from spf_rl.train.evaluation import EvalConfig, evaluate_policy
 from spf_rl.train.models import build_policy
@@ -81,6 +87,23 @@ def test_cuda_is_refused_where_there_is_none(monkeypatch):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     with pytest.raises(ValueError, match=r"device='cuda:1' needs CUDA.*Use device=cpu"):
         resolve_device("cuda:1")
+
+
+def test_auto_stays_on_the_cpu_for_ray_collection(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert collection_device("auto", CollectorConfig(backend="ray")) == torch.device("cpu")  # CPU-only actors
+    assert collection_device("auto", CollectorConfig()) == torch.device("cuda")
+    assert collection_device("cuda", CollectorConfig(backend="ray")) == torch.device("cuda")  # refused later, clearly
+
+
+def test_full_float32_on_cuda_unless_amp(monkeypatch):
+    monkeypatch.setattr(torch.backends.cudnn, "allow_tf32", True)
+    monkeypatch.setattr(torch.backends.cuda.matmul, "allow_tf32", True)
+    with exact_float32("cuda"):
+        assert not torch.backends.cudnn.allow_tf32 and not torch.backends.cuda.matmul.allow_tf32
+    with exact_float32("cuda", enabled=False), exact_float32("cpu"):
+        assert torch.backends.cudnn.allow_tf32 and torch.backends.cuda.matmul.allow_tf32
+    assert torch.backends.cudnn.allow_tf32 and torch.backends.cuda.matmul.allow_tf32  # restored
 
 
 @pytest.mark.parametrize("schema, name", [(BCConfig, "bc"), (DAggerConfig, "dagger"), (PPOConfig, "ppo")])
@@ -332,16 +355,21 @@ def test_amp_bc_loss_and_ppo_collection_on_the_cpu():
     assert (replayed - batch["action_log_prob"]).abs().max() < AMP_RATIO_SYNC_TOLERANCE
 
 
-def test_ppo_runs_under_amp_on_the_cpu(tmp_path, checkpoint):
+def tiny_ppo_config(tmp_path: Path, checkpoint: Path, **overrides) -> PPOConfig:
+    """Two iterations (a value-head warm-up, then a PPO update) of 2 agents x 12 steps."""
     evaluation = dict(num_episodes=2, num_agents=2, num_houses=1)
-    config = PPOConfig(
-        checkpoint=str(checkpoint), output_dir=str(tmp_path / "run"), device="cpu", amp=True,
-        frames_per_batch=24, total_frames=48, ppo_epochs=1, minibatch_rows=1, critic_warmup_iters=1, val_every=2,
-        kl_coef=0.1, logger="", progress=False, collector=CollectorConfig(num_agents=2),
+    values = dict(
+        checkpoint=str(checkpoint), output_dir=str(tmp_path / "run"), frames_per_batch=24, total_frames=48,
+        ppo_epochs=1, minibatch_rows=1, critic_warmup_iters=1, val_every=2, kl_coef=0.1, logger="", progress=False,
+        collector=CollectorConfig(num_agents=2),
         env=CollectionEnvConfig(num_houses=1, demo_length=5, max_steps=8, image_size=32, with_expert=False),
         val=EvalConfig(split="val", seed=1, **evaluation), test=EvalConfig(split="test", seed=2, **evaluation),
     )
-    warmup, update = train_ppo(config)["history"]
+    return PPOConfig(**{**values, **overrides})
+
+
+def test_ppo_runs_under_amp_on_the_cpu(tmp_path, checkpoint):
+    warmup, update = train_ppo(tiny_ppo_config(tmp_path, checkpoint, device="cpu", amp=True))["history"]
     assert warmup["critic_warmup"] and not update["critic_warmup"]
     assert warmup["skipped_updates"] == update["skipped_updates"] == 0
     assert update["log_ratio_first"] < AMP_RATIO_SYNC_TOLERANCE

@@ -21,9 +21,9 @@ from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig, make_c
 from spf_rl.train.dagger import DAggerConfig, train_dagger
 from spf_rl.train.evaluation import EvalConfig, evaluate_policy
 from spf_rl.train.models import ModelConfig, build_policy
-from spf_rl.train.ppo import PPOConfig, train_ppo
+from spf_rl.train.ppo import train_ppo
 from spf_rl.train.ppo_loss import AMP_RATIO_SYNC_TOLERANCE, RATIO_SYNC_TOLERANCE, make_ppo_modules, recompute_log_prob
-from test_device import AMP_LOGIT_TOLERANCE, random_sequence, step_and_sequence_logits
+from test_device import AMP_LOGIT_TOLERANCE, random_sequence, step_and_sequence_logits, tiny_ppo_config
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (torch.cuda.is_available() is False)")
 
@@ -143,13 +143,7 @@ def test_tiny_ppo_run_on_cuda(tmp_path, amp):
     torch.manual_seed(0)
     start = tmp_path / "start.pt"
     save_checkpoint(start, "spf", POLICY, {"model": build_policy("spf", POLICY).state_dict()})
-    config = PPOConfig(
-        checkpoint=str(start), output_dir=str(tmp_path / "run"), device="cuda", amp=amp,
-        frames_per_batch=24, total_frames=48, ppo_epochs=2, minibatch_rows=1, critic_warmup_iters=1, val_every=1,
-        kl_coef=0.1, logger="", progress=False, collector=CollectorConfig(num_agents=2), env=ENV,
-        val=EvalConfig(split="val", seed=1, **EVALUATION), test=EvalConfig(split="test", seed=2, **EVALUATION),
-    )
-    history = train_ppo(config)["history"]
+    history = train_ppo(tiny_ppo_config(tmp_path, start, device="cuda", amp=amp, ppo_epochs=2, val_every=1))["history"]
     assert [r["skipped_updates"] for r in history] == [0, 0]
     assert history[1]["log_ratio_first"] < (AMP_RATIO_SYNC_TOLERANCE if amp else RATIO_SYNC_TOLERANCE)
     assert raw_devices(tmp_path / "run" / "last.pt") == raw_devices(tmp_path / "run" / "best.pt") == {"cpu"}

@@ -53,6 +53,7 @@ def tiny_config(tmp_path, checkpoint, iterations: int, **overrides) -> PPOConfig
     values = dict(
         checkpoint=str(checkpoint),
         output_dir=str(tmp_path / "run"),
+        device="cpu",  # the CPU suite everywhere; tests/test_device_cuda.py runs PPO on CUDA
         frames_per_batch=AGENTS * STEPS,
         total_frames=AGENTS * STEPS * iterations,
         ppo_epochs=2,

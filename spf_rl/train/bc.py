@@ -34,7 +34,7 @@ from tqdm.auto import tqdm
 
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.data import DatasetConfig, EpisodeDataset
-from spf_rl.device import DEFAULT_DEVICE, autocast, check_device, module_device, resolve_device, to_device
+from spf_rl.device import DEFAULT_DEVICE, autocast, check_device, exact_float32, module_device, resolve_device, to_device
 from spf_rl.modules.memory import memory_bytes
 from spf_rl.modules.policy import SPFPolicy
 from spf_rl.train.evaluation import EvalConfig, evaluate_policy
@@ -199,9 +199,18 @@ def model_memory_bytes(model_type: str, demo_length: int, sparsity: float, image
 
 
 def train_bc(config: BCConfig) -> dict:
-    """Run (or resume) a behaviour-cloning run and return its results dict (also written to ``results.json``)."""
-    start_time = time.time()
+    """Run (or resume) a behaviour-cloning run and return its results dict (also written to ``results.json``).
+
+    Raises:
+        ValueError: ``config.device`` names a device this machine does not have (before any work).
+    """
     device = resolve_device(config.device)
+    with exact_float32(device, enabled=not config.optim.amp):
+        return _train_bc(config, device)
+
+
+def _train_bc(config: BCConfig, device: torch.device) -> dict:
+    start_time = time.time()
     output = Path(config.output_dir)
     output.mkdir(parents=True, exist_ok=True)
     (output / "config.json").write_text(json.dumps(asdict(config), indent=2, default=str))

@@ -37,6 +37,7 @@ from torchrl.modules.utils import get_primers_from_module
 from envs.nav_env import PathFollowEnv
 from envs.checks import check_episode_source, check_positive_ints
 from envs.transforms import DEFAULT_NOISE, ActuationNoise
+from spf_rl.device import DEFAULT_DEVICE, resolve_device
 
 logger = logging.getLogger(__name__)
 
@@ -113,6 +114,23 @@ class CollectorConfig:
     def total_agents(self) -> int:
         """Agents stepped together over all collectors."""
         return self.num_collectors * self.num_agents
+
+
+def collection_device(setting: str | torch.device, config: CollectorConfig) -> torch.device:
+    """The learner's device for a run that collects with ``config``: :func:`~spf_rl.device.resolve_device`,
+    except that ``"auto"`` means the CPU with the Ray backend (its actors act on the CPU).
+
+    Examples:
+        >>> collection_device("auto", CollectorConfig(backend="ray"))
+        device(type='cpu')
+        >>> collection_device("cpu", CollectorConfig())
+        device(type='cpu')
+    """
+    device = resolve_device(setting)
+    if config.backend == "ray" and setting == DEFAULT_DEVICE and device.type != "cpu":
+        logger.info("collector.backend='ray' acts on CPU actors: device=%s resolves to the CPU", DEFAULT_DEVICE)
+        return torch.device("cpu")
+    return device
 
 
 def _single_agent_env(env_config: CollectionEnvConfig) -> TransformedEnv:
@@ -346,6 +364,7 @@ __all__ = [
     "CollectionEnvConfig",
     "CollectorConfig",
     "batch_to_episodes",
+    "collection_device",
     "collect_episodes",
     "make_collection_env",
     "make_collector",

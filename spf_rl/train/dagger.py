@@ -45,9 +45,15 @@ from tqdm.auto import tqdm
 from envs.transforms import philox_uniforms
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.data import DatasetConfig, EpisodeDataset
-from spf_rl.device import DEFAULT_DEVICE, check_device, module_device, resolve_device
+from spf_rl.device import DEFAULT_DEVICE, check_device, exact_float32, module_device
 from spf_rl.train.bc import BCConfig, OptimConfig, _atomic_json, bc_loss
-from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig, collect_episodes, make_collector
+from spf_rl.train.collection import (
+    CollectionEnvConfig,
+    CollectorConfig,
+    collect_episodes,
+    collection_device,
+    make_collector,
+)
 from spf_rl.train.evaluation import EvalConfig, evaluate_policy, with_episode_sizes
 from spf_rl.train.models import build_policy
 from spf_rl.viz import plot_if_available, pyplot
@@ -243,9 +249,18 @@ class _Aggregate:
 
 
 def train_dagger(config: DAggerConfig) -> dict:
-    """Run (or resume) DAgger and return its results (also written to ``results.json``)."""
+    """Run (or resume) DAgger and return its results (also written to ``results.json``).
+
+    Raises:
+        ValueError: ``config.device`` names a device this machine does not have (before any work).
+    """
+    device = collection_device(config.device, config.collector)
+    with exact_float32(device, enabled=not config.optim.amp):
+        return _train_dagger(config, device)
+
+
+def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
     start_time = time.time()
-    device = resolve_device(config.device)
     output = Path(config.output_dir)
     (output / "rounds").mkdir(parents=True, exist_ok=True)
     (output / "config.json").write_text(json.dumps(asdict(config), indent=2, default=str))

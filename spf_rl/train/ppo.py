@@ -59,9 +59,9 @@ from torchrl.record.loggers import get_logger
 from tqdm.auto import tqdm
 
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
-from spf_rl.device import autocast, resolve_device
+from spf_rl.device import autocast, exact_float32
 from spf_rl.train.bc import _atomic_json
-from spf_rl.train.collection import make_collector
+from spf_rl.train.collection import collection_device, make_collector
 from spf_rl.train.evaluation import evaluate_policy, with_episode_sizes
 from spf_rl.train.models import build_policy
 from spf_rl.train.ppo_config import PPOConfig, checked_env_config
@@ -83,16 +83,9 @@ from spf_rl.viz import plot_if_available, pyplot
 
 logger = logging.getLogger(__name__)
 
-__all__ = [
-    "PPOConfig",
-    "SPFPPOLoss",
-    "ValueHead",
-    "compute_values",
-    "episode_statistics",
-    "make_ppo_modules",
-    "plot_ppo",
-    "recompute_log_prob",
-    "train_ppo",
+__all__ = [  # the loss, modules and config are re-exported from spf_rl.train.ppo_loss and ppo_config
+    "PPOConfig", "SPFPPOLoss", "ValueHead", "compute_values", "episode_statistics", "make_ppo_modules",
+    "plot_ppo", "recompute_log_prob", "train_ppo",
 ]
 
 #: Salt of the per-iteration minibatch permutation seed.
@@ -127,7 +120,9 @@ def train_ppo(config: PPOConfig, callback: Callable[[dict], None] | None = None)
     if config.num_threads:
         torch.set_num_threads(config.num_threads)
     try:
-        return _PPORun(config).run(callback)
+        run = _PPORun(config)
+        with exact_float32(run.device, enabled=not config.amp):
+            return run.run(callback)
     finally:
         torch.set_num_threads(threads)
 
@@ -137,7 +132,7 @@ class _PPORun:
 
     def __init__(self, config: PPOConfig) -> None:
         self.config = config
-        self.device = resolve_device(config.device)  # first: a missing GPU fails before anything is written
+        self.device = collection_device(config.device, config.collector)  # first: a missing GPU fails here
         self.output = Path(config.output_dir)
         self.output.mkdir(parents=True, exist_ok=True)
         _atomic_json(self.output / "config.json", asdict(config))
