@@ -91,6 +91,13 @@ def greedy_on_device(policy: TensorDictModuleBase):
     The arg-max is taken on that device; the logits, the action and the next
     recurrent state come back to the env's device. A policy without weights (open-loop
     replay) or on the CPU is called as :func:`greedy` calls it.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> from tensordict.nn import TensorDictModule
+        >>> policy = TensorDictModule(torch.nn.Linear(2, 3), ["obs"], ["logits"])
+        >>> greedy_on_device(policy)(TensorDict({"obs": torch.ones(4, 2)}, [4], device="cpu"))["action"].shape
+        torch.Size([4])
     """
     device = module_device(policy) if isinstance(policy, torch.nn.Module) else None
     out_keys = list(dict.fromkeys([*policy.out_keys, "action"]))
