@@ -72,6 +72,24 @@ class OpenLoopReplay(TensorDictModuleBase):
         return tensordict.set("action", action)
 
 
+def episode_record(final: TensorDictBase) -> dict:
+    """How an episode ended, from one agent's last ``"next"`` tensordict.
+
+    Returns:
+        success, spl, goal_distance (m), path_length (m), shortest_path_length (m),
+        steps, episode_seed, as Python scalars.
+    """
+    return {
+        "success": bool(final["success"].item()),
+        "spl": float(final["spl"].item()),
+        "goal_distance": float(final["goal_distance"].item()),
+        "path_length": float(final["path_length"].item()),
+        "shortest_path_length": float(final["shortest_path_length"].item()),
+        "steps": int(final["step_count"].item()),
+        "episode_seed": int(final["episode_seed"].item()),
+    }
+
+
 def run_episodes(env, policy, num_episodes: int, progress: bool = False) -> list[dict]:
     """Play a fixed set of episodes with ``policy`` and record how each ended.
 
@@ -106,22 +124,11 @@ def run_episodes(env, policy, num_episodes: int, progress: bool = False) -> list
             for index in torch.nonzero(finished).reshape(-1).tolist():
                 if len(per_agent[index]) >= quota[index]:
                     continue
-                final = tensordict.get("next")[index]
-                per_agent[index].append(
-                    {
-                        "success": bool(final["success"].item()),
-                        "spl": float(final["spl"].item()),
-                        "goal_distance": float(final["goal_distance"].item()),
-                        "path_length": float(final["path_length"].item()),
-                        "shortest_path_length": float(final["shortest_path_length"].item()),
-                        "steps": int(final["step_count"].item()),
-                        "episode_seed": int(final["episode_seed"].item()),
-                    }
-                )
+                per_agent[index].append(episode_record(tensordict.get("next")[index]))
                 bar.update(1)
             tensordict = next_tensordict
     bar.close()
     return [record for records in per_agent for record in records]
 
 
-__all__ = ["ExpertPolicy", "OpenLoopReplay", "run_episodes"]
+__all__ = ["ExpertPolicy", "OpenLoopReplay", "episode_record", "run_episodes"]

@@ -122,6 +122,46 @@ def write_gif(frames: list[np.ndarray], path: str | Path, fps: int = 5) -> Path:
     return path
 
 
+def video_suffix() -> str:
+    """``".mp4"`` when imageio can write MP4 here (the ``imageio-ffmpeg`` codec is installed), else ``".gif"``.
+
+    Examples:
+        >>> video_suffix() in (".mp4", ".gif")
+        True
+    """
+    from importlib.util import find_spec
+
+    return ".mp4" if find_spec("imageio") is not None and find_spec("imageio_ffmpeg") is not None else ".gif"
+
+
+def write_video(frames: list[np.ndarray], path: str | Path, fps: int = 5) -> Path:
+    """Write RGB frames ``(H, W, 3)`` uint8 as an MP4 where a codec is present, as a GIF otherwise.
+
+    Args:
+        frames: the frames, all of one size (for MP4, sides that are multiples of 16
+            pixels are written as they are; others are padded by the codec).
+        path: the output path; its suffix is replaced by :func:`video_suffix`'s.
+        fps: frames per second.
+
+    Returns:
+        the path written (``.mp4`` or ``.gif``).
+
+    Examples:
+        >>> import tempfile, os
+        >>> out = write_video([np.zeros((16, 16, 3), np.uint8)] * 2, os.path.join(tempfile.mkdtemp(), "v"))
+        >>> out.exists(), out.suffix in (".mp4", ".gif")
+        (True, True)
+    """
+    path = Path(path).with_suffix(video_suffix())
+    if path.suffix == ".gif":
+        return write_gif(frames, path, fps=fps)
+    import imageio.v2 as imageio
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    imageio.mimsave(path, frames, fps=fps)
+    return path
+
+
 def figure_to_array(fig) -> np.ndarray:
     """Render a matplotlib figure to an RGB uint8 array."""
     fig.canvas.draw()

@@ -1,0 +1,215 @@
+"""What ``recipes/teach.py`` does once it has a route: the policy repeats it, then video, map and JSON.
+
+* :func:`repeat_route`: a batched :class:`~envs.nav_env.PathFollowEnv` of one agent
+  per repeat, every agent playing the taught demonstration under its own actuation
+  noise (the env seed fixes each repeat's episode seed, and so its noise), driven by
+  the greedy policy in one ``env.rollout`` (the path of
+  :func:`~spf_rl.train.evaluation.record_rollout`, batched);
+* :func:`write_video`: the demonstration's first-person view beside a repeat's,
+  and the map with both paths, step by step (MP4 where a codec is present, GIF
+  otherwise: :func:`spf_rl.viz.write_video`);
+* :func:`write_map`: the top-down map with the demonstration and every repeat;
+* :func:`results`: the JSON content: the route, the set-up and success and SPL per repeat.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torchrl.envs import Compose, InitTracker, TransformedEnv
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from tqdm.auto import tqdm
+
+from envs.demos import Demonstration
+from envs.follow import SUCCESS_FRACTION, SUCCESS_RADIUS_M
+from envs.nav_env import PathFollowEnv
+from envs.render import draw_top_down_map
+from envs.scenes import build_house
+from envs.scripted import episode_record
+from envs.transforms import ActuationNoise
+from envs.user_demos import ACTION_LETTERS
+from spf_rl.metrics import summarize
+from spf_rl.train.evaluation import greedy_on_device
+from spf_rl.viz import figure_to_array, pyplot, write_video as write_frames
+
+logger = logging.getLogger(__name__)
+
+#: Frames per second of the side-by-side video.
+VIDEO_FPS = 4
+#: Size of a video frame, inches at VIDEO_DPI: 800 x 288 pixels (multiples of 16 for MP4).
+VIDEO_FIGSIZE_IN = (10.0, 3.6)
+VIDEO_DPI = 80
+#: Resolution of the map PNG, dots per inch.
+MAP_DPI = 110
+#: Letter of each action in the JSON (the ``--actions`` alphabet).
+ACTION_LETTER = {action: letter for letter, action in ACTION_LETTERS.items()}
+
+
+@dataclass
+class Repeat:
+    """One repeat of the route by the policy.
+
+    Attributes:
+        record: ``repeat`` (from 1) and :func:`~envs.scripted.episode_record`'s keys
+            (``success``, ``spl``, ``goal_distance``, ``path_length``, ``steps``, ...; metres).
+        poses: ``(T + 1, 3)`` poses (x m, y m, heading rad): the start, then after each step.
+        frames: ``(T + 1, H, W, 3)`` uint8 first-person frames at those poses.
+    """
+
+    record: dict
+    poses: np.ndarray
+    frames: np.ndarray
+
+
+def repeat_route(
+    policy,
+    demo: Demonstration,
+    *,
+    repeats: int,
+    noise: str,
+    seed: int,
+    max_steps: int,
+    image_size: int,
+    progress: bool = True,
+) -> tuple[list[Repeat], np.ndarray]:
+    """The policy follows ``demo`` ``repeats`` times under ``noise``, greedily.
+
+    Args:
+        policy: an SPF-family policy (:func:`spf_rl.load_policy`), in eval mode.
+        demo: the taught demonstration (of the policy's ``demo_length``).
+        repeats: how many times (one agent each, stepped together).
+        noise: actuation-noise preset.
+        seed: env seed: the same seed gives the same repeats.
+        max_steps: episode limit, steps.
+        image_size: frame side, pixels (the policy's).
+        progress: show a progress bar over the steps.
+
+    Returns:
+        (the repeats, in agent order; the demonstration's ``(n, H, W, 3)`` frames).
+    """
+    base = PathFollowEnv(
+        house_seeds=[demo.house_seed],
+        num_agents=repeats,
+        demo_length=demo.length,
+        max_steps=max_steps,
+        image_size=image_size,
+        demonstrations=[demo],
+    )
+    env = TransformedEnv(base, Compose(ActuationNoise(noise), InitTracker(), policy.make_tensordict_primer()))
+    env.set_seed(seed)
+    bar = tqdm(total=max_steps, desc=f"{repeats} repeats", unit="step", disable=not progress)
+    try:
+        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+            # lazy stack: the demo frames every step holds are not copied max_steps times
+            rollout = env.rollout(
+                max_steps,
+                greedy_on_device(policy),
+                break_when_any_done=False,
+                return_contiguous=False,
+                callback=lambda *_: bar.update(1),
+            )
+    finally:
+        bar.update(bar.total - bar.n)  # the last step calls no callback
+        bar.close()
+        env.close()
+    done = rollout.get(("next", "done")).reshape(repeats, -1)
+    pose, next_pose = rollout.get("pose"), rollout.get(("next", "pose"))
+    pixels, next_pixels = rollout.get("pixels"), rollout.get(("next", "pixels"))
+    out = []
+    for agent in range(repeats):
+        last = int(torch.nonzero(done[agent])[0, 0])  # every agent's first episode ends by max_steps
+        final = rollout[agent, last].get("next")
+        out.append(
+            Repeat(
+                record={"repeat": agent + 1, **episode_record(final)},
+                poses=torch.cat([pose[agent, : last + 1], next_pose[agent, last : last + 1]]).numpy().astype(np.float64),
+                frames=torch.cat([pixels[agent, : last + 1], next_pixels[agent, last : last + 1]]).numpy(),
+            )
+        )
+    return out, rollout[0, 0].get("demo_frames").numpy()
+
+
+def route_letters(demo: Demonstration) -> str:
+    """The demonstration's actions as ``--actions`` letters (``"FFLR..."``)."""
+    return "".join(ACTION_LETTER[int(action)] for action in demo.actions)
+
+
+def success_radius_m(demo: Demonstration) -> float:
+    """The follow protocol's success radius around the route's end, metres."""
+    return max(SUCCESS_RADIUS_M, SUCCESS_FRACTION * demo.shortest_length_m)
+
+
+def write_map(demo: Demonstration, repeats: list[Repeat], path: Path, title: str) -> Path:
+    """The top-down map with the demonstration, every repeat and the success radius, as a PNG."""
+    plt = pyplot()
+    from matplotlib.patches import Circle
+
+    paths = {"demonstration": demo.poses[:, :2]}
+    for repeat in repeats:
+        outcome = "success" if repeat.record["success"] else "failure"
+        paths[f"repeat {repeat.record['repeat']} ({outcome})"] = repeat.poses[:, :2]
+    ax = draw_top_down_map(build_house(demo.house_seed), paths=paths, title=title)
+    ax.add_patch(Circle(demo.end_xy, success_radius_m(demo), fill=False, linestyle="--", color="black"))
+    ax.figure.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    ax.figure.savefig(path, dpi=MAP_DPI)
+    plt.close(ax.figure)
+    return path
+
+
+def write_video(demo: Demonstration, demo_frames: np.ndarray, repeat: Repeat, path: Path, noise: str) -> Path:
+    """The demonstration's view, the repeat's view and the map with both paths, step by step.
+
+    The demonstration shows frame ``min(t, n - 1)`` at step ``t`` (it holds its last
+    frame while the repeat goes on); the file is MP4 where imageio has its ffmpeg
+    codec, GIF otherwise.
+    """
+    plt = pyplot()
+    demo_xy, repeat_xy = demo.poses[:, :2], repeat.poses[:, :2]
+    fig, (left, middle, right) = plt.subplots(1, 3, figsize=VIDEO_FIGSIZE_IN, dpi=VIDEO_DPI)
+    demo_view = left.imshow(demo_frames[0], interpolation="nearest")
+    repeat_view = middle.imshow(repeat.frames[0], interpolation="nearest")
+    for ax in (left, middle):
+        ax.set_axis_off()
+    draw_top_down_map(build_house(demo.house_seed), paths={"demonstration": demo_xy}, ax=right)
+    (trail,) = right.plot(repeat_xy[:1, 0], repeat_xy[:1, 1], "-", linewidth=2, label=f"repeat {repeat.record['repeat']}")
+    (demo_at,) = right.plot(demo_xy[:1, 0], demo_xy[:1, 1], "o", color="tab:blue", markersize=4)
+    right.legend(loc="upper right", fontsize=7)
+    outcome = f"{'success' if repeat.record['success'] else 'failure'}, SPL {repeat.record['spl']:.2f}"
+    frames = []
+    for step in range(max(len(demo_frames), len(repeat.frames))):
+        shown = min(step, len(demo_frames) - 1)
+        demo_view.set_data(demo_frames[shown])
+        left.set_title(f"demonstration, step {shown}/{len(demo_frames) - 1}", fontsize=9)
+        demo_at.set_data(demo_xy[shown : shown + 1, 0], demo_xy[shown : shown + 1, 1])
+        here = min(step, len(repeat.frames) - 1)
+        repeat_view.set_data(repeat.frames[here])
+        middle.set_title(f"repeat {repeat.record['repeat']} ({noise} noise), step {here}", fontsize=9)
+        trail.set_data(repeat_xy[: here + 1, 0], repeat_xy[: here + 1, 1])
+        right.set_title(outcome if here == len(repeat.frames) - 1 else "", fontsize=9)
+        frames.append(figure_to_array(fig))
+    plt.close(fig)
+    return write_frames(frames, path, fps=VIDEO_FPS)
+
+
+def results(demo: Demonstration, repeats: list[Repeat], setup: dict) -> dict:
+    """The JSON content: the set-up, the route (enough to replay it with ``--actions``), each repeat, a summary."""
+    start = demo.start_pose
+    return {
+        **setup,
+        "route": {
+            "house": demo.house_seed,
+            "start": [float(start[0]), float(start[1]), float(np.degrees(start[2]))],
+            "start_units": "x m, y m, heading deg",
+            "actions": route_letters(demo),
+            "steps": demo.length,
+            "end_xy_m": [float(v) for v in demo.end_xy],
+            "shortest_length_m": float(demo.shortest_length_m),
+            "success_radius_m": success_radius_m(demo),
+        },
+        "repeats": [repeat.record for repeat in repeats],
+        "summary": summarize([repeat.record for repeat in repeats]),
+    }

@@ -1,0 +1,158 @@
+"""recipes/teach.py: headless teach and repeat, input validation, the keyboard's key handling."""
+from __future__ import annotations
+
+import curses
+import json
+import re
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
+
+import teach  # noqa: E402
+from teach_keys import ascii_map, handle_key  # noqa: E402
+from teach_utils import route_letters  # noqa: E402
+
+from envs import RouteRecorder, demonstration_from_actions, demonstration_from_waypoints  # noqa: E402
+from envs.expert import FORWARD, TURN_LEFT  # noqa: E402
+from envs.scenes import build_house  # noqa: E402
+
+HOUSE = "0"
+START = "7.5,1.5,0"
+#: 30 steps in house 0 from (7.5, 1.5) facing +x: along the corridor, then north up the x = 9 m column.
+ROUTE = "FFFFFFLLLFLFLFFRFFLFFRFFLFFRFR"
+WAYPOINTS = "7.5,1.5;9.5,1.5;9.5,5.5;12.5,5.5"
+
+
+def headless(out: Path, *extra: str) -> list[str]:
+    return ["--house", HOUSE, "--start", START, "--out", str(out), "--quiet", *extra]
+
+
+@pytest.fixture(scope="module")
+def taught(tmp_path_factory):
+    out = tmp_path_factory.mktemp("teach")
+    content = teach.main(headless(out, "--actions", ROUTE, "--repeats", "4", "--seed", "3"))
+    return out, content
+
+
+def test_headless_run_writes_video_map_and_json(taught):
+    out, content = taught
+    files = sorted(p.name for p in out.iterdir())
+    assert "teach.json" in files and "teach_map.png" in files
+    assert ("teach.gif" in files) or ("teach.mp4" in files)
+    assert content["files"]["video"] in files
+    saved = json.loads((out / "teach.json").read_text())
+    assert saved == json.loads(json.dumps(content))
+    assert [r["repeat"] for r in saved["repeats"]] == [1, 2, 3, 4]
+    for record in saved["repeats"]:
+        assert isinstance(record["success"], bool) and 0.0 <= record["spl"] <= 1.0
+        assert record["spl"] > 0 or not record["success"]
+    assert saved["route"]["actions"] == ROUTE and saved["route"]["steps"] == 30
+    assert saved["checkpoint"] == teach.DEFAULT_CHECKPOINT and saved["noise"] == "paper"
+    assert saved["summary"]["episodes"] == 4
+    # four repeats under their own noise are not all the same path
+    assert len({r["path_length"] for r in saved["repeats"]}) > 1
+
+
+def test_same_seed_same_json(taught, tmp_path):
+    _, first = taught
+    again = teach.main(headless(tmp_path, "--actions", ROUTE, "--repeats", "4", "--seed", "3", "--no-video"))
+    first = {k: v for k, v in first.items() if k != "files"}
+    again = {k: v for k, v in again.items() if k != "files"}
+    assert json.dumps(first) == json.dumps(again)
+
+
+def route_of(argv: list[str]):
+    """The demonstration the CLI builds from ``argv`` (no repeats)."""
+    parser = teach.build_parser()
+    args = parser.parse_args(argv)
+    house, start, _, config = teach.check_args(parser, args)
+    return teach.teach_route(parser, args, house, start, config.demo_length)
+
+
+def test_waypoints_give_the_planned_route(tmp_path):
+    demo = route_of(["--house", HOUSE, "--waypoints", WAYPOINTS, "--out", str(tmp_path)])
+    points = [tuple(float(v) for v in p.split(",")) for p in WAYPOINTS.split(";")]
+    planned = demonstration_from_waypoints(0, points, length=30)
+    assert demo.length == 30 and demo.actions.tolist() == planned.actions.tolist()
+    np.testing.assert_allclose(demo.poses, planned.poses)
+    # the planned route, typed as --actions, is the same route
+    assert route_letters(demo) == ROUTE
+    assert route_of(["--house", HOUSE, "--start", START, "--actions", ROUTE]).poses.tolist() == demo.poses.tolist()
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--actions", ROUTE, "--noise", "loud"], "--noise must be one of locobot, none, paper"),
+        (["--actions", ROUTE, "--repeats", "0"], r"--repeats must be in \[1, 64\]"),
+        (["--actions", ROUTE, "--checkpoint", "nope"], "--checkpoint: unknown checkpoint name 'nope'"),
+        (["--actions", ROUTE, "--start", "7.5,1.5"], r"--start \(x m, y m, heading deg\): expected 3"),
+        (["--actions", "FFQ"], "action 3 is 'Q'"),
+        (["--waypoints", "7.5,1.5;9.5"], "--waypoints point 2: expected 2"),
+        (["--actions", ROUTE, "--start", "16,1.5,0"], r"--start \(16\.00, 1\.50\) is outside the house"),
+        (["--actions", ROUTE, "--start", "7.5,0.5,0"], r"--start \(7\.50, 0\.50\) is inside a wall"),
+        (["--actions", "FFF" + ROUTE[3:], "--start", "7.5,1.5,180"], r"--actions: step 2 of 30 \(F, forward\) .* runs into a wall"),
+        (["--actions", "LR" * 15], "--actions: the route is too short"),
+        (["--actions", "FFFFFF"], "--actions: the route has 6 steps; demonstrations must have exactly 30 steps"),
+        (["--waypoints", "7.5,1.5;20,1.5"], r"--waypoints: waypoint 2 \(20\.00, 1\.50\) is outside the house"),
+        (["--waypoints", "7.5,1.5;9.5,1.5"], "--waypoints: the waypoints give a planned route of .* exactly 30 steps"),
+    ],
+)
+def test_bad_input_is_refused_before_any_work(argv, message, tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        route_of(["--house", HOUSE, "--out", str(tmp_path / "out"), *argv])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert re.search(message, err), err
+    assert not (tmp_path / "out").exists()
+
+
+def test_keys_drive_undo_and_finish():
+    recorder = RouteRecorder(0, (7.5, 1.5, 0.0), max_steps=30)
+    assert handle_key(recorder, curses.KEY_UP, 30).message == ""
+    assert recorder.actions.tolist() == [FORWARD]
+    handle_key(recorder, curses.KEY_LEFT, 30)
+    assert recorder.actions.tolist() == [FORWARD, TURN_LEFT]
+    handle_key(recorder, curses.KEY_BACKSPACE, 30)
+    assert recorder.length == 1
+    assert "29 to go" in handle_key(recorder, 10, 30).message
+    assert handle_key(recorder, ord("q"), 30).cancelled
+    assert "unknown key" in handle_key(recorder, ord("z"), 30).message
+    recorder.undo()
+    for letter in ROUTE:
+        outcome = handle_key(recorder, ord(letter.lower()), 30)
+    assert "press Enter" in outcome.message
+    assert "already has 30 steps" in handle_key(recorder, curses.KEY_UP, 30).message
+    finished = handle_key(recorder, curses.KEY_ENTER, 30)
+    assert finished.demonstration is not None
+    expected = demonstration_from_actions(0, (7.5, 1.5, 0.0), ROUTE)
+    assert finished.demonstration.poses.tolist() == expected.poses.tolist()
+
+
+def test_keys_refuse_a_wall_and_keep_the_route():
+    recorder = RouteRecorder(0, (7.5, 1.5, 180.0), max_steps=30)
+    handle_key(recorder, curses.KEY_UP, 30)
+    outcome = handle_key(recorder, curses.KEY_UP, 30)
+    assert "runs into a wall" in outcome.message and recorder.length == 1
+
+
+def test_keys_too_short_route_is_not_finished():
+    recorder = RouteRecorder(0, (7.5, 1.5, 0.0), max_steps=2)
+    handle_key(recorder, curses.KEY_LEFT, 2)
+    handle_key(recorder, curses.KEY_RIGHT, 2)
+    outcome = handle_key(recorder, 13, 2)
+    assert outcome.demonstration is None and "too short" in outcome.message
+
+
+def test_ascii_map_shows_walls_route_and_agent():
+    demo = demonstration_from_actions(0, (7.5, 1.5, 0.0), ROUTE)
+    lines = ascii_map(build_house(0), demo.poses)
+    assert len(lines) == 30 and all(len(line) == 30 for line in lines)
+    assert lines[0] == "#" * 30  # the outer wall at the top
+    text = "".join(lines)
+    assert text.count("S") == 1 and "." in text
+    assert sum(text.count(arrow) for arrow in "^/\\<>v") >= 1
