@@ -2,7 +2,7 @@
 
 Up arrow (or ``f``) drives forward 0.3 m, left / right arrows (or ``l`` / ``r``)
 turn 20 degrees, Backspace (or ``u``) undoes the last step, Enter finishes and
-``q`` / Esc cancels. The top-down map is drawn as text: ``#`` walls and furniture,
+``q`` cancels. The top-down map is drawn as text: ``#`` walls and furniture,
 ``.`` the route so far, ``S`` its start and an arrow for the agent.
 
 :func:`handle_key` (what a key does to a :class:`~envs.user_demos.RouteRecorder`)
@@ -36,8 +36,14 @@ KEY_ACTIONS: dict[int, int] = {
 FINISH_KEYS = frozenset({10, 13, curses.KEY_ENTER})
 #: Backspace (curses, DEL, ^H) or ``u`` undoes the last step.
 UNDO_KEYS = frozenset({curses.KEY_BACKSPACE, 127, 8, ord("u")})
-#: ``q`` or Esc cancels.
-QUIT_KEYS = frozenset({ord("q"), 27})
+#: ``q`` cancels.
+QUIT_KEYS = frozenset({ord("q")})
+#: Escape; terminals outside keypad mode send arrows as Esc ``[`` or Esc ``O`` and a letter.
+ESCAPE = 27
+ESCAPE_PREFIXES = frozenset({ord("["), ord("O")})
+ESCAPE_ARROWS = {ord("A"): curses.KEY_UP, ord("B"): curses.KEY_DOWN, ord("C"): curses.KEY_RIGHT, ord("D"): curses.KEY_LEFT}
+#: What ``getch`` returns when no key is waiting.
+NO_KEY = -1
 #: Text cells per metre of the house on the map (a house of 15 m is 30 cells wide).
 MAP_CELLS_PER_M = 2
 #: Arrows for the agent's heading, one per 45-degree sector counter-clockwise from +x.
@@ -72,6 +78,8 @@ def handle_key(recorder: RouteRecorder, key: int, length: int) -> KeyOutcome:
         >>> handle_key(recorder, 10, 3).message
         'the route has 1 steps; press Enter after 3 steps (2 to go).'
     """
+    if key == NO_KEY:
+        return KeyOutcome()
     if key in QUIT_KEYS:
         return KeyOutcome(message="cancelled", cancelled=True)
     if key in UNDO_KEYS:
@@ -95,6 +103,31 @@ def handle_key(recorder: RouteRecorder, key: int, length: int) -> KeyOutcome:
             return KeyOutcome(message=f"{length} steps: press Enter to finish (Backspace to undo).")
         return KeyOutcome()
     return KeyOutcome(message=f"unknown key; {HELP_LINE}")
+
+
+def decode_escape(following: Sequence[int]) -> int:
+    """The key of an escape sequence from the two codes after Esc (an arrow), else :data:`NO_KEY`.
+
+    Examples:
+        >>> decode_escape([ord("["), ord("A")]) == curses.KEY_UP, decode_escape([NO_KEY, NO_KEY])
+        (True, -1)
+    """
+    if len(following) == 2 and following[0] in ESCAPE_PREFIXES and following[1] in ESCAPE_ARROWS:
+        return ESCAPE_ARROWS[following[1]]
+    return NO_KEY
+
+
+def read_key(screen) -> int:
+    """The next key, with arrows that arrive as raw escape sequences decoded (a lone Esc is ignored)."""
+    key = screen.getch()
+    if key != ESCAPE:
+        return key
+    screen.nodelay(True)
+    try:
+        following = [screen.getch(), screen.getch()]
+    finally:
+        screen.nodelay(False)
+    return decode_escape(following)
 
 
 def ascii_map(house: House, poses: np.ndarray, cells_per_m: int = MAP_CELLS_PER_M) -> list[str]:
@@ -158,7 +191,7 @@ def record_with_keyboard(house: House, start: Sequence[float], length: int) -> D
             for row, line in enumerate(lines[: height - 1]):
                 screen.addstr(row, 0, line[: width - 1])
             screen.refresh()
-            outcome = handle_key(recorder, screen.getch(), length)
+            outcome = handle_key(recorder, read_key(screen), length)
             if outcome.cancelled or outcome.demonstration is not None:
                 return outcome.demonstration
             message = outcome.message

@@ -13,7 +13,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
 
 import teach  # noqa: E402
-from teach_keys import ascii_map, handle_key  # noqa: E402
+from teach_keys import NO_KEY, ascii_map, decode_escape, handle_key  # noqa: E402
 from teach_utils import route_letters  # noqa: E402
 
 from envs import RouteRecorder, demonstration_from_actions, demonstration_from_waypoints  # noqa: E402
@@ -131,6 +131,14 @@ def test_keys_drive_undo_and_finish():
     assert finished.demonstration is not None
     expected = demonstration_from_actions(0, (7.5, 1.5, 0.0), ROUTE)
     assert finished.demonstration.poses.tolist() == expected.poses.tolist()
+
+
+def test_raw_escape_arrows_are_decoded():
+    assert decode_escape([ord("["), ord("A")]) == curses.KEY_UP
+    assert decode_escape([ord("O"), ord("D")]) == curses.KEY_LEFT
+    assert decode_escape([NO_KEY, NO_KEY]) == NO_KEY  # a lone Esc does nothing
+    recorder = RouteRecorder(0, (7.5, 1.5, 0.0), max_steps=30)
+    assert handle_key(recorder, NO_KEY, 30).message == "" and recorder.length == 0
 
 
 def test_keys_refuse_a_wall_and_keep_the_route():
