@@ -310,8 +310,12 @@ class SPFPolicy(TensorDictModuleBase):
         """Pointer update (eq. 4 or the RPF code's clipped version)."""
         return self.cell.update_pointer(eta, b)
 
-    def check_inputs(self, td: TensorDictBase) -> None:
-        """Raise a ``ValueError`` for demo actions or pixels that do not fit the config."""
+    def check_inputs(self, td: TensorDictBase, new_episodes_only: bool = False) -> None:
+        """Raise a ``ValueError`` for demo actions or pixels that do not fit the config.
+
+        With ``new_episodes_only`` (step mode), the action values are checked in the rows
+        where ``is_init`` is true only: a demonstration does not change within an episode.
+        """
         n, demo_actions = self.config.demo_length, td.get(self.demo_actions_key)
         if demo_actions.shape[-1] != n:
             raise ValueError(
@@ -319,11 +323,14 @@ class SPFPolicy(TensorDictModuleBase):
                 f"{n}: the demonstration must have exactly demo_length steps (a memory longer "
                 f"than the demo is not allowed)."
             )
-        if demo_actions.numel() and (int(demo_actions.min()) < 0 or int(demo_actions.max()) >= self.config.num_actions):
-            raise ValueError(
-                f"demo_actions values must be in range(num_actions={self.config.num_actions}), "
-                f"got min {int(demo_actions.min())}, max {int(demo_actions.max())}."
-            )
+        is_init = td.get(self.is_init_key, None) if new_episodes_only else None
+        values = demo_actions if is_init is None else demo_actions[is_init.reshape(td.batch_size)]
+        if values.numel():
+            low, high = (int(v) for v in torch.aminmax(values))
+            if low < 0 or high >= self.config.num_actions:
+                raise ValueError(
+                    f"demo_actions values must be in range(num_actions={self.config.num_actions}), got min {low}, max {high}."
+                )
         check = getattr(self.encoder.module, "check_frames", None)
         if check is not None:
             check(td.get(self.pixels_key), "pixels")
@@ -341,7 +348,7 @@ class SPFPolicy(TensorDictModuleBase):
 
     def _forward_step(self, td: TensorDictBase) -> TensorDictBase:
         # the parts' step forwards, called directly: the batch dim is already there
-        self.check_inputs(td)
+        self.check_inputs(td, new_episodes_only=True)
         self.encode_pixels(td)
         if self.use_memory:
             self.memory._forward_step(td)

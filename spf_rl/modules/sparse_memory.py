@@ -183,7 +183,9 @@ class SparseMemory(TensorDictModuleBase):
             feats = self.encode_where(td, fresh)
             memory = memory.clone()
             memory[fresh] = feats.to(memory.dtype)
-        td.set(self.memory_key, memory)
+            td.set(self.memory_key, memory)
+        elif memory is not stored:  # reshaped or cast: write the memory in use
+            td.set(self.memory_key, memory)
         td.set(next_key(self.memory_key), memory)
         if self.random_sparsity:  # step mode: always the evaluation sparsity
             rows = is_init.numel()
