@@ -21,12 +21,13 @@ from typing import Any
 
 import torch
 
-from spf_rl.modules.policy import SPFConfig
+from spf_rl.modules import SPFConfig
+from spf_rl.train.models import MODEL_NAMES
 
 #: Version of the checkpoint layout.
 CHECKPOINT_FORMAT_VERSION = 1
 #: Model types a checkpoint may hold.
-MODEL_TYPES = ("spf", "rpf", "action_only", "spf_random")
+MODEL_TYPES = MODEL_NAMES
 
 
 class CheckpointError(RuntimeError):

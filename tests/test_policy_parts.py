@@ -144,3 +144,17 @@ def test_rpf_original_sequence_mode_matches_step_mode() -> None:
             out = policy(steps[:, t].clone().update(state))
             torch.testing.assert_close(out["logits"], sequence["logits"][:, t])
             state = out["next"].select("spf_hidden", "eta", "memory_features")
+
+
+def test_rpf_original_is_a_model_type_that_round_trips_a_checkpoint(tmp_path) -> None:
+    from spf_rl.checkpoint import load_checkpoint, save_checkpoint
+    from spf_rl.train.models import ModelConfig, build_policy, spf_config
+
+    config = spf_config(ModelConfig(name="rpf_original", feature_dim=16, hidden_size=16), demo_length=6, image_size=16)
+    policy = build_policy("rpf_original", config)
+    assert policy.config.architecture == "rpf_original"
+    save_checkpoint(tmp_path / "rpf.pt", "rpf_original", config, {"model": policy.state_dict()})
+    payload = load_checkpoint(tmp_path / "rpf.pt", expected_model_type="rpf_original")
+    loaded = build_policy("rpf_original", payload["model_config"])
+    loaded.load_state_dict(payload["model"])
+    torch.testing.assert_close(loaded(_inputs())["logits"], policy(_inputs())["logits"])

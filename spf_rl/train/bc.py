@@ -195,7 +195,7 @@ def model_memory_bytes(model_type: str, demo_length: int, sparsity: float, image
     frame_shape = (3, image_size, image_size)
     if model_type == "action_only":
         return demo_length  # one byte per action, no frames
-    return memory_bytes(demo_length, 1.0 if model_type == "rpf" else sparsity, frame_shape)
+    return memory_bytes(demo_length, 1.0 if model_type in ("rpf", "rpf_original") else sparsity, frame_shape)
 
 
 def train_bc(config: BCConfig) -> dict:

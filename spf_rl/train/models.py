@@ -15,7 +15,7 @@ from spf_rl.modules import (
 )
 
 #: Model names the recipes accept.
-MODEL_NAMES = ("spf", "rpf", "action_only", "spf_random")
+MODEL_NAMES = ("spf", "rpf", "rpf_original", "action_only", "spf_random")
 #: Default sparsity range of ``"spf_random"`` (a sparsity per training episode).
 DEFAULT_SPARSITY_RANGE = (0.2, 1.0)
 
@@ -25,7 +25,8 @@ class ModelConfig:
     """Which policy to train and its hyper-parameters.
 
     Args:
-        name: ``"spf"`` (sparse memory), ``"rpf"`` (full memory), ``"action_only"``,
+        name: ``"spf"`` (sparse memory), ``"rpf"`` (SPF with full memory),
+            ``"rpf_original"`` (the RPF lab code's memory network, full memory), ``"action_only"``,
             or ``"spf_random"`` (one SPF model trained with a sparsity drawn per
             episode from ``sparsity_range``; not in the paper).
         sparsity: memory sparsity for ``"spf"``, in (0, 1]; for ``"spf_random"`` the
@@ -100,6 +101,8 @@ def build_policy(model_type: str, config: SPFConfig) -> SPFPolicy:
         return make_spf_policy(dataclasses.replace(config, memory_mode="sparse"))
     if model_type == "rpf":
         return make_rpf_policy(config)
+    if model_type == "rpf_original":
+        return make_rpf_original_policy(config)
     if model_type == "action_only":
         return make_action_only_policy(config)
     raise ValueError(f"model_type must be one of {MODEL_NAMES}, got {model_type!r}.")
