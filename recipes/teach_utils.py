@@ -44,6 +44,10 @@ VIDEO_FIGSIZE_IN = (10.0, 3.6)
 VIDEO_DPI = 80
 #: Resolution of the map PNG, dots per inch.
 MAP_DPI = 110
+#: Font size of the map's title, points.
+TITLE_FONTSIZE = 10
+#: Drawing order of the demonstration on the map (above the repeats' lines).
+DEMO_ZORDER = 5
 #: Letter of each action in the JSON (the ``--actions`` alphabet).
 ACTION_LETTER = {action: letter for letter, action in ACTION_LETTERS.items()}
 
@@ -152,6 +156,8 @@ def write_map(demo: Demonstration, repeats: list[Repeat], path: Path, title: str
         outcome = "success" if repeat.record["success"] else "failure"
         paths[f"repeat {repeat.record['repeat']} ({outcome})"] = repeat.poses[:, :2]
     ax = draw_top_down_map(build_house(demo.house_seed), paths=paths, title=title)
+    ax.lines[0].set_zorder(DEMO_ZORDER)  # the demonstration on top of the repeats
+    ax.title.set_fontsize(TITLE_FONTSIZE)
     ax.add_patch(Circle(demo.end_xy, success_radius_m(demo), fill=False, linestyle="--", color="black"))
     ax.figure.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
