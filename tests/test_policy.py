@@ -161,7 +161,7 @@ def test_bad_config(kwargs, match):
 
 def test_memory_modes_lengths():
     cfg = SPFConfig()
-    assert cfg.memory_length == 12
+    assert cfg.memory_length == 24  # the default sparsity 0.8 of n = 30
     assert make_rpf_policy(dataclasses.replace(cfg, feature_dim=8, hidden_size=8)).memory_length == 30
     policy = make_action_only_policy(dataclasses.replace(cfg, feature_dim=8, hidden_size=8))
     assert policy.memory_length == 0 and "memory_features" not in policy.in_keys

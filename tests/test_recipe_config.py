@@ -62,3 +62,13 @@ def test_long_preset_is_at_least_20k_steps_on_8k_episodes():
     assert config.data.num_episodes >= 8000 and steps >= 20_000
     assert config.val.num_episodes >= 300  # checkpoints picked on at least 300 validation episodes
     assert config.output_dir.startswith("runs/bc_long/")
+
+
+def test_the_recipe_trains_the_dataclass_defaults():
+    """One home for every default: bc.yaml only names the run."""
+    from dataclasses import asdict
+
+    recipe, library = asdict(load_config(BCConfig, "bc", [])), asdict(BCConfig())
+    recipe.pop("output_dir"), library.pop("output_dir")
+    assert recipe == library
+    assert library["model"]["sparsity"] == 0.8 and library["model"]["initial_pointer_step"] == 0.9

@@ -19,7 +19,10 @@ TURN_LEFT_ACTION = 1
 ALLOWED_NUM_ACTIONS = (NUM_PAPER_ACTIONS, NUM_PAPER_ACTIONS + 1)
 #: Demonstration length n of the paper (Sec. 4.1).
 DEFAULT_DEMO_LENGTH = 30
-DEFAULT_SPARSITY = 0.4
+#: Default memory sparsity: the paper's headline model, SPF 0.8.
+DEFAULT_SPARSITY = 0.8
+#: Default untrained pointer increment tanh(b): the pointer starts moving about one demo index per step.
+DEFAULT_INITIAL_POINTER_STEP = 0.9
 POINTER_UPDATES = ("paper", "rpf")
 MEMORY_MODES = ("sparse", "full", "none")
 #: Memory networks: SPF's (psi over attended features + action window) or the RPF lab code's.
@@ -36,7 +39,7 @@ class SPFConfig:
         num_actions (int): number of policy actions, 3 (forward, left, right) or 4
             (with STOP = 3). Also the one-hot size of the demo actions in the window.
         demo_length (int): demonstration length ``n`` (frames and actions).
-        sparsity (float): fraction of demo frames kept in memory, in ``(0, 1]``
+        sparsity (float): fraction of demo frames kept in memory, in ``(0, 1]``; 0.8 by default
             (used when ``memory_mode="sparse"``). With ``sparsity_range`` it is the
             default evaluation sparsity (:attr:`SPFPolicy.sparsity`).
         k (int): half-width of the hard action window (``2k + 1`` actions).
@@ -62,9 +65,9 @@ class SPFConfig:
             it follows RPF's action memory.
         initial_pointer_step (float): pointer increment ``tanh(b)`` of the untrained
             network (the pointer head's bias is set to ``atanh`` of it), in ``(-1, 1)``.
-            0 (default) is PyTorch's usual initialisation; a value near 1 starts the
-            pointer moving along the demonstration about one index per step, as the
-            RPF code's rule does. The paper does not say how b is initialised.
+            0.9 (default) starts the pointer moving along the demonstration about one
+            index per step, as the RPF code's rule does; 0 is PyTorch's usual
+            initialisation. The paper does not say how b is initialised.
         sparsity_range (tuple of float, optional): ``(low, high)`` with
             ``0 < low <= high <= 1``: train one model for many sparsities (needs
             ``memory_mode="sparse"``). The memory then holds a slot for each of the
@@ -98,7 +101,7 @@ class SPFConfig:
     image_size: tuple[int, int] = field(default=(64, 64))
     mu_dim: int | None = None
     soft_action_memory: bool | None = None
-    initial_pointer_step: float = 0.0
+    initial_pointer_step: float = DEFAULT_INITIAL_POINTER_STEP
     sparsity_range: tuple[float, float] | None = None
     architecture: Literal["spf", "rpf_original"] = "spf"
 

@@ -26,8 +26,8 @@ def make_spf_policy(config: SPFConfig | None = None, encoder: nn.Module | None =
 
     Examples:
         >>> policy = make_spf_policy(SPFConfig(feature_dim=8, hidden_size=8))
-        >>> policy.memory_length
-        12
+        >>> policy.memory_length  # round(0.8 * 30)
+        24
     """
     return SPFPolicy(config, encoder, **kwargs)
 

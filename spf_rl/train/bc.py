@@ -62,7 +62,7 @@ class OptimConfig:
     lr: float = 1e-3
     weight_decay: float = 0.0
     batch_size: int = 16
-    epochs: int = 8
+    epochs: int = 6
     max_grad_norm: float = 1.0
     cosine_schedule: bool = True
     amp: bool = False

@@ -47,12 +47,12 @@ class ModelConfig:
     """
 
     name: str = "spf"
-    sparsity: float = 0.8
-    pointer_update: str = "paper"
-    k: int = 2
-    feature_dim: int = 128
-    hidden_size: int = 128
-    initial_pointer_step: float = 0.0
+    sparsity: float = SPFConfig.sparsity
+    pointer_update: str = SPFConfig.pointer_update
+    k: int = SPFConfig.k
+    feature_dim: int = SPFConfig.feature_dim
+    hidden_size: int = SPFConfig.hidden_size
+    initial_pointer_step: float = SPFConfig.initial_pointer_step
     sparsity_range: list[float] = field(default_factory=lambda: list(DEFAULT_SPARSITY_RANGE))
 
     def __post_init__(self) -> None:
