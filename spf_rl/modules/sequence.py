@@ -31,31 +31,31 @@ def unroll_sequence(policy: SPFPolicy, tensordict: TensorDictBase) -> TensorDict
         )
     policy.check_inputs(tensordict)
     policy.encode_pixels(tensordict)
-    if policy.use_memory:
-        policy.memory(tensordict)  # in recurrent mode: per segment
+    segments = policy.memory.encode_segments(tensordict) if policy.use_memory else None
     td = tensordict.reshape(-1, tensordict.shape[-1])
     rows, steps = td.batch_size
-    phi = td.get(policy.encoder.out_keys[0]).reshape(rows, steps, -1)
-    demo_actions = td.get(policy.demo_actions_key).reshape(rows, steps, -1).long()
-    memory = td.get(policy.memory_key) if policy.use_memory else None
-    mask = td.get(policy.memory_mask_key) if policy.random_sparsity else None
-    start = init_flags(td, policy.is_init_key, phi.device).clone()
+    # per-step views by unbind and per-segment gathers: their backward passes stack and
+    # index-add small tensors, where t-slices of [B, T, ...] tensors would each
+    # accumulate a zero-filled gradient of the whole sequence
+    phi = td.get(policy.encoder.out_keys[0]).reshape(rows, steps, -1).unbind(1)
+    demo_actions = td.get(policy.demo_actions_key).reshape(rows, steps, -1).long().unbind(1)
+    start = init_flags(td, policy.is_init_key, phi[0].device).clone()
     start[:, 0] = True
-    h0 = flat_or_zeros(td.get(policy.hidden_key, None), (rows, steps, policy.config.hidden_size), phi)
-    eta0 = flat_or_zeros(td.get(policy.eta_key, None), (rows, steps, 1), phi)
+    h0 = flat_or_zeros(td.get(policy.hidden_key, None), (rows, steps, policy.config.hidden_size), phi[0])
+    eta0 = flat_or_zeros(td.get(policy.eta_key, None), (rows, steps, 1), phi[0])
     h, eta = h0[:, 0], eta0[:, 0]
     outputs: dict[str, list[torch.Tensor]] = {name: [] for name in ("logits", "h", "eta_used", "eta_next", "mu", "window")}
     for t in range(steps):
         segment_start = start[:, t].unsqueeze(-1)
         h = torch.where(segment_start, h0[:, t], h)
         eta = torch.where(segment_start, eta0[:, t], eta)
-        mu, window = policy.attention.attend(
-            memory[:, t] if memory is not None else None,
-            demo_actions[:, t],
-            eta,
-            mask[:, t] if mask is not None else None,
-        )
-        logits, h, eta_next = policy.cell.step(mu, phi[:, t], window, eta, h)
+        memory = mask = None
+        if segments is not None:
+            feats, segment, masks = segments
+            memory = feats.index_select(0, segment[:, t])
+            mask = masks.index_select(0, segment[:, t]) if masks is not None else None
+        mu, window = policy.attention.attend(memory, demo_actions[t], eta, mask)
+        logits, h, eta_next = policy.cell.step(mu, phi[t], window, eta, h)
         for name, value in zip(outputs, (logits, h, eta, eta_next, mu, window)):
             outputs[name].append(value)
         eta = eta_next
@@ -72,4 +72,6 @@ def unroll_sequence(policy: SPFPolicy, tensordict: TensorDictBase) -> TensorDict
     shape = tensordict.batch_size
     for key, value in out.items():
         tensordict.set(key, value.reshape(*shape, *value.shape[2:]))
+    if segments is not None:
+        policy.memory.write_segments(tensordict, *segments)
     return tensordict

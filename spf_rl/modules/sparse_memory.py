@@ -192,21 +192,36 @@ class SparseMemory(TensorDictModuleBase):
             td.set(self.memory_mask_key, self.masks(rows, memory.device, draw=False).reshape(*batch, self.demo_length))
         return td
 
-    def _forward_sequence(self, tensordict: TensorDictBase) -> TensorDictBase:
+    def encode_segments(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """The memory of each segment of a ``[*B, T]`` sequence, encoded once.
+
+        A segment starts at ``t = 0`` and wherever ``is_init`` is true.
+
+        Returns:
+            ``(features [K, slots, D], segment [B', T] (the segment of each step, B' = prod(*B)),
+            masks [K, n] or None)``.
+        """
         if tensordict.batch_dims == 0:
             raise ValueError("SparseMemory in recurrent mode needs a time dimension (batch shape [*B, T]).")
         td = tensordict.reshape(-1, tensordict.shape[-1])
-        rows, steps = td.batch_size
         start = init_flags(td, self.is_init_key, self.indices.device).clone()
         start[:, 0] = True
         feats = self.encode_where(td, start)  # [K, slots, D]
-        segment = start.reshape(-1).long().cumsum(0) - 1
-        memory = feats.index_select(0, segment).reshape(rows, steps, self.num_slots, self.feature_dim)
+        segment = (start.reshape(-1).long().cumsum(0) - 1).reshape(start.shape)
+        masks = self.masks(feats.shape[0], feats.device, draw=self.training) if self.random_sparsity else None
+        return feats, segment, masks
+
+    def write_segments(
+        self, tensordict: TensorDictBase, feats: torch.Tensor, segment: torch.Tensor, masks: torch.Tensor | None
+    ) -> TensorDictBase:
+        """Write each step's memory (and mask) of :meth:`encode_segments`' output into ``tensordict``."""
         shape = tensordict.batch_size
-        memory = memory.reshape(*shape, self.num_slots, self.feature_dim)
+        memory = feats.index_select(0, segment.reshape(-1)).reshape(*shape, self.num_slots, self.feature_dim)
         tensordict.set(self.memory_key, memory)
         tensordict.set(next_key(self.memory_key), memory)
-        if self.random_sparsity:  # one mask per segment, [K, n] -> per step
-            masks = self.masks(feats.shape[0], memory.device, draw=self.training)
-            tensordict.set(self.memory_mask_key, masks.index_select(0, segment).reshape(*shape, self.demo_length))
+        if masks is not None:
+            tensordict.set(self.memory_mask_key, masks.index_select(0, segment.reshape(-1)).reshape(*shape, self.demo_length))
         return tensordict
+
+    def _forward_sequence(self, tensordict: TensorDictBase) -> TensorDictBase:
+        return self.write_segments(tensordict, *self.encode_segments(tensordict))
