@@ -26,10 +26,19 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from config_utils import load_config  # noqa: E402
 
+#: Presets in recipes/configs/ that --preset accepts.
+PRESETS = ("dagger_quick", "dagger_control")
+
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="small preset that runs in a few minutes")
+    parser.add_argument("--quick", action="store_true", help="small preset that runs in a few minutes (= --preset dagger_quick)")
+    parser.add_argument(
+        "--preset",
+        choices=PRESETS,
+        default=None,
+        help="dagger_quick (smoke run) or dagger_control (the expert drives every step: the control at equal steps)",
+    )
     parser.add_argument("overrides", nargs="*", help="key=value config overrides")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -37,7 +46,9 @@ def main(argv: list[str] | None = None) -> dict:
     import envs  # noqa: F401  (selects the headless GL back-end first)
     from spf_rl.train.dagger import DAggerConfig, train_dagger
 
-    config = load_config(DAggerConfig, "dagger", args.overrides, preset="dagger_quick" if args.quick else None)
+    if args.quick and args.preset not in (None, "dagger_quick"):
+        parser.error(f"--quick is --preset dagger_quick; it cannot be combined with --preset {args.preset}")
+    config = load_config(DAggerConfig, "dagger", args.overrides, preset="dagger_quick" if args.quick else args.preset)
     results = train_dagger(config)
 
     def scores(record: dict) -> dict:

@@ -62,7 +62,14 @@ def test_mixture_refuses_bad_beta():
 
 @pytest.mark.parametrize(
     "kwargs, name",
-    [({"beta0": -0.1}, "beta0"), ({"beta_decay": 2.0}, "beta_decay"), ({"rounds": -1}, "rounds"), ({"episodes_per_round": 0}, "episodes_per_round")],
+    [
+        ({"beta0": -0.1}, "beta0"),
+        ({"beta_decay": 2.0}, "beta_decay"),
+        ({"rounds": -1}, "rounds"),
+        ({"episodes_per_round": 0}, "episodes_per_round"),
+        ({"steps_per_round": 0}, "steps_per_round"),
+        ({"window_rounds": 0}, "window_rounds"),
+    ],
 )
 def test_config_errors_name_the_parameter(kwargs, name):
     with pytest.raises(ValueError, match=name):
@@ -77,6 +84,9 @@ def tiny_config(tmp_path, checkpoint, **overrides) -> DAggerConfig:
         device="cpu",  # the CPU suite everywhere; tests/test_device_cuda.py runs DAgger on CUDA
         rounds=2,
         episodes_per_round=4,
+        beta0=0.5,
+        steps_per_round=None,
+        window_rounds=None,
         aggregate_bc_data=False,
         logger="",
         progress=False,
@@ -105,7 +115,8 @@ def test_rounds_aggregate_retrain_and_report(tmp_path, bc_checkpoint):
     history = results["history"]
     assert [r["round"] for r in history] == [0, 1, 2]
     assert [r["beta"] for r in history] == [None, 0.5, 0.25]
-    assert [r["aggregate_episodes"] for r in history] == [0, 4, 8]
+    assert [r["training_episodes"] for r in history] == [0, 4, 8]
+    assert [r.get("gradient_steps") for r in history] == [None, 1, 1]  # one pass of batch 16
     assert all("test_success" in r and 0.0 <= r["val_spl"] <= r["val_success"] + 1e-6 for r in history)
     assert json.loads((output / "results.json").read_text())["best_round_by_val"] == results["best_round_by_val"]
     assert (output / "dagger.png").stat().st_size > 0
@@ -185,9 +196,21 @@ def test_recipe_configs_load_and_refuse_unknown_keys():
 
     default = load_config(DAggerConfig, "dagger", [])
     quick = load_config(DAggerConfig, "dagger", ["collector.backend=ray"], preset="dagger_quick")
-    assert default.checkpoint == "checkpoints/spf-s0.8.pt" and default.rounds == 4
+    assert default.checkpoint == "checkpoints/spf-s0.8.pt" and default.rounds >= 10
+    assert default.beta0 == 0.0 and default.steps_per_round and default.window_rounds  # learner-driven, windowed
+    control = load_config(DAggerConfig, "dagger", [], preset="dagger_control")
+    assert control.beta(1) == control.beta(10) == 1.0 and control.steps_per_round == default.steps_per_round
     assert quick.episodes_per_round < default.episodes_per_round and quick.collector.backend == "ray"
     with pytest.raises(ValueError, match="collector"):
         load_config(DAggerConfig, "dagger", ["collector.backend=slurm"])
     with pytest.raises(ValueError):
         load_config(DAggerConfig, "dagger", ["no_such_key=1"])
+
+
+def test_learner_driven_rounds_train_fixed_steps_on_a_sliding_window(tmp_path, bc_checkpoint):
+    config = tiny_config(tmp_path, bc_checkpoint, rounds=3, beta0=0.0, steps_per_round=3, window_rounds=2)
+    config.optim.batch_size = 2
+    history = train_dagger(config)["history"]
+    assert [r["beta"] for r in history] == [None, 0.0, 0.0, 0.0]
+    assert [r.get("gradient_steps") for r in history] == [None, 3, 3, 3]
+    assert [r["training_episodes"] for r in history] == [0, 4, 8, 8]  # round 3 trains on rounds 2 and 3

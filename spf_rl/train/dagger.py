@@ -4,16 +4,22 @@ Round ``r = 1..R``: roll out a mixture of the learner and the expert (per step
 the expert's action with probability ``beta_r = beta0 * beta_decay ** (r - 1)``,
 else the learner's greedy action) through a TorchRL collector, label every
 visited state with the expert (the env's ``expert_action``), store the round's
-episodes on disk, aggregate them (with the BC dataset, by default) into an
-on-disk replay buffer (:class:`~torchrl.data.LazyMemmapStorage`), and retrain
-the learner on the aggregate with the BC loss. Round 0 is the starting BC model.
+episodes on disk, and retrain the learner with the BC loss for a fixed number of
+gradient steps on a sliding window of the latest ``window_rounds`` rounds plus the
+BC dataset (by default). Round 0 is the starting BC model.
+
+The default is the improvement phase of the first author's code (``Hwiyeon/RPF``,
+``RPF_DAgger/DAgger.py``): the learner drives every step (``beta0 = 0``), and
+training sees a sliding window of recent learner episodes. The expert-driven
+control (``beta0 = 1, beta_decay = 1``: the same steps on expert-visited states)
+tells what the learner's own states add (``recipes/configs/dagger_control.yaml``).
 Every round is scored on the ``val`` split (and on ``test`` when
 ``test_every_round``); the results go to ``results.json`` and ``dagger.png``.
 
 Resuming: the round's episodes (``rounds/round-XX``, written to a temporary
 directory and renamed) and ``last.pt`` (atomic) are the durable state; an
-interrupted run started again with the same config rebuilds the aggregate from
-them and continues with the next round. Collection is deterministic: the env's
+interrupted run started again with the same config reads the stored rounds
+and continues with the next round. Collection is deterministic: the env's
 per-agent episode streams, the mixing coin (a Philox draw of the episode seed
 and step) and the greedy learner fix every visited state.
 
@@ -37,7 +43,6 @@ import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from torchrl.data import LazyMemmapStorage, SamplerWithoutReplacement, TensorDictReplayBuffer
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.record.loggers import get_logger
 from tqdm.auto import tqdm
@@ -130,11 +135,16 @@ class DAggerConfig:
         episodes_per_round: learner episodes collected per round.
         beta0: expert probability in round 1.
         beta_decay: ``beta`` is multiplied by this each round.
-        aggregate_bc_data: start the aggregate from the BC dataset ``bc_data``
-            (built if missing); otherwise only DAgger's episodes are trained on.
+        aggregate_bc_data: train on the BC dataset ``bc_data`` (built if missing) beside
+            the window of rounds; otherwise only DAgger's episodes are trained on.
         bc_data: the BC dataset (default: the one ``recipes/bc.py`` builds).
         bc_data_dir: its directory (``None``: the BC recipe's default naming).
-        epochs_per_round: passes over the aggregate after each round.
+        epochs_per_round: passes over the training episodes after each round (used when
+            ``steps_per_round`` is ``None``).
+        steps_per_round: gradient steps after each round (``None``: ``epochs_per_round``
+            passes over the training episodes). 500 by default.
+        window_rounds: train on the episodes of the latest this many rounds (plus the BC
+            data); ``None``: every round so far. 4 by default (about 1,000 learner episodes).
         test_every_round: also score every round on the test split (else only
             the start and the final best model).
         num_workers: processes building the BC dataset, if it is missing.
@@ -152,14 +162,16 @@ class DAggerConfig:
     output_dir: str = "runs/dagger"
     seed: int = 0
     device: str = DEFAULT_DEVICE
-    rounds: int = 4
+    rounds: int = 10
     episodes_per_round: int = 256
-    beta0: float = 0.5
+    beta0: float = 0.0
     beta_decay: float = 0.5
     aggregate_bc_data: bool = True
     bc_data: DatasetConfig = field(default_factory=DatasetConfig)
     bc_data_dir: str | None = None
     epochs_per_round: int = 1
+    steps_per_round: int | None = 500
+    window_rounds: int | None = 4
     test_every_round: bool = True
     num_workers: int = 2
     logger: str = "csv"
@@ -176,6 +188,10 @@ class DAggerConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < (0 if name == "rounds" else 1):
                 raise ValueError(f"{name} must be a {'non-negative' if name == 'rounds' else 'positive'} int, got {value!r}.")
+        for name in ("steps_per_round", "window_rounds"):
+            value = getattr(self, name)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+                raise ValueError(f"{name} must be a positive int or None, got {value!r}.")
         for name in ("beta0", "beta_decay"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)!r}.")
@@ -223,31 +239,6 @@ def behaviour_statistics(episodes: TensorDictBase, max_steps: int) -> dict:
     }
 
 
-class _Aggregate:
-    """The on-disk aggregate: a replay buffer of whole episodes on a :class:`LazyMemmapStorage`."""
-
-    def __init__(self, root: Path, capacity: int) -> None:
-        if root.exists():
-            shutil.rmtree(root)  # a cache, rebuilt from the durable sources at every start
-        self.storage = LazyMemmapStorage(capacity, scratch_dir=root)
-        self.buffer = TensorDictReplayBuffer(storage=self.storage, batch_size=1)
-
-    def extend(self, episodes: TensorDictBase, chunk: int = 128, progress: bool = False, desc: str = "aggregate") -> None:
-        for start in tqdm(range(0, episodes.shape[0], chunk), desc=desc, disable=not progress):
-            self.buffer.extend(episodes[start : start + chunk].to_tensordict())
-
-    def __len__(self) -> int:
-        return len(self.buffer)
-
-    def sampler(self, batch_size: int, seed: int) -> TensorDictReplayBuffer:
-        """One epoch without replacement over the aggregate, in a seeded order."""
-        buffer = TensorDictReplayBuffer(
-            storage=self.storage, sampler=SamplerWithoutReplacement(), batch_size=batch_size
-        )
-        buffer.set_rng(torch.Generator().manual_seed(seed))
-        return buffer
-
-
 def train_dagger(config: DAggerConfig) -> dict:
     """Run (or resume) DAgger and return its results (also written to ``results.json``).
 
@@ -288,16 +279,10 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
         done_rounds, history = state["round"], state["history"]
         logger.info("resuming %s after round %d", output, done_rounds)
 
-    bc_dataset = None
+    bc_episodes = None
     if config.aggregate_bc_data:
         bc_dir = config.bc_data_dir or BCConfig(data=config.bc_data).resolved_data_dir()
-        bc_dataset = EpisodeDataset.build(bc_dir, config.bc_data, config.num_workers, config.progress)
-    capacity = (len(bc_dataset) if bc_dataset is not None else 0) + config.rounds * config.episodes_per_round
-    aggregate = _Aggregate(output / "aggregate", capacity)
-    if bc_dataset is not None:
-        aggregate.extend(bc_dataset.episodes, progress=config.progress, desc="aggregate BC data")
-    for round_index in range(1, done_rounds + 1):
-        aggregate.extend(TensorDict.load_memmap(output / "rounds" / f"round-{round_index:02d}"))
+        bc_episodes = EpisodeDataset.build(bc_dir, config.bc_data, config.num_workers, config.progress).episodes
 
     run_logger = get_logger(config.logger, logger_name=str(output / "logs"), experiment_name="dagger") if config.logger else None
 
@@ -323,7 +308,8 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
         )
 
     if done_rounds == 0 and not history:
-        history.append(score(0, {"beta": None, "aggregate_episodes": len(aggregate)}))
+        bc_count = bc_episodes.shape[0] if bc_episodes is not None else 0
+        history.append(score(0, {"beta": None, "training_episodes": bc_count}))
         save_checkpoint(best_path, model_type, policy_config, {"model": policy.state_dict(), "round": 0})
         save(0)
 
@@ -338,9 +324,9 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
             episodes = _collect_round(policy, config, beta, round_seed)
             _store_round(round_dir, episodes)
         collected = {"beta": beta, **behaviour_statistics(episodes, env.max_steps)}
-        aggregate.extend(episodes)
-        collected["aggregate_episodes"] = len(aggregate)
-        collected["train_loss"] = _train_round(policy, optimizer, aggregate, config, round_index)
+        sources = _training_sources(bc_episodes, output, round_index, config.window_rounds)
+        collected["training_episodes"] = sum(source.shape[0] for source in sources)
+        collected["train_loss"], collected["gradient_steps"] = _train_round(policy, optimizer, sources, config, round_index)
         history.append(score(round_index, collected))
         best = max(history, key=lambda r: (r["val_success"], r["val_spl"]))
         if best["round"] == round_index:
@@ -396,22 +382,49 @@ def _collect_round(policy: TensorDictModuleBase, config: DAggerConfig, beta: flo
     return torch.cat(episodes, 0)[: config.episodes_per_round]
 
 
-def _train_round(policy, optimizer, aggregate: _Aggregate, config: DAggerConfig, round_index: int) -> float:
+def _training_sources(
+    bc_episodes: TensorDictBase | None, output: Path, round_index: int, window: int | None
+) -> list[TensorDictBase]:
+    """The episodes retraining sees after round ``round_index``: the BC data and the window of rounds."""
+    first = 1 if window is None else max(1, round_index - window + 1)
+    rounds = [TensorDict.load_memmap(output / "rounds" / f"round-{r:02d}") for r in range(first, round_index + 1)]
+    return ([bc_episodes] if bc_episodes is not None else []) + rounds
+
+
+def _train_round(
+    policy, optimizer, sources: list[TensorDictBase], config: DAggerConfig, round_index: int
+) -> tuple[float, int]:
+    """Retrain on ``sources``: ``steps_per_round`` steps (or ``epochs_per_round`` passes) of
+    batches drawn without replacement, pass after pass, in an order fixed by the seed and round.
+
+    Returns:
+        the mean loss and the number of gradient steps.
+    """
     policy.train()
+    sizes = torch.tensor([source.shape[0] for source in sources])
+    offsets = torch.cumsum(sizes, 0)
+    total, batch_size = int(offsets[-1]), config.optim.batch_size
+    steps = config.steps_per_round or config.epochs_per_round * -(-total // batch_size)
+    generator = torch.Generator().manual_seed(config.seed * 100_003 + round_index * 101)
+    passes = -(-steps * batch_size // total)
+    order = torch.cat([torch.randperm(total, generator=generator) for _ in range(passes)])
     losses = []
-    batches = -(-len(aggregate) // config.optim.batch_size)
-    for epoch in range(config.epochs_per_round):
-        buffer = aggregate.sampler(config.optim.batch_size, seed=config.seed * 100_003 + round_index * 101 + epoch)
-        bar = tqdm(range(batches), desc=f"round {round_index} epoch {epoch + 1}", disable=not config.progress)
-        for _ in bar:
-            loss, _ = bc_loss(policy, buffer.sample(), amp=config.optim.amp)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(policy.parameters(), config.optim.max_grad_norm)
-            optimizer.step()
-            losses.append(loss.item())
-            bar.set_postfix(loss=f"{losses[-1]:.3f}")
-    return float(sum(losses) / len(losses))
+    bar = tqdm(range(steps), desc=f"round {round_index} retraining", disable=not config.progress)
+    for step in bar:
+        rows = order[step * batch_size : (step + 1) * batch_size]
+        source_of_row = torch.searchsorted(offsets, rows, right=True)
+        parts = [
+            sources[k][rows[source_of_row == k] - (offsets[k] - sizes[k])].to_tensordict()
+            for k in source_of_row.unique().tolist()
+        ]
+        loss, _ = bc_loss(policy, torch.cat(parts, 0), amp=config.optim.amp)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(policy.parameters(), config.optim.max_grad_norm)
+        optimizer.step()
+        losses.append(loss.item())
+        bar.set_postfix(loss=f"{losses[-1]:.3f}")
+    return float(sum(losses) / len(losses)), steps
 
 
 def plot_rounds(history: list[dict], path: Path, title: str = "DAgger") -> None:
