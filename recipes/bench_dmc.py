@@ -52,7 +52,8 @@ from torchrl.envs import DMControlWrapper  # noqa: E402
 from bench_env_paths import median_fps  # noqa: E402
 from bench_env_report import machine_info, other_processes_cpu_seconds  # noqa: E402
 from envs.demos import apply_motion, nominal_motion  # noqa: E402
-from envs.dmc import HousePhysics, agent_house_model, load  # noqa: E402
+from envs.dmc import load  # noqa: E402
+from envs.dmc_physics import HousePhysics, agent_house_model  # noqa: E402
 from envs.nav_env import DEFAULT_MAX_STEPS, PathFollowEnv  # noqa: E402
 from envs.render import FirstPersonRenderer  # noqa: E402
 from envs.scenes import build_house, split_seeds  # noqa: E402

@@ -10,14 +10,8 @@ from torchrl.envs import DMControlWrapper
 from torchrl.envs.utils import check_env_specs
 
 from envs.demos import nominal_motion
-from envs.dmc import (
-    POLICY_OBSERVATIONS,
-    PRIVILEGED_OBSERVATIONS,
-    HousePhysics,
-    PathFollowTask,
-    agent_house_model,
-    load,
-)
+from envs.dmc import POLICY_OBSERVATIONS, PRIVILEGED_OBSERVATIONS, PathFollowTask, load
+from envs.dmc_physics import HousePhysics, agent_house_model
 from envs.expert import FORWARD, STOP, TURN_LEFT, TURN_RIGHT
 from envs.follow import FollowRules, episode_for_seed
 from envs.nav_env import PathFollowEnv
