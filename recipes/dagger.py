@@ -1,15 +1,16 @@
-"""DAgger from a behaviour-cloning checkpoint (issue #5).
+"""DAgger from a behaviour-cloning checkpoint: the improvement phase.
 
-Rounds of: collect with the learner mixed with the expert (``beta`` decaying),
-relabel every visited state with the expert, aggregate into the on-disk replay
-buffer (with the BC dataset), retrain. Scores every round on ``val`` and
-``test`` and writes ``results.json`` and ``dagger.png`` to the output directory.
-Run it again with the same config to resume.
+Rounds of: collect episodes with the learner driving (``beta0 = 0`` by default),
+label every visited state with the expert, store the round, retrain for a fixed
+number of gradient steps on the BC data plus a sliding window of recent rounds.
+Scores every round on ``val`` and ``test`` and writes ``results.json`` and
+``dagger.png`` to the output directory. Run it again with the same config to resume.
 
 Usage::
 
     python recipes/dagger.py                                  # from checkpoints/spf-s0.8.pt
     python recipes/dagger.py --quick                          # a few-minute smoke run
+    python recipes/dagger.py --preset dagger_control          # the expert drives every step: the control
     python recipes/dagger.py checkpoint=runs/bc/spf-s0.8-seed0/best.pt rounds=6
     python recipes/dagger.py collector.backend=ray collector.num_collectors=2 device=cpu   # pip install '.[distributed]'
     python recipes/dagger.py device=cuda:1                    # the learner on the second GPU (default device=auto)
