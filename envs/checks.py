@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from envs.demo_store import DemoStore, check_store_matches
+from envs.house_grid import check_grid_size, default_grid_size_cells
 from envs.scenes import split_seeds
 from envs.transforms import ACTUATION_NOISE_KEY, make_noise_model
 
@@ -59,14 +60,28 @@ def resolve_houses(
     demo_length: int,
     image_size: int,
     success_radius_m: float,
+    task: str = "follow",
+    grid_size_cells: int | None = None,
 ) -> tuple[DemoStore | None, list[int]]:
     """The env's demo store (opened and verified when given as a directory) and its house seeds.
 
+    Without ``house_seeds``, the houses are the split's on a grid of ``grid_size_cells``
+    cells (``None``: :func:`~envs.house_grid.default_grid_size_cells` of ``demo_length``).
+
     Raises:
         ValueError: for a wrong ``demo_store`` type, a store that disagrees with the
-            env's arguments, ``emit_demo_frames=False`` without a store, or bad
-            ``house_seeds``.
+            env's arguments, ``emit_demo_frames=False`` without a store, bad
+            ``house_seeds``, ``house_seeds`` with ``grid_size_cells`` (house seeds name
+            their grid), or a bad ``grid_size_cells``.
     """
+    if grid_size_cells is not None:
+        check_grid_size(grid_size_cells)
+        if house_seeds is not None:
+            raise ValueError(
+                "grid_size_cells cannot be combined with house_seeds: a house seed names its grid "
+                "(envs.house_grid.house_seed(base_seed, grid_size_cells)); give one or the other."
+            )
+    grid = default_grid_size_cells(demo_length) if grid_size_cells is None else grid_size_cells
     if demo_store is not None:
         if not isinstance(demo_store, (DemoStore, str, os.PathLike)):
             raise ValueError(
@@ -74,7 +89,7 @@ def resolve_houses(
             )
         # a directory is opened and verified (checksums) once per env process
         demo_store = demo_store if isinstance(demo_store, DemoStore) else DemoStore(demo_store)
-        check_store_matches(demo_store, split, num_houses, house_seeds, demo_length, image_size, success_radius_m)
+        check_store_matches(demo_store, split, num_houses, house_seeds, demo_length, image_size, success_radius_m, task, grid)
         return demo_store, demo_store.config.house_seeds
     if not emit_demo_frames:
         raise ValueError(
@@ -86,7 +101,7 @@ def resolve_houses(
         if not seeds or min(seeds) < 0:
             raise ValueError(f"house_seeds must be a non-empty list of non-negative ints, got {house_seeds!r}.")
         return None, seeds
-    return None, split_seeds(split, num_houses)
+    return None, split_seeds(split, num_houses, grid)
 
 
 def check_action(action: torch.Tensor | None, count: int, num_actions: int, stop_action: bool) -> np.ndarray:

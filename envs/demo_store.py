@@ -37,6 +37,8 @@ from tensordict.nn import TensorDictModule
 
 from envs.demos import Demonstration, default_min_route_length_m, sample_demonstration
 from envs.geometry import DistanceField
+from envs.homing import FOLLOW, check_task, task_demonstration
+from envs.house_grid import check_grid_size, default_grid_size_cells
 from envs.render import FirstPersonRenderer
 from envs.scenes import build_house, split_seeds
 from envs.specs import NUM_RGB_CHANNELS
@@ -67,6 +69,11 @@ class DemoStoreConfig:
         min_route_length_m: routes must end farther than this (geodesic, metres) from
             their start; ``None`` uses the env's default for ``demo_length``.
         seed: store seed; demonstration ``k`` depends only on ``(seed, k)``.
+        task: ``"follow"`` or ``"homing"``: a homing store holds the homing
+            demonstrations of its sampled routes (:mod:`envs.homing`), frames rendered
+            looking back along the route; envs of the same task only may draw from it.
+        grid_size_cells: the houses' labmaze grid, cells (``None``: the env's default
+            for ``demo_length``, :func:`~envs.house_grid.default_grid_size_cells`).
     """
 
     num_demos: int = 1000
@@ -76,8 +83,13 @@ class DemoStoreConfig:
     image_size: int = 64
     min_route_length_m: float | None = None
     seed: int = 0
+    task: str = FOLLOW
+    grid_size_cells: int | None = None
 
     def __post_init__(self) -> None:
+        check_task(self.task, "DemoStoreConfig.task")
+        if self.grid_size_cells is not None:
+            check_grid_size(self.grid_size_cells, "DemoStoreConfig.grid_size_cells")
         for name in ("num_demos", "demo_length", "image_size"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
@@ -91,15 +103,21 @@ class DemoStoreConfig:
             raise ValueError(f"min_route_length_m must be a number >= 0 (metres) or None, got {self.min_route_length_m!r}.")
 
     @property
+    def grid(self) -> int:
+        """The houses' grid, cells (``grid_size_cells``, or the default for ``demo_length``)."""
+        return default_grid_size_cells(self.demo_length) if self.grid_size_cells is None else self.grid_size_cells
+
+    @property
     def house_seeds(self) -> list[int]:
-        return split_seeds(self.split, self.num_houses)
+        return split_seeds(self.split, self.num_houses, self.grid)
 
 
 def sample_store_demonstration(config: DemoStoreConfig, index: int) -> Demonstration:
-    """Demonstration ``index`` of a store (a pure function of ``(config.seed, index)``)."""
+    """Demonstration ``index`` of a store (a pure function of ``(config.seed, index)``), for its task."""
     rng = np.random.default_rng([config.seed, index])
     house = build_house(int(rng.choice(config.house_seeds)))
-    return sample_demonstration(house, rng, config.demo_length, min_route_length_m=config.min_route_length_m)
+    route = sample_demonstration(house, rng, config.demo_length, min_route_length_m=config.min_route_length_m)
+    return task_demonstration(route, config.task, house)
 
 
 def _empty(config: DemoStoreConfig) -> TensorDict:
@@ -292,6 +310,7 @@ class DemoStore(TensorStore):
             actions=self.actions[demo_id].numpy().copy(),
             end_field=end_field,
             shortest_length_m=float(self.shortest_lengths_m[demo_id]),
+            task=self.config.task,
         )
 
 
@@ -303,16 +322,26 @@ def check_store_matches(
     demo_length: int,
     image_size: int,
     success_radius_m: float,
+    task: str = FOLLOW,
+    grid_size_cells: int | None = None,
 ) -> None:
-    """Raise ``ValueError`` when the env's arguments disagree with the demo store's configuration."""
+    """Raise ``ValueError`` when the env's arguments disagree with the demo store's configuration.
+
+    ``grid_size_cells`` is the env's grid (``None``: the default for ``demo_length``).
+    """
     config = store.config
     if house_seeds is not None:
         raise ValueError("house_seeds cannot be combined with demo_store (the store fixes the houses).")
     mismatches = []
     if split != config.split:
         mismatches.append(f"split={split!r} (store: {config.split!r})")
-    if num_houses is not None and split_seeds(split, num_houses) != config.house_seeds:
+    if num_houses is not None and len(split_seeds(split, num_houses)) != len(config.house_seeds):
         mismatches.append(f"num_houses={num_houses} (store: {len(config.house_seeds)})")
+    grid = default_grid_size_cells(demo_length) if grid_size_cells is None else grid_size_cells
+    if grid != config.grid:
+        mismatches.append(f"grid_size_cells={grid} (store: {config.grid})")
+    if task != config.task:
+        mismatches.append(f"task={task!r} (store: {config.task!r})")
     if demo_length != config.demo_length:
         mismatches.append(f"demo_length={demo_length} (store: {config.demo_length})")
     if image_size != config.image_size:

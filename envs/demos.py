@@ -13,6 +13,7 @@ the route logic shared with the demonstrations users give (:mod:`envs.user_demos
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -53,6 +54,8 @@ class Demonstration:
         actions: ``(n,)`` int64 actions.
         end_field: geodesic distances to the route's end.
         shortest_length_m: geodesic length from the start to the route's end.
+        task: ``"follow"`` for a route as it was demonstrated, ``"homing"`` for the
+            route driven back to its start (:func:`envs.homing.homing_demonstration`).
     """
 
     house_seed: int
@@ -60,6 +63,7 @@ class Demonstration:
     actions: np.ndarray
     end_field: DistanceField
     shortest_length_m: float
+    task: str = "follow"
 
     @property
     def length(self) -> int:
@@ -99,6 +103,33 @@ def apply_motion(house: House, poses: np.ndarray, motion: np.ndarray) -> tuple[n
     xy, travelled = house.occupancy.move_many(poses[:, :2], displacement)
     new_heading = np.mod(heading + motion[:, 2] + np.pi, 2 * np.pi) - np.pi
     return np.concatenate([xy, new_heading[:, None]], axis=1), travelled
+
+
+def move_agents(houses: Sequence[House], poses: np.ndarray, motion: np.ndarray) -> np.ndarray:
+    """:func:`apply_motion` for agents each in its own house: ``(N, 3)`` ``poses`` are updated in place.
+
+    The same float64 operations as :func:`apply_motion`, element by element, with each
+    agent's collision check in its own house.
+
+    Returns:
+        distances travelled ``(N,)``, metres.
+
+    Examples:
+        >>> from envs.scenes import build_house
+        >>> poses = np.array([[7.5, 1.5, 0.0]])
+        >>> move_agents([build_house(0)], poses, nominal_motion(np.array([0]))).round(2).tolist(), poses[0, :2].round(2).tolist()
+        ([0.3], [7.8, 1.5])
+    """
+    heading = poses[:, 2]
+    c, s = np.cos(heading), np.sin(heading)
+    dx = c * motion[:, 0] - s * motion[:, 1]
+    dy = s * motion[:, 0] + c * motion[:, 1]
+    new_heading = np.mod(heading + motion[:, 2] + np.pi, 2 * np.pi) - np.pi
+    travelled = np.empty(len(poses))
+    for index, house in enumerate(houses):
+        poses[index, :2], travelled[index] = house.occupancy.move(poses[index, :2], (dx[index], dy[index]))
+        poses[index, 2] = new_heading[index]
+    return travelled
 
 
 def sample_demonstration(

@@ -4,7 +4,9 @@
 run the same task; this module holds the pieces of it that do not depend on the
 framework, as plain numpy functions that work on one agent or on a batch:
 
-* :func:`episode_for_seed`: the house and demonstration of an episode seed;
+* :func:`episode_for_seed`: the house and demonstration of an episode seed (for
+  the ``follow`` or the ``homing`` task, :mod:`envs.homing`);
+* :func:`default_max_steps`: the episode limit of demonstrations of ``n`` steps;
 * :class:`FollowRules`: the success radius, the end of an episode (success, STOP,
   step limit), SPL (Anderson et al. 2018) and the dense reward of a step.
 
@@ -14,16 +16,23 @@ route's end; without STOP the episode terminates as soon as the agent is inside
 that radius, with STOP when the agent stops; it is truncated after ``max_steps``.
 The reward is ``progress_reward_per_m`` per metre of geodesic progress, plus
 ``success_reward`` on success, minus ``step_penalty`` per step.
+
+Episode limit: when no ``max_steps`` is given, it is :func:`default_max_steps`, the
+one place the rule lives: ``ceil(MAX_STEPS_PER_DEMO_STEP * n)`` with the ratio 5/3
+of the paper's 50 steps for n = 30 (84 for n = 50, 167 for n = 100).
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from fractions import Fraction
 
 import numpy as np
 
 from envs.demos import DEFAULT_SUCCESS_RADIUS_M, Demonstration, sample_demonstration
 from envs.expert import STOP
+from envs.homing import FOLLOW, task_demonstration
 from envs.scenes import House, build_house
 
 #: Success: within max(SUCCESS_RADIUS_M, SUCCESS_FRACTION x initial distance) of the end.
@@ -37,16 +46,33 @@ STEP_PENALTY = 0.01
 MAX_EPISODE_SEED = 2**62
 #: SPL's denominator never goes below this, metres (a zero-length route and path).
 MIN_SPL_DENOMINATOR_M = 1e-9
+#: Follow-episode steps allowed per demonstrated step (the paper: 50 steps for n = 30).
+MAX_STEPS_PER_DEMO_STEP = Fraction(5, 3)
+
+
+def default_max_steps(demo_length: int) -> int:
+    """The episode limit, steps, of demonstrations of ``demo_length`` steps: ``ceil(5/3 * n)``.
+
+    Examples:
+        >>> default_max_steps(30), default_max_steps(50), default_max_steps(100)
+        (50, 84, 167)
+    """
+    return math.ceil(MAX_STEPS_PER_DEMO_STEP * int(demo_length))
 
 
 def episode_for_seed(
-    episode_seed: int, house_seeds: Sequence[int], demo_length: int, min_route_length_m: float
+    episode_seed: int,
+    house_seeds: Sequence[int],
+    demo_length: int,
+    min_route_length_m: float,
+    task: str = FOLLOW,
 ) -> tuple[House, Demonstration]:
     """The house and demonstration of an episode seed.
 
-    The house is drawn from ``house_seeds`` and the demonstration sampled in it, both
-    from ``np.random.default_rng(episode_seed)``, so one seed gives the same episode
-    in every face of the task.
+    The house is drawn from ``house_seeds`` and the route sampled in it, both from
+    ``np.random.default_rng(episode_seed)``, so one seed gives the same episode in
+    every face of the task; a homing episode plays the homing demonstration of the
+    route the follow episode of its seed plays.
 
     Args:
         episode_seed: the episode's seed, in ``[0, MAX_EPISODE_SEED)``.
@@ -54,15 +80,19 @@ def episode_for_seed(
         demo_length: demonstration length n, steps.
         min_route_length_m: routes ending this close to their start (geodesic, metres)
             are re-drawn.
+        task: ``"follow"`` or ``"homing"`` (:mod:`envs.homing`).
 
     Examples:
         >>> house, demo = episode_for_seed(7, [0, 1], demo_length=5, min_route_length_m=0.6)
         >>> house.seed in (0, 1), demo.actions.shape
         (True, (5,))
+        >>> episode_for_seed(7, [0, 1], 5, 0.6, task="homing")[1].end_xy.tolist() == demo.start_pose[:2].tolist()
+        True
     """
     rng = np.random.default_rng(episode_seed)
     house = build_house(int(rng.choice(house_seeds)))
-    return house, sample_demonstration(house, rng, demo_length, min_route_length_m=min_route_length_m)
+    route = sample_demonstration(house, rng, demo_length, min_route_length_m=min_route_length_m)
+    return house, task_demonstration(route, task, house)
 
 
 @dataclass(frozen=True)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import functools
 import io
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,6 +45,9 @@ ATLAS_PADDING_PX = 16
 ATLAS_ALIGN_PX = 32
 #: Side of the offscreen framebuffer by default, pixels (the largest frame size).
 DEFAULT_FRAMEBUFFER_PX = 256
+#: The camera's far clipping distance, metres (a default 15 m house's diagonal is 21 m;
+#: larger houses clip at their diagonal, :func:`far_clip_m`).
+MIN_FAR_CLIP_M = 40
 
 
 def house_mjcf(house: House, framebuffer_px: int = DEFAULT_FRAMEBUFFER_PX) -> tuple[str, dict[str, bytes]]:
@@ -90,6 +94,11 @@ def compile_house(house: House, framebuffer_px: int = DEFAULT_FRAMEBUFFER_PX):
     return model
 
 
+def far_clip_m(house: House) -> int:
+    """The camera's far clipping distance, metres: :data:`MIN_FAR_CLIP_M`, or the house's diagonal if longer."""
+    return max(MIN_FAR_CLIP_M, math.ceil(math.hypot(*house.size_m)))
+
+
 def _house_xml(house: House, atlas: _Atlas, texture_xml: str, framebuffer_px: int) -> str:
     vertex, face, texcoord = _polygon_mesh(house_polygons(house, atlas))
     return f"""<mujoco model="house_{house.seed}">
@@ -99,7 +108,7 @@ def _house_xml(house: House, atlas: _Atlas, texture_xml: str, framebuffer_px: in
   <visual>
     <global offwidth="{framebuffer_px}" offheight="{framebuffer_px}"/>
     <quality shadowsize="0" offsamples="0"/>
-    <map znear="0.05" zfar="40" haze="0"/>
+    <map znear="0.05" zfar="{far_clip_m(house)}" haze="0"/>
     <headlight ambient="0.45 0.45 0.45" diffuse="0.55 0.55 0.55" specular="0 0 0"/>
   </visual>
   <default><geom contype="0" conaffinity="0"/></default>

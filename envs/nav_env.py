@@ -4,6 +4,11 @@ Each episode samples a house of the split and a demonstration in it (see
 :mod:`envs.demos`); the agent starts at the demonstration's first pose and must
 reach its end under actuation noise (:class:`~envs.transforms.ActuationNoise`),
 seeing only its first-person camera and the demonstration (frames and actions).
+With ``task="homing"`` the agent starts at the route's end and must return to its
+start; the demonstration is then the route driven back, its frames rendered
+looking back along the route (:mod:`envs.homing`). Long routes are sampled in larger
+houses (:func:`~envs.house_grid.default_grid_size_cells`) and get a longer step
+limit (:func:`~envs.follow.default_max_steps`: ``ceil(5/3 n)``, 50 for n = 30).
 
 Protocol (the paper's, Sec. 4.1): actions forward 0.3 m, turn left 20 deg, turn
 right 20 deg (and STOP when ``stop_action=True``); success means ending within
@@ -37,7 +42,6 @@ from __future__ import annotations
 
 import logging
 import os
-from collections import OrderedDict
 from collections.abc import Sequence
 
 import numpy as np
@@ -46,7 +50,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 
 from envs.checks import check_action, check_actuation_noise, check_positive_int, resolve_houses
-from envs.demos import DEFAULT_DEMO_LENGTH, Demonstration, default_min_route_length_m, nominal_motion
+from envs.demos import DEFAULT_DEMO_LENGTH, Demonstration, default_min_route_length_m, move_agents, nominal_motion
 from envs.demo_store import DemoStore
 from envs.expert import GeodesicExpert
 from envs.follow import (  # noqa: F401  (the protocol's constants, re-exported)
@@ -57,23 +61,22 @@ from envs.follow import (  # noqa: F401  (the protocol's constants, re-exported)
     SUCCESS_RADIUS_M,
     SUCCESS_REWARD,
     FollowRules,
-    episode_for_seed,
+    default_max_steps,
 )
-from envs.geometry import DistanceField
+from envs.homing import FOLLOW, check_task
+from envs.playlist import DISTANCE_FIELD_CACHE_SIZE, DemonstrationPlaylist, EpisodeSource  # noqa: F401
 from envs.render import FirstPersonRenderer
-from envs.scenes import House, build_house
+from envs.scenes import House
 from envs.specs import NUM_DEMO_ACTIONS, NUM_RGB_CHANNELS, path_follow_specs
 from envs.transforms import ACTUATION_NOISE_KEY
-from envs.user_demos import DemonstrationPlaylist
 
 logger = logging.getLogger(__name__)
 
 #: Default first-person frame size, pixels.
 DEFAULT_IMAGE_SIZE = 64
-#: Default follow-episode limit, steps (the paper's 50).
-DEFAULT_MAX_STEPS = 50
-#: Route distance fields kept per env in demo-store mode (about 0.2 MB each).
-DISTANCE_FIELD_CACHE_SIZE = 256
+#: Follow-episode limit of the default demonstration length, steps (the paper's 50);
+#: other lengths: :func:`~envs.follow.default_max_steps`.
+DEFAULT_MAX_STEPS = default_max_steps(DEFAULT_DEMO_LENGTH)
 
 
 class PathFollowEnv(EnvBase):
@@ -88,7 +91,13 @@ class PathFollowEnv(EnvBase):
         num_agents: ``None`` for an unbatched env (``batch_size=[]``, for
             ``ParallelEnv`` workers) or N for a batched env of N agents.
         demo_length: demonstration length n, steps.
-        max_steps: follow-episode limit, steps.
+        max_steps: follow-episode limit, steps (``None``: ``ceil(5/3 n)``,
+            :func:`~envs.follow.default_max_steps`; 50 for n = 30).
+        task: ``"follow"`` (reach the route's end) or ``"homing"`` (start at its end,
+            return to its start; :mod:`envs.homing`).
+        grid_size_cells: labmaze grid of the split's houses, odd, cells of 1 m (``None``:
+            15 up to n = 30, larger for longer routes,
+            :func:`~envs.house_grid.default_grid_size_cells`); not with ``house_seeds``.
         image_size: side of the square first-person frames, pixels.
         stop_action: add a STOP action (index 3) that ends the episode.
         with_expert: also emit ``expert_action``, the expert's action at every step.
@@ -99,13 +108,14 @@ class PathFollowEnv(EnvBase):
         success_fraction: success radius as a fraction of the initial distance.
         demo_store: a :class:`~envs.demo_store.DemoStore` (or its directory) to draw
             each episode's demonstration from instead of sampling and rendering one;
-            its split, house count, ``demo_length`` and ``image_size`` must match the
-            env's. Adds the ``demo_id`` observation.
+            its split, house count, grid, ``demo_length``, ``image_size`` and ``task`` must
+            match the env's. Adds the ``demo_id`` observation.
         emit_demo_frames: emit ``demo_frames`` at every step (default). ``False``
             (only with ``demo_store``) leaves them out: policies look them up from
             ``demo_id``.
-        demonstrations: demonstrations of ``demo_length`` steps to play instead of sampled
-            ones (:class:`~envs.user_demos.DemonstrationPlaylist`; ``reset(demonstration=demo)``).
+        demonstrations: routes of ``demo_length`` steps to play instead of sampled ones
+            (:class:`~envs.playlist.DemonstrationPlaylist`; ``reset(demonstration=demo)``);
+            a homing env plays their homing demonstrations.
         seed: optional seed (same as calling :meth:`set_seed`).
         device: torch device of the outputs.
 
@@ -128,8 +138,10 @@ class PathFollowEnv(EnvBase):
         house_seeds: Sequence[int] | None = None,
         num_agents: int | None = None,
         demo_length: int = DEFAULT_DEMO_LENGTH,
-        max_steps: int = DEFAULT_MAX_STEPS,
+        max_steps: int | None = None,
         image_size: int = DEFAULT_IMAGE_SIZE,
+        task: str = FOLLOW,
+        grid_size_cells: int | None = None,
         stop_action: bool = False,
         with_expert: bool = False,
         render: bool = True,
@@ -142,8 +154,10 @@ class PathFollowEnv(EnvBase):
         device: torch.device | str = "cpu",
     ) -> None:
         check_positive_int("demo_length", demo_length)
+        max_steps = default_max_steps(demo_length) if max_steps is None else max_steps
         check_positive_int("max_steps", max_steps)
         check_positive_int("image_size", image_size)
+        self.task = check_task(task)
         if num_agents is not None:
             check_positive_int("num_agents", num_agents)
         if success_radius_m <= 0 or success_fraction < 0:
@@ -151,7 +165,8 @@ class PathFollowEnv(EnvBase):
                 f"success_radius_m must be > 0 metres and success_fraction >= 0, got {success_radius_m}, {success_fraction}."
             )
         demo_store, house_seeds = resolve_houses(
-            split, num_houses, house_seeds, demo_store, emit_demo_frames, demo_length, image_size, success_radius_m
+            split, num_houses, house_seeds, demo_store, emit_demo_frames, demo_length, image_size, success_radius_m,
+            self.task, grid_size_cells,
         )
         batch_size = torch.Size([] if num_agents is None else [num_agents])
         super().__init__(device=device, batch_size=batch_size)
@@ -178,11 +193,13 @@ class PathFollowEnv(EnvBase):
         )
         self.demo_store = demo_store
         self.emit_demo_frames = bool(emit_demo_frames)
-        self._field_cache: OrderedDict[int, DistanceField] = OrderedDict()
         self.num_actions = NUM_DEMO_ACTIONS + int(self.stop_action)
-        self._min_route_length_m = default_min_route_length_m(self.demo_length, self.success_radius_m)
         self._renderer: FirstPersonRenderer | None = None  # created at the first reset
-        self._playlist = DemonstrationPlaylist(demonstrations, self.demo_length, self._count, demo_store is not None)
+        self._playlist = DemonstrationPlaylist(demonstrations, self.demo_length, self._count, demo_store is not None, self.task)
+        self._source = EpisodeSource(
+            house_seeds, self.demo_length, default_min_route_length_m(self.demo_length, self.success_radius_m),
+            self.task, self._playlist, demo_store,
+        )
         self._cpu = self.device is not None and torch.device(self.device).type == "cpu"
         self._set_seed(seed)
         self._make_specs()
@@ -284,15 +301,7 @@ class PathFollowEnv(EnvBase):
 
     def _start_episode(self, index: int, demo_frames: torch.Tensor, demo_actions: torch.Tensor, pixels: torch.Tensor) -> None:
         episode_seed = int(self._agent_rngs[index].integers(MAX_EPISODE_SEED))
-        if (given := self._playlist.next(index)) is not None:
-            house, demo = build_house(given.house_seed), given
-        elif self.demo_store is not None:
-            demo_id = int(np.random.default_rng(episode_seed).integers(len(self.demo_store)))
-            demo = self._stored_demonstration(demo_id)
-            house = build_house(demo.house_seed)
-            self._demo_id[index] = demo_id
-        else:
-            house, demo = episode_for_seed(episode_seed, self.house_seeds, self.demo_length, self._min_route_length_m)
+        house, demo, self._demo_id[index] = self._source.episode(index, episode_seed)
         self._houses[index] = house
         self._demos[index] = demo
         self._experts[index] = GeodesicExpert(
@@ -318,14 +327,6 @@ class PathFollowEnv(EnvBase):
         self._render([index] * self.demo_length, demo.poses[: self.demo_length], out=demo_frames[index].numpy())
         pixels[index] = demo_frames[index, 0]  # the agent starts on the demo's first pose
 
-    def _stored_demonstration(self, demo_id: int) -> Demonstration:
-        """Demonstration ``demo_id`` of the store, its distance field cached (LRU)."""
-        demo = self.demo_store.demonstration(demo_id, end_field=self._field_cache.pop(demo_id, None))
-        self._field_cache[demo_id] = demo.end_field
-        if len(self._field_cache) > DISTANCE_FIELD_CACHE_SIZE:
-            self._field_cache.popitem(last=False)
-        return demo
-
     # ------------------------------------------------------------------- step
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         if any(house is None for house in self._houses):
@@ -336,20 +337,9 @@ class PathFollowEnv(EnvBase):
         if noise is not None:
             motion += check_actuation_noise(noise, self._count, self.batch_size)
         previous = self._distance.copy()
-        # apply_motion for every agent at once (same float64 operations, element by element),
-        # with each agent's collision check in its own house
-        heading = self._pose[:, 2]
-        c, s = np.cos(heading), np.sin(heading)
-        dx = c * motion[:, 0] - s * motion[:, 1]
-        dy = s * motion[:, 0] + c * motion[:, 1]
-        new_heading = np.mod(heading + motion[:, 2] + np.pi, 2 * np.pi) - np.pi
-        travelled = np.empty(self._count)
+        self._path_length += move_agents(self._houses, self._pose, motion)
         for index in range(self._count):
-            xy, travelled[index] = self._houses[index].occupancy.move(self._pose[index, :2], (dx[index], dy[index]))
-            self._pose[index, :2] = xy
-            self._pose[index, 2] = new_heading[index]
             self._distance[index] = self._demos[index].end_field.at(self._pose[index])
-        self._path_length += travelled
         self._steps += 1
         outcome = self.rules.score(
             action=action,

@@ -3,7 +3,8 @@
 A house is a pure function of its seed:
 
 1. :class:`labmaze.RandomMaze` lays out rooms joined by doors and corridors on a
-   grid of ``CELL_SIZE_M`` cells.
+   grid of ``CELL_SIZE_M`` cells, 15 x 15 by default; the seed may name a larger grid
+   for long routes (:mod:`envs.house_grid`).
 2. Each room gets its own wall and floor texture from one of labmaze's texture
    styles (the same textures dm_control's maze arenas use), chosen per house.
 3. Furniture-like boxes and cylinders stand at labmaze's object cells, pushed
@@ -38,6 +39,7 @@ from envs.geometry import (
     count_components,
     navigable_beside,
 )
+from envs.house_grid import DEFAULT_GRID_SIZE_CELLS, house_seed, max_rooms, split_house_seed
 
 if TYPE_CHECKING:
     from envs.house_mesh import house_mjcf  # noqa: F401 (re-exported lazily by __getattr__)
@@ -50,10 +52,9 @@ WALL_HEIGHT_M = 2.2
 EYE_HEIGHT_M = 0.9
 #: Vertical field of view of the first-person camera, degrees.
 FIELD_OF_VIEW_DEG = 90.0
-#: labmaze grid size in cells (odd, as labmaze requires).
-MAZE_SIZE_CELLS = 15
-#: Room counts and sizes in cells passed to labmaze.
-MAX_ROOMS = 6
+#: Default labmaze grid size in cells (odd, as labmaze requires); see :mod:`envs.house_grid`.
+MAZE_SIZE_CELLS = DEFAULT_GRID_SIZE_CELLS
+#: Room sizes in cells passed to labmaze (room counts: :func:`envs.house_grid.max_rooms`).
 ROOM_MIN_SIZE_CELLS = 3
 ROOM_MAX_SIZE_CELLS = 5
 OBJECTS_PER_ROOM = 2
@@ -114,16 +115,18 @@ def __getattr__(name: str):
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-def split_seeds(split: str, num_houses: int | None = None) -> list[int]:
+def split_seeds(split: str, num_houses: int | None = None, grid_size_cells: int | None = None) -> list[int]:
     """The house seeds of a split.
 
     Args:
         split: one of ``"train"``, ``"val"``, ``"test"``.
         num_houses: number of houses (default: 61 / 11 / 18); may be enlarged.
+        grid_size_cells: the houses' labmaze grid, cells (``None``: the default 15;
+            see :func:`envs.house_grid.house_seed`).
 
     Examples:
-        >>> split_seeds("val")[:3]
-        [100000, 100001, 100002]
+        >>> split_seeds("val")[:3], split_seeds("val", grid_size_cells=51)[:1]
+        ([100000, 100001, 100002], [510100000])
     """
     if split not in SPLIT_SEED_OFFSETS:
         raise ValueError(f"split must be one of {sorted(SPLIT_SEED_OFFSETS)}, got {split!r}.")
@@ -132,7 +135,7 @@ def split_seeds(split: str, num_houses: int | None = None) -> list[int]:
     if not isinstance(num_houses, (int, np.integer)) or not 0 < num_houses <= MAX_HOUSES_PER_SPLIT:
         raise ValueError(f"num_houses must be an int in [1, {MAX_HOUSES_PER_SPLIT}], got {num_houses!r}.")
     offset = SPLIT_SEED_OFFSETS[split]
-    return list(range(offset, offset + int(num_houses)))
+    return [house_seed(seed, grid_size_cells) for seed in range(offset, offset + int(num_houses))]
 
 
 @dataclass
@@ -230,20 +233,20 @@ def build_house(seed: int) -> House:
     """Generate the house of a seed (cached per process).
 
     Args:
-        seed: any non-negative int; :func:`split_seeds` gives the seeds of a split.
+        seed: a house seed: any non-negative int below ``GRID_SEED_STRIDE`` for a house
+            of the default grid, or :func:`envs.house_grid.house_seed` of a larger one;
+            :func:`split_seeds` gives the seeds of a split.
 
     Examples:
-        >>> house = build_house(0)
-        >>> house.size_m
-        (15.0, 15.0)
+        >>> build_house(0).size_m, build_house(house_seed(0, 25)).size_m
+        ((15.0, 15.0), (25.0, 25.0))
     """
-    if not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"seed must be a non-negative int, got {seed!r}.")
+    _, grid = split_house_seed(seed)  # validates the seed and its grid
     seed = int(seed)
     maze = labmaze.RandomMaze(
-        height=MAZE_SIZE_CELLS,
-        width=MAZE_SIZE_CELLS,
-        max_rooms=MAX_ROOMS,
+        height=grid,
+        width=grid,
+        max_rooms=max_rooms(grid),
         room_min_size=ROOM_MIN_SIZE_CELLS,
         room_max_size=ROOM_MAX_SIZE_CELLS,
         spawns_per_room=0,

@@ -33,7 +33,9 @@ as :func:`~envs.demos.sample_demonstration` crops planned routes (an error if th
 plan is shorter than n). Without ``length`` a route keeps its own length.
 
 The env plays given demonstrations with ``PathFollowEnv(..., demonstrations=[...])``
-(see :class:`DemonstrationPlaylist`) or ``env.reset(demonstration=demo)``.
+(see :class:`~envs.playlist.DemonstrationPlaylist`, importable from here too) or
+``env.reset(demonstration=demo)``; with ``task="homing"`` it plays their homing
+demonstrations (:mod:`envs.homing`).
 
 Examples:
     >>> demo = demonstration_from_actions(0, (7.5, 1.5, 0.0), "FFFFLF")
@@ -416,91 +418,8 @@ def demonstration_from_waypoints(
     return demo
 
 
-class DemonstrationPlaylist:
-    """The demonstrations a :class:`~envs.nav_env.PathFollowEnv` plays instead of sampling routes.
-
-    Agent ``i`` of an env of ``N`` agents plays ``demonstrations[(k * N + i) % K]`` in
-    its ``k``-th episode (counting from the last :meth:`restart`, which ``set_seed``
-    calls), so that with ``K = N`` every agent starts on its own demonstration and
-    with one demonstration every agent repeats it (each episode under its own noise,
-    which the episode seed fixes). ``env.reset(demonstration=demo)`` plays ``demo``
-    in the episodes that this reset starts, whatever the list holds (an env in this
-    process: ``ParallelEnv`` does not forward reset kwargs to its workers; give those
-    the list).
-
-    Args:
-        demonstrations: the list (``None`` or empty: the env samples its routes).
-        demo_length: the env's demonstration length n, which every one must have.
-        num_agents: agents of the env (1 for an unbatched env).
-        with_store: the env draws from a demo store, which given demonstrations cannot join.
-
-    Examples:
-        >>> demo = demonstration_from_actions(0, (7.5, 1.5, 0.0), "FFFFLF")
-        >>> playlist = DemonstrationPlaylist([demo], demo_length=6, num_agents=2)
-        >>> playlist.next(0) is demo, playlist.next(1) is demo
-        (True, True)
-        >>> from envs import PathFollowEnv
-        >>> env = PathFollowEnv(house_seeds=[0], demo_length=6, render=False)
-        >>> td = env.reset(demonstration=demo)
-        >>> td["demo_actions"].tolist() == demo.actions.tolist()
-        True
-    """
-
-    def __init__(
-        self,
-        demonstrations: Sequence[Demonstration] | None,
-        demo_length: int,
-        num_agents: int,
-        with_store: bool = False,
-    ) -> None:
-        self.demo_length = demo_length
-        self.num_agents = num_agents
-        self.with_store = with_store
-        self.demonstrations = tuple(demonstrations or ())
-        for position, demo in enumerate(self.demonstrations):
-            self.check(demo, f"demonstrations[{position}]")
-        self._override: Demonstration | None = None
-        self.restart()
-
-    def restart(self) -> None:
-        """Start every agent's count of episodes again (the first episode plays the agent's first demonstration)."""
-        self._episodes = np.zeros(self.num_agents, dtype=np.int64)
-
-    def check(self, demonstration: object, name: str = "demonstration") -> Demonstration:
-        """``demonstration`` if the env can play it, else a ``ValueError`` saying why."""
-        if self.with_store:
-            raise ValueError(f"{name} cannot be combined with demo_store: the store fixes the demonstrations.")
-        if not isinstance(demonstration, Demonstration):
-            raise ValueError(f"{name} must be an envs.demos.Demonstration, got {type(demonstration).__name__}.")
-        if demonstration.length != self.demo_length or demonstration.poses.shape != (self.demo_length + 1, 3):
-            raise ValueError(
-                f"{name} has {demonstration.length} steps; this env plays demonstrations of exactly "
-                f"demo_length={self.demo_length} steps (the shipped policies need 30): crop or re-record it, "
-                "or build the env with its length."
-            )
-        actions = demonstration.actions
-        if actions.min(initial=0) < 0 or actions.max(initial=0) >= NUM_DEMO_ACTIONS:
-            raise ValueError(f"{name} holds actions outside 0 (forward), 1 (left), 2 (right): {actions.tolist()}.")
-        return demonstration
-
-    def begin_reset(self, demonstration: Demonstration | None) -> None:
-        """Start a reset: the demonstration given to it (checked), or ``None`` to play the list."""
-        self._override = None if demonstration is None else self.check(demonstration)
-
-    def next(self, index: int) -> Demonstration | None:
-        """The demonstration agent ``index``'s next episode plays (``None``: the env samples one)."""
-        episode = int(self._episodes[index])
-        self._episodes[index] += 1
-        if self._override is not None:
-            return self._override
-        if not self.demonstrations:
-            return None
-        return self.demonstrations[(episode * self.num_agents + index) % len(self.demonstrations)]
-
-
 __all__ = [
     "ACTION_LETTERS",
-    "DemonstrationPlaylist",
     "RouteError",
     "RouteRecorder",
     "check_position",
@@ -510,3 +429,12 @@ __all__ = [
     "parse_actions",
     "pose_from_degrees",
 ]
+
+
+def __getattr__(name: str):
+    """``DemonstrationPlaylist`` lives in :mod:`envs.playlist` (imported on first use: no import cycle)."""
+    if name == "DemonstrationPlaylist":
+        from envs.playlist import DemonstrationPlaylist
+
+        return DemonstrationPlaylist
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

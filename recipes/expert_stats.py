@@ -11,6 +11,11 @@ Usage::
 
     python recipes/expert_stats.py                       # train and test, 500 episodes each
     python recipes/expert_stats.py --splits train --episodes 100
+    python recipes/expert_stats.py --task homing --episodes 100 --runs expert:paper   # -> expert_stats_homing_n30.json
+    python recipes/expert_stats.py --demo-length 100 --episodes 100 --runs expert:paper  # -> expert_stats_follow_n100.json
+
+Runs of another task or demonstration length than the paper's (follow, n = 30) write
+``expert_stats_<task>_n<n>.json`` beside it unless ``--output`` is given.
 """
 from __future__ import annotations
 
@@ -28,8 +33,10 @@ import envs  # noqa: E402,F401
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from envs.demos import DEFAULT_DEMO_LENGTH  # noqa: E402
 from envs.factory import make_path_follow_env  # noqa: E402
-from envs.scenes import SPLIT_SEED_OFFSETS  # noqa: E402
+from envs.homing import FOLLOW, TASKS  # noqa: E402
+from envs.scenes import SPLIT_SEED_OFFSETS, build_house  # noqa: E402
 from envs.scripted import ExpertPolicy, OpenLoopReplay, run_episodes  # noqa: E402
 from envs.transforms import NOISE_PRESETS  # noqa: E402
 
@@ -114,14 +121,21 @@ def main() -> None:
     parser.add_argument("--splits", nargs="+", default=["train", "test"])
     parser.add_argument("--num-agents", type=int, default=25, help="agents of the batched env")
     parser.add_argument("--demo-length", type=int, default=None, help="default: the env's")
+    parser.add_argument("--task", default=FOLLOW, choices=TASKS, help="follow the route, or return to its start (homing)")
     parser.add_argument("--seed", type=int, default=0, help="env seed (fixes the episodes) and bootstrap seed")
     parser.add_argument("--resamples", type=int, default=10_000, help="bootstrap resamples")
     parser.add_argument(
         "--runs", nargs="+", default=[f"{p}:{n}" for p, n in DEFAULT_RUNS], help="policy:noise pairs (expert|open_loop)"
     )
     parser.add_argument("--jobs", type=int, default=1, help="worker processes (runs are independent)")
-    parser.add_argument("--output", type=Path, default=RESULTS_PATH)
+    parser.add_argument("--output", type=Path, default=None, help=f"default {RESULTS_PATH.name}, or expert_stats_<task>_n<n>.json")
     args = parser.parse_args()
+    if args.demo_length is not None and args.demo_length <= 0:
+        parser.error(f"--demo-length must be a positive int, got {args.demo_length}")
+    if args.output is None:
+        length = args.demo_length or DEFAULT_DEMO_LENGTH
+        paper = args.task == FOLLOW and length == DEFAULT_DEMO_LENGTH
+        args.output = RESULTS_PATH if paper else RESULTS_PATH.with_name(f"expert_stats_{args.task}_n{length}.json")
     for run in args.runs:  # the whole config first, before any episode is played
         policy_name, _, noise = run.partition(":")
         if policy_name not in ("expert", "open_loop") or noise not in NOISE_PRESETS:
@@ -132,19 +146,21 @@ def main() -> None:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     torch.set_num_threads(1)
 
-    env_kwargs: dict = {"num_agents": args.num_agents, "render": False, "with_expert": True}
+    env_kwargs: dict = {"num_agents": args.num_agents, "render": False, "with_expert": True, "task": args.task}
     if args.demo_length is not None:
         env_kwargs["demo_length"] = args.demo_length
     results: list[dict] = []
-    base = make_path_follow_env("none", split=args.splits[0], num_agents=1, render=False, with_expert=True).base_env
+    base = make_path_follow_env("none", split=args.splits[0], **{**env_kwargs, "num_agents": 1}).base_env
     output = {
         "recipe": "recipes/expert_stats.py",
         "setup": {
             "episodes_per_run": args.episodes,
             "num_agents": args.num_agents,
             "seed": args.seed,
+            "task": base.task,
             "demo_length": base.demo_length,
             "max_steps": base.max_steps,
+            "house_size_m": list(build_house(base.house_seeds[0]).size_m),
             "stop_action": base.stop_action,
             "success_radius": f"max({base.success_radius_m} m, {base.success_fraction} x initial geodesic distance)",
             "render": False,
