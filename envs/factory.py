@@ -20,7 +20,8 @@ def make_path_follow_env(noise: str | NoiseModel = "paper", init_tracker: bool =
     Args:
         noise: an :data:`~envs.transforms.NOISE_PRESETS` name or a :class:`~envs.transforms.NoiseModel`.
         init_tracker: append :class:`~torchrl.envs.InitTracker` (recurrent policies need ``is_init``).
-        **env_kwargs: passed to :class:`~envs.nav_env.PathFollowEnv`.
+        **env_kwargs: passed to :class:`~envs.nav_env.PathFollowEnv` (e.g. ``task="homing"``,
+            ``demo_length=100``, ``grid_size_cells=51``).
 
     Examples:
         >>> from functools import partial
@@ -28,6 +29,8 @@ def make_path_follow_env(noise: str | NoiseModel = "paper", init_tracker: bool =
         >>> env = make()
         >>> "is_init" in env.observation_spec.keys()
         True
+        >>> make_path_follow_env("paper", task="homing", num_houses=1, demo_length=5, render=False).base_env.task
+        'homing'
     """
     split = env_kwargs.pop("split", "train")
     transforms = [ActuationNoise(noise)]

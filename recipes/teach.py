@@ -16,7 +16,12 @@ if the plan is shorter). Routes into a wall, out of the house or ending within t
 success radius (0.6 m) of their start are refused with the step or waypoint named.
 
 The policy then repeats the route ``--repeats`` times, each under its own actuation
-noise, greedily. Written to ``--out``:
+noise, greedily. With ``--homing`` it brings the route home instead: each repeat
+starts at the route's end, facing back along it, and must return to the route's
+start, its memory the env's homing demonstration of the route (frames rendered
+looking back along it, :mod:`envs.homing`); the shipped checkpoints are follow
+policies, pass a homing one with ``--checkpoint`` (``recipes/configs/bc_homing.yaml``).
+Written to ``--out``:
 
 * ``teach.mp4`` (where ``imageio-ffmpeg`` is installed) or ``teach.gif``: the
   demonstration's view beside repeat 1's, with the map;
@@ -29,6 +34,7 @@ Usage::
     python recipes/teach.py                                   # keyboard, first test house
     python recipes/teach.py --house 0 --start 7.5,1.5,0 --actions FFFFFFLLLFLFLFFRFFLFFRFFLFFRFR --repeats 8
     python recipes/teach.py --house 0 --waypoints "7.5,1.5;9.5,1.5;9.5,5.5;12.5,5.5" --noise paper_symmetric
+    python recipes/teach.py --house 0 --start 7.5,1.5,0 --actions FFFFFFLLLFLFLFFRFFLFFRFFLFFRFR --homing
 """
 from __future__ import annotations
 
@@ -39,7 +45,8 @@ import math
 import sys
 from pathlib import Path
 
-from envs.nav_env import DEFAULT_MAX_STEPS
+from envs.follow import default_max_steps
+from envs.homing import FOLLOW, HOMING
 from envs.scenes import build_house, split_seeds
 from envs.transforms import DEFAULT_NOISE, NOISE_PRESETS
 from envs.user_demos import RouteError, check_position, default_start, parse_actions, pose_from_degrees
@@ -97,6 +104,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--repeats", type=int, default=DEFAULT_REPEATS, help=f"repeats, 1 to {MAX_REPEATS} (default {DEFAULT_REPEATS})")
     parser.add_argument("--checkpoint", default=DEFAULT_CHECKPOINT, help=f"a shipped name or a .pt path (default {DEFAULT_CHECKPOINT})")
     parser.add_argument("--out", default="runs/teach", help="output directory (default runs/teach)")
+    parser.add_argument("--homing", action="store_true", help="bring the route home: from its end back to its start")
     parser.add_argument("--no-video", action="store_true", help="skip the video (the slowest output)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser
@@ -176,21 +184,23 @@ def main(argv: list[str] | None = None) -> dict:
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    logger.info("route: %d steps, %.2f m; %s repeats it %d times under %s noise", demo.length,
-                demo.shortest_length_m, args.checkpoint, args.repeats, args.noise)
-    repeats, demo_frames = repeat_route(
-        policy, demo, repeats=args.repeats, noise=args.noise, seed=args.seed, max_steps=DEFAULT_MAX_STEPS,
-        image_size=config.image_size[0], progress=not args.quiet,
+    task, max_steps = HOMING if args.homing else FOLLOW, default_max_steps(demo.length)
+    logger.info("route: %d steps, %.2f m; %s %s it %d times under %s noise", demo.length, demo.shortest_length_m,
+                args.checkpoint, "brings it home" if args.homing else "repeats", args.repeats, args.noise)
+    repeats, demo_frames, played = repeat_route(
+        policy, demo, repeats=args.repeats, noise=args.noise, seed=args.seed, max_steps=max_steps,
+        image_size=config.image_size[0], progress=not args.quiet, task=task,
     )
-    setup = {"checkpoint": args.checkpoint, "noise": args.noise, "seed": args.seed, "max_steps": DEFAULT_MAX_STEPS}
-    content = results(demo, repeats, setup)
+    setup = {"checkpoint": args.checkpoint, "task": task, "noise": args.noise, "seed": args.seed, "max_steps": max_steps}
+    content = results(demo, repeats, setup, played)
     successes = sum(r.record["success"] for r in repeats)
-    title = f"house {demo.house_seed}: {successes}/{len(repeats)} repeats succeed ({args.noise} noise)"
+    what = "bring it home" if args.homing else "succeed"
+    title = f"house {demo.house_seed}: {successes}/{len(repeats)} repeats {what} ({args.noise} noise)"
     logger.info("drawing the map")
-    files = {"map": write_map(demo, repeats, out / MAP_NAME, title).name}
+    files = {"map": write_map(played, repeats, out / MAP_NAME, title).name}
     if not args.no_video:
         logger.info("writing the video")
-        files["video"] = write_video(demo, demo_frames, repeats[0], out / VIDEO_STEM, args.noise).name
+        files["video"] = write_video(played, demo_frames, repeats[0], out / VIDEO_STEM, args.noise).name
     content["files"] = files
     (out / JSON_NAME).write_text(json.dumps(content, indent=2) + "\n")
     for repeat in repeats:

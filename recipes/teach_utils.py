@@ -4,12 +4,16 @@
   per repeat, every agent playing the taught demonstration under its own actuation
   noise (the env seed fixes each repeat's episode seed, and so its noise), driven by
   the greedy policy in one ``env.rollout`` (the path of
-  :func:`~spf_rl.train.evaluation.record_rollout`, batched);
+  :func:`~spf_rl.train.evaluation.record_rollout`, batched); with ``task="homing"``
+  the env plays the route's homing episode (:mod:`envs.homing`: from the route's end
+  back to its start, the memory rendered looking back) and says which demonstration
+  it played;
 * :func:`write_video`: the demonstration's first-person view beside a repeat's,
   and the map with both paths, step by step (MP4 where a codec is present, GIF
   otherwise: :func:`spf_rl.viz.write_video`);
 * :func:`write_map`: the top-down map with the demonstration and every repeat;
-* :func:`results`: the JSON content: the route, the set-up and success and SPL per repeat.
+* :func:`results`: the JSON content: the route, the set-up and success and SPL per repeat
+  (and, for homing, the demonstration the env played).
 """
 from __future__ import annotations
 
@@ -25,6 +29,7 @@ from tqdm.auto import tqdm
 
 from envs.demos import Demonstration
 from envs.follow import SUCCESS_FRACTION, SUCCESS_RADIUS_M
+from envs.homing import FOLLOW, HOMING
 from envs.nav_env import PathFollowEnv
 from envs.render import draw_top_down_map
 from envs.scenes import build_house
@@ -78,8 +83,9 @@ def repeat_route(
     max_steps: int,
     image_size: int,
     progress: bool = True,
-) -> tuple[list[Repeat], np.ndarray]:
-    """The policy follows ``demo`` ``repeats`` times under ``noise``, greedily.
+    task: str = FOLLOW,
+) -> tuple[list[Repeat], np.ndarray, Demonstration]:
+    """The policy follows ``demo`` (or brings it home) ``repeats`` times under ``noise``, greedily.
 
     Args:
         policy: an SPF-family policy (:func:`spf_rl.load_policy`), in eval mode.
@@ -90,9 +96,11 @@ def repeat_route(
         max_steps: episode limit, steps.
         image_size: frame side, pixels (the policy's).
         progress: show a progress bar over the steps.
+        task: ``"follow"`` (repeat the route) or ``"homing"`` (return from its end to its start).
 
     Returns:
-        (the repeats, in agent order; the demonstration's ``(n, H, W, 3)`` frames).
+        (the repeats, in agent order; the played demonstration's ``(n, H, W, 3)`` frames;
+        the demonstration the env played: ``demo`` itself, or its homing demonstration).
     """
     base = PathFollowEnv(
         house_seeds=[demo.house_seed],
@@ -101,6 +109,7 @@ def repeat_route(
         max_steps=max_steps,
         image_size=image_size,
         demonstrations=[demo],
+        task=task,
     )
     env = TransformedEnv(base, Compose(ActuationNoise(noise), InitTracker(), policy.make_tensordict_primer()))
     env.set_seed(seed)
@@ -133,7 +142,7 @@ def repeat_route(
                 frames=torch.cat([pixels[agent, : last + 1], next_pixels[agent, last : last + 1]]).numpy(),
             )
         )
-    return out, rollout[0, 0].get("demo_frames").numpy()
+    return out, rollout[0, 0].get("demo_frames").numpy(), base.demonstrations[0]
 
 
 def route_letters(demo: Demonstration) -> str:
@@ -142,16 +151,21 @@ def route_letters(demo: Demonstration) -> str:
 
 
 def success_radius_m(demo: Demonstration) -> float:
-    """The follow protocol's success radius around the route's end, metres."""
+    """The follow protocol's success radius around the end of the demonstration played, metres."""
     return max(SUCCESS_RADIUS_M, SUCCESS_FRACTION * demo.shortest_length_m)
 
 
+def demo_label(demo: Demonstration) -> str:
+    """How the map and the video name the demonstration played."""
+    return "demonstration, driven back" if demo.task == HOMING else "demonstration"
+
+
 def write_map(demo: Demonstration, repeats: list[Repeat], path: Path, title: str) -> Path:
-    """The top-down map with the demonstration, every repeat and the success radius, as a PNG."""
+    """The top-down map with the demonstration played, every repeat and the success radius, as a PNG."""
     plt = pyplot()
     from matplotlib.patches import Circle
 
-    paths = {"demonstration": demo.poses[:, :2]}
+    paths = {demo_label(demo): demo.poses[:, :2]}
     for repeat in repeats:
         outcome = "success" if repeat.record["success"] else "failure"
         paths[f"repeat {repeat.record['repeat']} ({outcome})"] = repeat.poses[:, :2]
@@ -180,7 +194,7 @@ def write_video(demo: Demonstration, demo_frames: np.ndarray, repeat: Repeat, pa
     repeat_view = middle.imshow(repeat.frames[0], interpolation="nearest")
     for ax in (left, middle):
         ax.set_axis_off()
-    draw_top_down_map(build_house(demo.house_seed), paths={"demonstration": demo_xy}, ax=right)
+    draw_top_down_map(build_house(demo.house_seed), paths={demo_label(demo): demo_xy}, ax=right)
     (trail,) = right.plot(repeat_xy[:1, 0], repeat_xy[:1, 1], "-", linewidth=2, label=f"repeat {repeat.record['repeat']}")
     (demo_at,) = right.plot(demo_xy[:1, 0], demo_xy[:1, 1], "o", color="tab:blue", markersize=4)
     right.legend(loc="upper right", fontsize=7)
@@ -189,7 +203,7 @@ def write_video(demo: Demonstration, demo_frames: np.ndarray, repeat: Repeat, pa
     for step in range(max(len(demo_frames), len(repeat.frames))):
         shown = min(step, len(demo_frames) - 1)
         demo_view.set_data(demo_frames[shown])
-        left.set_title(f"demonstration, step {shown}/{len(demo_frames) - 1}", fontsize=9)
+        left.set_title(f"{demo_label(demo)}, step {shown}/{len(demo_frames) - 1}", fontsize=9)
         demo_at.set_data(demo_xy[shown : shown + 1, 0], demo_xy[shown : shown + 1, 1])
         here = min(step, len(repeat.frames) - 1)
         repeat_view.set_data(repeat.frames[here])
@@ -201,21 +215,30 @@ def write_video(demo: Demonstration, demo_frames: np.ndarray, repeat: Repeat, pa
     return write_frames(frames, path, fps=VIDEO_FPS)
 
 
-def results(demo: Demonstration, repeats: list[Repeat], setup: dict) -> dict:
-    """The JSON content: the set-up, the route (enough to replay it with ``--actions``), each repeat, a summary."""
+def route_json(demo: Demonstration) -> dict:
+    """A demonstration in the JSON: house, start, actions (``--actions`` letters), end, lengths, success radius."""
     start = demo.start_pose
     return {
-        **setup,
-        "route": {
-            "house": demo.house_seed,
-            "start": [float(start[0]), float(start[1]), float(np.degrees(start[2]))],
-            "start_units": "x m, y m, heading deg",
-            "actions": route_letters(demo),
-            "steps": demo.length,
-            "end_xy_m": [float(v) for v in demo.end_xy],
-            "shortest_length_m": float(demo.shortest_length_m),
-            "success_radius_m": success_radius_m(demo),
-        },
-        "repeats": [repeat.record for repeat in repeats],
-        "summary": summarize([repeat.record for repeat in repeats]),
+        "house": demo.house_seed,
+        "start": [float(start[0]), float(start[1]), float(np.degrees(start[2]))],
+        "start_units": "x m, y m, heading deg",
+        "actions": route_letters(demo),
+        "steps": demo.length,
+        "end_xy_m": [float(v) for v in demo.end_xy],
+        "shortest_length_m": float(demo.shortest_length_m),
+        "success_radius_m": success_radius_m(demo),
     }
+
+
+def results(demo: Demonstration, repeats: list[Repeat], setup: dict, played: Demonstration | None = None) -> dict:
+    """The JSON content: the set-up, the route (enough to replay it with ``--actions``), each repeat, a summary.
+
+    ``played``: the demonstration the env played when it is not the route (homing),
+    written as ``"homing"``: its start is the route's end, its end the route's start.
+    """
+    content = {**setup, "route": route_json(demo)}
+    if played is not None and played is not demo:
+        content[played.task] = route_json(played)
+    content["repeats"] = [repeat.record for repeat in repeats]
+    content["summary"] = summarize([repeat.record for repeat in repeats])
+    return content

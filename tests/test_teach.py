@@ -65,6 +65,21 @@ def test_same_seed_same_json(taught, tmp_path):
     assert json.dumps(first) == json.dumps(again)
 
 
+def test_homing_brings_the_route_back_to_its_start(tmp_path):
+    content = teach.main(headless(tmp_path, "--actions", ROUTE, "--repeats", "2", "--seed", "3", "--no-video", "--homing"))
+    route, home = content["route"], content["homing"]
+    assert content["task"] == "homing" and content["max_steps"] == 50 and route["actions"] == ROUTE
+    # the env's homing demonstration: from the route's end, facing back, to the route's start
+    taught = demonstration_from_actions(0, (7.5, 1.5, 0.0), ROUTE)
+    np.testing.assert_allclose(home["start"][:2], taught.poses[-1, :2])
+    assert home["start"][2] == pytest.approx((np.degrees(taught.poses[-1, 2]) + 360) % 360 - 180)
+    np.testing.assert_allclose(home["end_xy_m"], [7.5, 1.5])
+    assert home["actions"] == "".join({"F": "F", "L": "R", "R": "L"}[c] for c in ROUTE[::-1])
+    assert [r["repeat"] for r in content["repeats"]] == [1, 2] and (tmp_path / "teach_map.png").exists()
+    again = teach.main(headless(tmp_path / "again", "--actions", ROUTE, "--repeats", "2", "--seed", "3", "--no-video", "--homing"))
+    assert json.dumps({**content, "files": None}) == json.dumps({**again, "files": None})
+
+
 def route_of(argv: list[str]):
     """The demonstration the CLI builds from ``argv`` (no repeats)."""
     parser = teach.build_parser()
