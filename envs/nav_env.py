@@ -53,6 +53,7 @@ from envs.checks import check_action, check_actuation_noise, check_positive_int,
 from envs.demos import DEFAULT_DEMO_LENGTH, Demonstration, default_min_route_length_m, move_agents, nominal_motion
 from envs.demo_store import DemoStore
 from envs.expert import GeodesicExpert
+from envs.episode_numbering import EpisodeNumbering
 from envs.follow import (  # noqa: F401  (the protocol's constants, re-exported)
     MAX_EPISODE_SEED,
     PROGRESS_REWARD_PER_M,
@@ -116,6 +117,9 @@ class PathFollowEnv(EnvBase):
         demonstrations: routes of ``demo_length`` steps to play instead of sampled ones
             (:class:`~envs.playlist.DemonstrationPlaylist`; ``reset(demonstration=demo)``);
             a homing env plays their homing demonstrations.
+        episode_offset, episode_stride: episode numbering (:mod:`envs.episode_numbering`): agent
+            ``i``'s ``k``-th episode is number ``offset + stride * (i + k * N)``, its seed a
+            function of the env seed and that number alone; emitted as ``episode_index``.
         seed: optional seed (same as calling :meth:`set_seed`).
         device: torch device of the outputs.
 
@@ -150,6 +154,8 @@ class PathFollowEnv(EnvBase):
         demo_store: DemoStore | str | os.PathLike | None = None,
         emit_demo_frames: bool = True,
         demonstrations: Sequence[Demonstration] | None = None,
+        episode_offset: int = 0,
+        episode_stride: int = 1,
         seed: int | None = None,
         device: torch.device | str = "cpu",
     ) -> None:
@@ -201,6 +207,7 @@ class PathFollowEnv(EnvBase):
             self.task, self._playlist, demo_store,
         )
         self._cpu = self.device is not None and torch.device(self.device).type == "cpu"
+        self._numbering = EpisodeNumbering(self._count, episode_offset, episode_stride)
         self._set_seed(seed)
         self._make_specs()
         self._init_state()
@@ -235,6 +242,7 @@ class PathFollowEnv(EnvBase):
         self._initial_distance = np.ones(count)
         self._shortest = np.zeros(count)
         self._episode_seed = np.zeros(count, dtype=np.int64)
+        self._episode_index = np.zeros(count, dtype=np.int64)
         self._demo_id = np.zeros(count, dtype=np.int64)
         self._success = np.zeros(count, dtype=bool)
         self._spl = np.zeros(count)
@@ -248,10 +256,8 @@ class PathFollowEnv(EnvBase):
 
     # ---------------------------------------------------------------- seeding
     def _set_seed(self, seed: int | None) -> None:
-        # one stream per agent: agent i's k-th episode depends only on (seed, i, k),
-        # not on when the other agents' episodes end.
-        entropy = np.random.SeedSequence(seed).entropy
-        self._agent_rngs = [np.random.default_rng([entropy, index]) for index in range(self._count)]
+        # agent i's k-th episode is a fixed episode number, whatever the other agents do
+        self._numbering.reset(seed)
         self._playlist.restart()
 
     # ------------------------------------------------------------- rendering
@@ -300,7 +306,7 @@ class PathFollowEnv(EnvBase):
         return self._observation(zeros, zeros, zeros, reward=None)
 
     def _start_episode(self, index: int, demo_frames: torch.Tensor, demo_actions: torch.Tensor, pixels: torch.Tensor) -> None:
-        episode_seed = int(self._agent_rngs[index].integers(MAX_EPISODE_SEED))
+        self._episode_index[index], episode_seed = self._numbering.next(index)
         house, demo, self._demo_id[index] = self._source.episode(index, episode_seed)
         self._houses[index] = house
         self._demos[index] = demo
@@ -370,10 +376,11 @@ class PathFollowEnv(EnvBase):
         floats[:, 4:7] = self._pose
         if reward is not None:
             floats[:, 7] = reward
-        ints = np.empty((count, 3), dtype=np.int64)
+        ints = np.empty((count, 4), dtype=np.int64)
         ints[:, 0] = self._steps
         ints[:, 1] = self._episode_seed
         ints[:, 2] = self._demo_id
+        ints[:, 3] = self._episode_index
         bools = np.empty((count, 4), dtype=bool)
         bools[:, 0] = self._success
         bools[:, 1] = done
@@ -390,6 +397,7 @@ class PathFollowEnv(EnvBase):
             "demo_actions": demo_actions,
             "step_count": int_columns[..., 0:1],
             "episode_seed": int_columns[..., 1:2],
+            "episode_index": int_columns[..., 3:4],
             "pose": float_columns[..., 4:7],
             "goal_distance": float_columns[..., 0:1],
             "path_length": float_columns[..., 1:2],

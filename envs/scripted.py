@@ -2,9 +2,10 @@
 
 :class:`ExpertPolicy` and :class:`OpenLoopReplay` are TensorDict policies: they
 can drive :class:`~envs.nav_env.PathFollowEnv` in ``env.rollout`` or a TorchRL
-collector. :func:`run_episodes` plays a fixed number of episodes on a batched env
-and returns one record per episode (success, SPL, distances); it is how the
-expert and open-loop figures of docs/results.md are measured (``recipes/expert_stats.py``).
+collector. :func:`run_episodes` plays a fixed, seed-determined set of episodes
+through a TorchRL collector and returns one record per episode (success, SPL,
+distances); the evaluation of trained policies and the expert and open-loop
+figures (``recipes/expert_stats.py``) use it.
 """
 from __future__ import annotations
 
@@ -91,44 +92,48 @@ def episode_record(final: TensorDictBase) -> dict:
 
 
 def run_episodes(env, policy, num_episodes: int, progress: bool = False) -> list[dict]:
-    """Play a fixed set of episodes with ``policy`` and record how each ended.
+    """Play episodes ``0 .. num_episodes - 1`` of a seeded batched env with ``policy``.
 
-    Agent ``i`` of the batched env plays its first ``ceil(num_episodes / N)``
-    episodes (its k-th episode depends only on the env seed, ``i`` and ``k``), so
-    every policy is scored on the same episodes.
+    The env numbers its episodes (:mod:`envs.episode_numbering`): agent ``i`` of ``N``
+    plays episodes ``i, i + N, i + 2N, ...``, and episode ``j`` depends only on the env
+    seed and ``j``. Each agent is stepped (with auto-reset) until its episodes below
+    ``num_episodes`` have ended; each is recorded once, by its number. So every policy
+    is scored on the same episodes, whatever ``N``, and short episodes are not
+    over-represented. (A TorchRL collector does the same stepping, but it stores every
+    frame, ``demo_frames`` included; over envs that emit the frames at every step that
+    halves the speed, so this loop keeps only the final step of each episode.)
 
     Args:
         env: a seeded batched :class:`~envs.nav_env.PathFollowEnv` (``num_agents`` set),
             possibly wrapped in transforms (actuation noise, primers, ...).
-        policy: a TensorDict policy writing ``"action"``.
+        policy: a TensorDict policy (or callable) writing ``"action"``.
         num_episodes: number of episodes (> 0).
         progress: show a progress bar.
 
     Returns:
-        one dict per episode, ordered by (agent, episode): success, spl,
-        goal_distance, path_length, shortest_path_length, steps, episode_seed.
+        one dict per episode, ordered by episode number: ``episode_index``, success,
+        spl, goal_distance, path_length, shortest_path_length, steps, episode_seed.
     """
     if num_episodes <= 0:
         raise ValueError(f"num_episodes must be > 0, got {num_episodes}.")
     if len(env.batch_size) != 1:
         raise ValueError(f"run_episodes needs a batched env (batch_size [N]), got {list(env.batch_size)}.")
-    num_agents = env.batch_size[0]
-    quota = [len(range(agent, num_episodes, num_agents)) for agent in range(num_agents)]
-    per_agent: list[list[dict]] = [[] for _ in range(num_agents)]
+    records: dict[int, dict] = {}
     bar = tqdm(total=num_episodes, disable=not progress, desc="episodes")
     tensordict = env.reset()
     with torch.no_grad():
-        while any(len(done) < q for done, q in zip(per_agent, quota)):
+        while len(records) < num_episodes:
             tensordict, next_tensordict = env.step_and_maybe_reset(policy(tensordict))
             finished = tensordict.get(("next", "done")).reshape(-1)
-            for index in torch.nonzero(finished).reshape(-1).tolist():
-                if len(per_agent[index]) >= quota[index]:
-                    continue
-                per_agent[index].append(episode_record(tensordict.get("next")[index]))
-                bar.update(1)
+            for row in torch.nonzero(finished).reshape(-1).tolist():
+                final = tensordict.get("next")[row]
+                number = int(final["episode_index"].item())
+                if number < num_episodes and number not in records:
+                    records[number] = {"episode_index": number, **episode_record(final)}
+                    bar.update(1)
             tensordict = next_tensordict
     bar.close()
-    return [record for records in per_agent for record in records]
+    return [records[number] for number in range(num_episodes)]
 
 
 __all__ = ["ExpertPolicy", "OpenLoopReplay", "episode_record", "run_episodes"]

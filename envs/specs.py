@@ -73,6 +73,7 @@ def path_follow_specs(
         "demo_actions": Categorical(NUM_DEMO_ACTIONS, shape=(*shape, n), dtype=torch.int64, device=device),
         "step_count": unbounded(1, dtype=torch.int64),
         "episode_seed": unbounded(1, dtype=torch.int64),
+        "episode_index": unbounded(1, dtype=torch.int64),
         "pose": unbounded(3),
         "goal_distance": unbounded(1),
         "path_length": unbounded(1),

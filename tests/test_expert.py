@@ -55,3 +55,18 @@ def test_expert_success_noise_free_and_under_paper_noise():
     assert noise_free >= 0.99
     assert paper >= 0.95
     assert open_loop < paper - 0.2  # replaying the demo blindly fails clearly more often
+
+
+def test_run_episodes_plays_the_same_numbered_episodes_whatever_the_number_of_agents():
+    def play(num_agents: int) -> list[dict]:
+        env = TransformedEnv(
+            PathFollowEnv("train", num_houses=3, num_agents=num_agents, demo_length=6, max_steps=10, with_expert=True, render=False),
+            ActuationNoise("paper"),
+        )
+        env.set_seed(5)
+        return run_episodes(env, OpenLoopReplay(), 9)
+
+    two, four = play(2), play(4)
+    assert [r["episode_index"] for r in two] == list(range(9))
+    assert two == four  # same episodes, same outcomes, each counted once
+    assert len({r["episode_seed"] for r in two}) == 9

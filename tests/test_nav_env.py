@@ -152,3 +152,22 @@ def test_collector_over_batched_env():
     collector.shutdown()
     assert len(batches) == 2 and batches[0].batch_size == torch.Size([2, 10])
     assert batches[0]["pixels"].dtype == torch.uint8
+
+
+def test_episode_numbers_fix_the_episodes_whatever_the_number_of_agents():
+    """Agent i's k-th episode is number i + k * N; episode j is the same episode for any N."""
+    seeds = {}
+    for num_agents in (1, 2, 3):
+        env = PathFollowEnv(num_houses=2, demo_length=5, max_steps=3, image_size=32, render=False, num_agents=num_agents)
+        env.set_seed(7)
+        td = env.reset()
+        played = {}
+        for _ in range(4):
+            for index, seed in zip(td["episode_index"].reshape(-1).tolist(), td["episode_seed"].reshape(-1).tolist()):
+                played[index] = seed
+            td["_reset"] = torch.ones(num_agents, 1, dtype=torch.bool)
+            td = env.reset(td)
+        assert sorted(played)[: 4 * num_agents] == list(range(4 * num_agents))
+        seeds[num_agents] = played
+    for number in range(4):
+        assert seeds[1][number] == seeds[2][number] == seeds[3][number]
