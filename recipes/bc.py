@@ -10,6 +10,7 @@ Usage::
     python recipes/bc.py                       # SPF, sparsity 0.8 (about 30 min on 2 CPU cores)
     python recipes/bc.py --quick               # the whole pipeline in a few minutes
     python recipes/bc.py --preset bc_long      # 20,000 gradient steps on 8,000 episodes (hours on 2 CPU cores)
+    python recipes/bc.py --preset bc_homing    # the same schedule on homing episodes (returning to the route's start)
     python recipes/bc.py model=rpf             # full memory baseline
     python recipes/bc.py model=spf sparsity=0.4 noise=paper optim.epochs=4
     python recipes/bc.py device=cuda optim.amp=true   # GPU, bf16 mixed precision (default device=auto)
@@ -27,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from config_utils import load_config  # noqa: E402
 
 #: Schedules in recipes/configs/ that --preset accepts.
-PRESETS = ("bc_quick", "bc_long")
+PRESETS = ("bc_quick", "bc_long", "bc_homing")
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -37,7 +38,8 @@ def main(argv: list[str] | None = None) -> dict:
         "--preset",
         choices=PRESETS,
         default=None,
-        help="a schedule from recipes/configs/: bc_quick (smoke run) or bc_long (20,000 gradient steps on 8,000 episodes)",
+        help="a schedule from recipes/configs/: bc_quick (smoke run), bc_long (20,000 gradient steps on 8,000 "
+        "episodes) or bc_homing (bc_long on homing episodes)",
     )
     parser.add_argument("overrides", nargs="*", help="key=value config overrides")
     args = parser.parse_args(argv)

@@ -2,8 +2,8 @@
 
 Built on OmegaConf: the YAML is merged into the dataclass schema (so unknown keys
 and wrong types are refused), then command-line ``dotted.key=value`` overrides are
-applied. Shorthands: ``model=NAME``, ``sparsity=X``, ``noise=PRESET`` (training
-data, validation and test), ``epochs=N``.
+applied. Shorthands: ``model=NAME``, ``sparsity=X``, ``noise=PRESET`` and
+``task=follow|homing`` (training data, validation and test), ``epochs=N``.
 """
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ SHORTHANDS = {
     "pointer": ["model.pointer_update"],
     "noise": ["data.noise", "val.noise", "test.noise"],
     "epochs": ["optim.epochs"],
+    "task": ["data.task", "val.task", "test.task"],
 }
 
 

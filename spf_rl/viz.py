@@ -12,6 +12,8 @@ import numpy as np
 
 logger = logging.getLogger(__name__)
 
+#: Resolution of the figures written by this module, dots per inch.
+FIGURE_DPI = 110
 #: How to install what this module needs.
 VIZ_INSTALL_HINT = 'install the viz extra: pip install -e ".[viz]" (matplotlib, imageio)'
 
@@ -36,6 +38,17 @@ def plot_if_available(plot, *args, **kwargs):
     except ImportError as err:
         logger.warning("figure skipped: %s", err)
         return None
+
+
+def save_figure(fig, path: str | Path, title: str, dpi: int = FIGURE_DPI) -> Path:
+    """Title ``fig``, lay it out, write it to ``path`` (a PNG; folders created) and close it."""
+    path = Path(path)
+    fig.suptitle(title)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi)
+    pyplot().close(fig)
+    return path
 
 
 def plot_training_curves(history: list[dict], path: str | Path, title: str = "training") -> Path:
@@ -71,12 +84,44 @@ def plot_training_curves(history: list[dict], path: str | Path, title: str = "tr
     right.set_ylim(0, 1)
     right.set_xlabel("epoch")
     right.legend(fontsize=8)
-    fig.suptitle(title)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, title)
+
+
+def plot_success_by_length(results: dict[str, list[dict]], path: str | Path, title: str = "success against route length") -> Path:
+    """Success and SPL (with 95% CIs) against the demonstration length, one line per model, to a PNG.
+
+    Args:
+        results: ``{model label: rows}``, a row per length with ``demo_length``, ``success``,
+            ``spl`` and optionally ``success_ci`` / ``spl_ci`` (``[low, high]``), as
+            :func:`spf_rl.train.lengths.evaluate_lengths` gives them.
+        path: output PNG.
+        title: figure title.
+
+    Examples:
+        >>> import tempfile, os
+        >>> rows = [{"demo_length": 30, "success": 0.8, "spl": 0.7, "success_ci": [0.7, 0.9], "spl_ci": [0.6, 0.8]},
+        ...         {"demo_length": 100, "success": 0.4, "spl": 0.3}]
+        >>> plot_success_by_length({"spf": rows}, os.path.join(tempfile.mkdtemp(), "l.png")).exists()
+        True
+    """
+    plt = pyplot()
+    path = Path(path)
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.5), sharex=True)
+    for label, rows in results.items():
+        rows = sorted(rows, key=lambda row: row["demo_length"])
+        lengths = [row["demo_length"] for row in rows]
+        for ax, key in zip(axes, ("success", "spl")):
+            values = np.array([row[key] for row in rows])
+            intervals = np.array([row.get(f"{key}_ci", (row[key], row[key])) for row in rows], dtype=float)
+            error = np.abs(intervals.T - values)
+            ax.errorbar(lengths, values, yerr=error, fmt="o-", capsize=3, label=label)
+    for ax, name in zip(axes, ("success", "SPL")):
+        ax.set_xlabel("demonstration length n (steps)")
+        ax.set_ylabel(f"{name} (95% CI)")
+        ax.set_ylim(0, 1)
+        ax.set_xticks(sorted({row["demo_length"] for rows in results.values() for row in rows}))
+        ax.legend(fontsize=8)
+    return save_figure(fig, path, title)
 
 
 def plot_pointer(eta: np.ndarray, nearest_demo_index: np.ndarray, memory_indices: np.ndarray, ax=None, title: str = ""):

@@ -68,6 +68,16 @@ class OptimConfig:
     amp: bool = False
 
 
+def default_val_config() -> EvalConfig:
+    """Validation after each epoch: 100 episodes of the ``val`` split, seed 1."""
+    return EvalConfig(split="val", num_episodes=100, seed=1)
+
+
+def default_test_config() -> EvalConfig:
+    """The final test of the best checkpoint: 500 episodes of the ``test`` split, seed 2."""
+    return EvalConfig(split="test", num_episodes=500, seed=2)
+
+
 @dataclass
 class BCConfig:
     """A behaviour-cloning run.
@@ -104,8 +114,8 @@ class BCConfig:
     data: DatasetConfig = field(default_factory=DatasetConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
-    val: EvalConfig = field(default_factory=lambda: EvalConfig(split="val", num_episodes=100, seed=1))
-    test: EvalConfig = field(default_factory=lambda: EvalConfig(split="test", num_episodes=500, seed=2))
+    val: EvalConfig = field(default_factory=default_val_config)
+    test: EvalConfig = field(default_factory=default_test_config)
 
     def __post_init__(self) -> None:
         check_device(self.device)
@@ -198,23 +208,141 @@ def model_memory_bytes(model_type: str, demo_length: int, sparsity: float, image
     return memory_bytes(demo_length, 1.0 if model_type in ("rpf", "rpf_original") else sparsity, frame_shape)
 
 
+class TrainingRun:
+    """The optimiser, schedule, resume state and checkpoints of a BC run (shared by :func:`train_bc`
+    and the mixed-length run of :mod:`spf_rl.train.lengths`).
+
+    ``<output>/last.pt`` holds everything needed to resume (written after every epoch);
+    ``<output>/best.pt`` the weights of the best validation epoch (success, then SPL).
+
+    Args:
+        output: the run directory.
+        model_type: the policy's model type (checked when resuming).
+        policy_config: the policy's :class:`~spf_rl.modules.SPFConfig`, saved with it.
+        policy: the policy being trained.
+        optim: the optimiser settings.
+        total_steps: gradient steps of the whole run (the cosine schedule's length).
+    """
+
+    def __init__(
+        self, output: Path, model_type: str, policy_config, policy: SPFPolicy, optim: OptimConfig, total_steps: int
+    ) -> None:
+        self.model_type, self.policy_config, self.policy, self.optim = model_type, policy_config, policy, optim
+        self.optimizer = torch.optim.Adam(policy.parameters(), lr=optim.lr, weight_decay=optim.weight_decay)
+        self.scheduler = (
+            torch.optim.lr_scheduler.CosineAnnealingLR(self.optimizer, T_max=total_steps)
+            if optim.cosine_schedule
+            else torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda _: 1.0)
+        )
+        self.last_path, self.best_path = output / "last.pt", output / "best.pt"
+        self.history: list[dict] = []
+        self.best = {"success": -1.0, "spl": -1.0, "epoch": -1}
+        self.step = 0
+
+    def resume(self) -> int:
+        """Load ``last.pt`` if it exists; returns the number of finished epochs."""
+        if not self.last_path.exists():
+            return 0
+        payload = load_checkpoint(self.last_path, expected_model_type=self.model_type)
+        self.policy.load_state_dict(payload["model"])
+        self.optimizer.load_state_dict(payload["optimizer"])
+        if "scheduler" in payload:
+            self.scheduler.load_state_dict(payload["scheduler"])
+        self.history, self.best = payload["history"], payload["best"]
+        self.step = self.history[-1]["step"] if self.history else 0
+        torch.set_rng_state(payload["torch_rng"])
+        logger.info("resuming %s after epoch %d", self.last_path.parent, payload["epoch"])
+        return payload["epoch"]
+
+    def train_epoch(
+        self, batches, num_batches: int, desc: str, progress: bool, run_logger=None, policy_of=None
+    ) -> tuple[list, list, float]:
+        """One gradient step per batch (cross-entropy, clipped gradients); returns (losses, accuracies, seconds).
+
+        ``policy_of(batch)``, if given, is the module that computes a batch's loss (a view of
+        the policy sharing its parameters, e.g. for another demonstration length).
+        """
+        self.policy.train()
+        losses, accuracies, start = [], [], time.time()
+        bar = tqdm(batches, total=num_batches, desc=desc, disable=not progress)
+        for batch in bar:
+            policy = self.policy if policy_of is None else policy_of(batch).train()
+            loss, accuracy = bc_loss(policy, batch, amp=self.optim.amp)
+            self.optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(self.policy.parameters(), self.optim.max_grad_norm)
+            self.optimizer.step()
+            self.scheduler.step()
+            self.step += 1
+            losses.append(loss.item())
+            accuracies.append(accuracy.item())
+            bar.set_postfix(loss=f"{losses[-1]:.3f}", acc=f"{accuracies[-1]:.2f}")
+            if run_logger is not None:
+                run_logger.log_scalar("train/loss", losses[-1], step=self.step)
+        return losses, accuracies, time.time() - start
+
+    def end_epoch(self, epoch: int, losses: list, accuracies: list, train_seconds: float, val: dict, run_logger=None) -> dict:
+        """Record epoch ``epoch`` (from 0), keep ``best.pt`` if ``val`` is the best so far, write ``last.pt``."""
+        record = {
+            "epoch": epoch + 1,
+            "step": self.step,
+            "train_loss": sum(losses) / len(losses),
+            "train_accuracy": sum(accuracies) / len(accuracies),
+            "val_success": val["success"],
+            "val_spl": val["spl"],
+            "train_seconds": train_seconds,
+        }
+        self.history.append(record)
+        if run_logger is not None:
+            for key in ("train_accuracy", "val_success", "val_spl"):
+                run_logger.log_scalar(f"epoch/{key}", record[key], step=self.step)
+        state = {"model": self.policy.state_dict(), "epoch": epoch + 1}
+        if (val["success"], val["spl"]) > (self.best["success"], self.best["spl"]):
+            self.best = {"success": val["success"], "spl": val["spl"], "epoch": epoch + 1}
+            save_checkpoint(self.best_path, self.model_type, self.policy_config, {**state, "val": val})
+        extra = {"optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict()}
+        save_checkpoint(
+            self.last_path,
+            self.model_type,
+            self.policy_config,
+            {**state, **extra, "history": self.history, "best": self.best, "torch_rng": torch.get_rng_state()},
+        )
+        return record
+
+    def load_best(self) -> None:
+        """Load the weights of ``best.pt`` into the policy."""
+        self.policy.load_state_dict(load_checkpoint(self.best_path, expected_model_type=self.model_type)["model"])
+
+
+def run_on_device(train, config) -> dict:
+    """``train(config, device)`` on the config's device (resolved before any work), in full
+    float32 unless ``config.optim.amp`` (:func:`~spf_rl.device.exact_float32`)."""
+    device = resolve_device(config.device)
+    with exact_float32(device, enabled=not config.optim.amp):
+        return train(config, device)
+
+
+def start_run(config) -> Path:
+    """Create ``config.output_dir``, write its ``config.json`` and seed torch with ``config.seed``."""
+    output = Path(config.output_dir)
+    output.mkdir(parents=True, exist_ok=True)
+    (output / "config.json").write_text(json.dumps(asdict(config), indent=2, default=str))
+    torch.manual_seed(config.seed)
+    return output
+
+
 def train_bc(config: BCConfig) -> dict:
     """Run (or resume) a behaviour-cloning run and return its results dict (also written to ``results.json``).
 
     Raises:
         ValueError: ``config.device`` names a device this machine does not have (before any work).
     """
-    device = resolve_device(config.device)
-    with exact_float32(device, enabled=not config.optim.amp):
-        return _train_bc(config, device)
+    return run_on_device(_train_bc, config)
 
 
 def _train_bc(config: BCConfig, device: torch.device) -> dict:
     start_time = time.time()
-    output = Path(config.output_dir)
-    output.mkdir(parents=True, exist_ok=True)
-    (output / "config.json").write_text(json.dumps(asdict(config), indent=2, default=str))
-    torch.manual_seed(config.seed)
+    output = start_run(config)
     dataset = EpisodeDataset.build(config.resolved_data_dir(), config.data, config.num_workers, config.progress)
     logger.info("dataset: %s", dataset.statistics())
 
@@ -222,90 +350,28 @@ def _train_bc(config: BCConfig, device: torch.device) -> dict:
     policy_config = spf_config(config.model, config.data.demo_length, config.data.image_size)
     policy = build_policy(model_type, policy_config).to(device)
     logger.info("training on %s%s", device, " with bf16 autocast" if config.optim.amp else "")
-    optimizer = torch.optim.Adam(policy.parameters(), lr=config.optim.lr, weight_decay=config.optim.weight_decay)
     batches_per_epoch = -(-len(dataset) // config.optim.batch_size)
-    total_steps = batches_per_epoch * config.optim.epochs
-    scheduler = (
-        torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=total_steps)
-        if config.optim.cosine_schedule
-        else torch.optim.lr_scheduler.LambdaLR(optimizer, lambda _: 1.0)
-    )
-    history: list[dict] = []
-    best = {"success": -1.0, "spl": -1.0, "epoch": -1}
-    start_epoch = 0
-    last_path, best_path = output / "last.pt", output / "best.pt"
-    if last_path.exists():
-        payload = load_checkpoint(last_path, expected_model_type=model_type)
-        policy.load_state_dict(payload["model"])
-        optimizer.load_state_dict(payload["optimizer"])
-        if "scheduler" in payload:
-            scheduler.load_state_dict(payload["scheduler"])
-        start_epoch, history, best = payload["epoch"], payload["history"], payload["best"]
-        torch.set_rng_state(payload["torch_rng"])
-        logger.info("resuming %s after epoch %d", output, start_epoch)
+    run = TrainingRun(output, model_type, policy_config, policy, config.optim, batches_per_epoch * config.optim.epochs)
+    start_epoch = run.resume()
 
     run_logger = get_logger(config.logger, logger_name=str(output / "logs"), experiment_name="bc") if config.logger else None
     val_config = dataclasses.replace(
         config.val, demo_length=config.data.demo_length, max_steps=config.data.max_steps, image_size=config.data.image_size
     )
-    step = start_epoch * batches_per_epoch
     for epoch in range(start_epoch, config.optim.epochs):
-        policy.train()
         buffer = dataset.replay_buffer(config.optim.batch_size, seed=config.seed * 1000 + epoch)
-        losses, accuracies, epoch_start = [], [], time.time()
-        bar = tqdm(range(batches_per_epoch), desc=f"epoch {epoch + 1}/{config.optim.epochs}", disable=not config.progress)
-        for _ in bar:
-            batch = buffer.sample()
-            loss, accuracy = bc_loss(policy, batch, amp=config.optim.amp)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(policy.parameters(), config.optim.max_grad_norm)
-            optimizer.step()
-            scheduler.step()
-            step += 1
-            losses.append(loss.item())
-            accuracies.append(accuracy.item())
-            bar.set_postfix(loss=f"{losses[-1]:.3f}", acc=f"{accuracies[-1]:.2f}")
-            if run_logger is not None:
-                run_logger.log_scalar("train/loss", losses[-1], step=step)
-        train_seconds = time.time() - epoch_start
-        val, _ = evaluate_policy(policy, val_config, progress=False)
-        record = {
-            "epoch": epoch + 1,
-            "step": step,
-            "train_loss": sum(losses) / len(losses),
-            "train_accuracy": sum(accuracies) / len(accuracies),
-            "val_success": val["success"],
-            "val_spl": val["spl"],
-            "train_seconds": train_seconds,
-        }
-        history.append(record)
-        logger.info("epoch %d: %s", epoch + 1, record)
-        if run_logger is not None:
-            for key in ("train_accuracy", "val_success", "val_spl"):
-                run_logger.log_scalar(f"epoch/{key}", record[key], step=step)
-        if (val["success"], val["spl"]) > (best["success"], best["spl"]):
-            best = {"success": val["success"], "spl": val["spl"], "epoch": epoch + 1}
-            save_checkpoint(best_path, model_type, policy_config, {"model": policy.state_dict(), "epoch": epoch + 1, "val": val})
-        save_checkpoint(
-            last_path,
-            model_type,
-            policy_config,
-            {
-                "model": policy.state_dict(),
-                "optimizer": optimizer.state_dict(),
-                "scheduler": scheduler.state_dict(),
-                "epoch": epoch + 1,
-                "history": history,
-                "best": best,
-                "torch_rng": torch.get_rng_state(),
-            },
+        batches = (buffer.sample() for _ in range(batches_per_epoch))
+        losses, accuracies, train_seconds = run.train_epoch(
+            batches, batches_per_epoch, f"epoch {epoch + 1}/{config.optim.epochs}", config.progress, run_logger
         )
+        val, _ = evaluate_policy(policy, val_config, progress=False)
+        record = run.end_epoch(epoch, losses, accuracies, train_seconds, val, run_logger)
+        logger.info("epoch %d: %s", epoch + 1, record)
+    history, best = run.history, run.best
     if run_logger is not None and hasattr(run_logger, "experiment"):
         run_logger = None
 
-    payload = load_checkpoint(best_path, expected_model_type=model_type)
-    policy.load_state_dict(payload["model"])
+    run.load_best()
     test_config = dataclasses.replace(
         config.test, demo_length=config.data.demo_length, max_steps=config.data.max_steps, image_size=config.data.image_size
     )
@@ -324,15 +390,20 @@ def _train_bc(config: BCConfig, device: torch.device) -> dict:
         "wall_seconds_this_run": time.time() - start_time,
         "config": asdict(config),
     }
-    _atomic_json(output / "results.json", results)
-    _atomic_json(output / "test_episodes.json", {"episodes": records})
+    atomic_json(output / "results.json", results)
+    atomic_json(output / "test_episodes.json", {"episodes": records})
     from spf_rl.viz import plot_if_available, plot_training_curves
 
     plot_if_available(plot_training_curves, history, output / "training_curves.png", title=f"BC {model_type}")
     return results
 
 
-def _atomic_json(path: Path, payload: dict) -> None:
+def atomic_json(path: Path, payload: dict) -> None:
+    """Write ``payload`` as indented JSON to ``path`` through a temporary file and a rename."""
     tmp = path.with_name(f".{path.name}.tmp")
     tmp.write_text(json.dumps(payload, indent=2, default=str))
     os.replace(tmp, path)
+
+
+#: The former private name, still imported by the DAgger and PPO loops.
+_atomic_json = atomic_json

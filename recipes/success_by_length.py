@@ -1,0 +1,109 @@
+"""Success against route length: evaluate checkpoints on demonstrations of 30, 50 and 100 steps.
+
+Each checkpoint's weights run at every length (:func:`spf_rl.train.lengths.policy_for_length`:
+SPF's weights do not depend on the demonstration length); episodes of ``n`` steps are
+sampled in houses large enough for them and end after ``ceil(5/3 n)`` steps. Every
+checkpoint plays the same episodes at a length (same seed). Written to ``--out``:
+
+* ``success_by_length.json``: the set-up and, per checkpoint, one row per length
+  (success, SPL, 95% CIs, episodes, ``max_steps``, the houses' grid);
+* ``success_by_length.png``: success and SPL against the length, one line per checkpoint.
+
+Usage::
+
+    python recipes/success_by_length.py spf-s0.8                                    # a shipped checkpoint
+    python recipes/success_by_length.py runs/bc_lengths/spf-s0.8-seed0/best.pt spf-s0.8 --episodes 500
+    python recipes/success_by_length.py spf-s0.8 --lengths 30 50 --noise paper_symmetric --out results/lengths-sym
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from pathlib import Path
+
+from envs.scenes import SPLIT_SEED_OFFSETS
+from envs.transforms import DEFAULT_NOISE, NOISE_PRESETS
+
+logger = logging.getLogger("success_by_length")
+
+#: File names written in --out.
+JSON_NAME, FIGURE_NAME = "success_by_length.json", "success_by_length.png"
+
+
+def label_of(path_or_name: str) -> str:
+    """How the JSON and the figure name a checkpoint: a shipped name, or ``<run dir>/<file>``.
+
+    Examples:
+        >>> label_of("spf-s0.8"), label_of("runs/bc_lengths/spf-s0.8-seed0/best.pt")
+        ('spf-s0.8', 'spf-s0.8-seed0/best')
+    """
+    path = Path(path_or_name)
+    if path.suffix != ".pt":
+        return path_or_name
+    return f"{path.parent.name}/{path.stem}" if path.parent.name else path.stem
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("checkpoints", nargs="+", help="shipped checkpoint names or .pt paths")
+    parser.add_argument("--lengths", type=int, nargs="+", default=[30, 50, 100], help="demonstration lengths, steps")
+    parser.add_argument("--episodes", type=int, default=200, help="episodes per length and checkpoint (default 200)")
+    parser.add_argument("--split", default="test", help=f"house split: {', '.join(SPLIT_SEED_OFFSETS)} (default test)")
+    parser.add_argument("--num-houses", type=int, default=None, help="houses of the split (default: all of it)")
+    parser.add_argument("--noise", default=DEFAULT_NOISE, help=f"actuation noise: {', '.join(sorted(NOISE_PRESETS))}")
+    parser.add_argument("--seed", type=int, default=2, help="seed of the episodes (default 2)")
+    parser.add_argument("--num-agents", type=int, default=25, help="agents stepped together (default 25)")
+    parser.add_argument("--device", default="cpu", help="where the policies run: cpu, auto, cuda, cuda:N")
+    parser.add_argument("--no-render", action="store_true", help="black frames (a pipeline check, not a result)")
+    parser.add_argument("--out", default="results/lengths", help="output directory (default results/lengths)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """Run the recipe; returns the JSON content it writes."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    if any(length <= 0 for length in args.lengths) or len(set(args.lengths)) != len(args.lengths):
+        parser.error(f"--lengths must be distinct positive ints (steps), got {args.lengths}.")
+    if args.episodes <= 0 or args.num_agents <= 0:
+        parser.error(f"--episodes and --num-agents must be positive ints, got {args.episodes}, {args.num_agents}.")
+    from spf_rl.checkpoint import CheckpointError
+    from spf_rl.hub import load_policy
+    from spf_rl.train.evaluation import EvalConfig
+
+    try:
+        config = EvalConfig(
+            split=args.split, num_episodes=args.episodes, noise=args.noise, seed=args.seed,
+            num_agents=args.num_agents, num_houses=args.num_houses, render=not args.no_render,
+        )
+        policies = {label_of(name): load_policy(name, device=args.device).policy for name in args.checkpoints}
+    except (ValueError, FileNotFoundError, CheckpointError) as err:
+        parser.error(str(err))
+
+    from spf_rl.train.lengths import evaluate_lengths
+    from spf_rl.viz import plot_if_available, plot_success_by_length
+
+    results = {}
+    for label, policy in policies.items():
+        logger.info("%s at lengths %s", label, args.lengths)
+        results[label], _ = evaluate_lengths(policy, args.lengths, config, progress=not args.quiet)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    content = {
+        "recipe": "recipes/success_by_length.py",
+        "setup": {key: getattr(args, key) for key in ("lengths", "episodes", "split", "num_houses", "noise", "seed")},
+        "render": not args.no_render,
+        "results": results,
+    }
+    (out / JSON_NAME).write_text(json.dumps(content, indent=2) + "\n")
+    plot_if_available(plot_success_by_length, results, out / FIGURE_NAME, title=f"success against route length ({args.noise} noise)")
+    for label, rows in results.items():
+        print(label + ": " + ", ".join(f"n={row['demo_length']} success {row['success']:.2f} SPL {row['spl']:.2f}" for row in rows))
+    return content
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,318 @@
+"""Routes of several lengths: one SPF model for demonstrations of n = 30, 50 and 100 steps.
+
+SPF's weights do not depend on the demonstration length ``n``: the memory holds
+``round(sparsity * n)`` frames encoded by the same encoder, and the pointer moves on
+``[0, n - 1]`` with the same heads. :func:`policy_for_length` builds a policy's modules
+for another ``n`` that share its parameters, so one set of weights is trained on, and
+evaluated at, every length. Episodes of length ``n`` are sampled in houses large enough
+for them (:func:`~envs.house_grid.default_grid_size_cells`) and end after
+:func:`~envs.follow.default_max_steps` steps (``ceil(5/3 n)``).
+
+* :class:`MixedLengthConfig` and :func:`train_bc_mixed`: behaviour cloning on one
+  expert-labelled dataset per length (a batch holds episodes of one length; each epoch
+  visits every batch of every dataset in a seeded random order), validated on the mean
+  success over the lengths, tested at each length (``recipes/bc_lengths.py``);
+* :func:`evaluate_lengths`: success and SPL of a policy at each length, the rows of
+  :func:`spf_rl.viz.plot_success_by_length` (``recipes/success_by_length.py``).
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tensordict import TensorDict
+
+from envs.checks import check_positive_int
+from envs.follow import default_max_steps
+from envs.house_grid import default_grid_size_cells
+from spf_rl.data import DatasetConfig, EpisodeDataset
+from spf_rl.device import DEFAULT_DEVICE, check_device
+from spf_rl.modules.policy import SPFPolicy
+from spf_rl.train.bc import (
+    OptimConfig,
+    TrainingRun,
+    atomic_json,
+    default_test_config,
+    default_val_config,
+    model_memory_bytes,
+    run_on_device,
+    start_run,
+)
+from spf_rl.train.evaluation import EvalConfig, evaluate_policy
+from spf_rl.train.models import ModelConfig, build_policy, spf_config
+
+logger = logging.getLogger(__name__)
+
+#: The lengths of the issue's report (#13 part 4), steps.
+DEFAULT_LENGTHS = (30, 50, 100)
+#: Training episodes per length: about the same bytes of frames per length
+#: (episodes x (n + max_steps) frames), 19,000 gradient steps in 40 epochs of batch 16.
+DEFAULT_EPISODES = (4000, 2400, 1200)
+
+
+def policy_for_length(policy: SPFPolicy, demo_length: int) -> SPFPolicy:
+    """``policy``'s network for demonstrations of ``demo_length`` steps, sharing its parameters.
+
+    The view is a new :class:`~spf_rl.modules.SPFPolicy` of ``policy.config`` with
+    ``demo_length`` replaced, whose parameters (and persistent buffers) are ``policy``'s
+    own tensors: training either trains both, loading weights into ``policy`` loads
+    them into the view. Only the length-dependent index buffers differ.
+
+    Raises:
+        ValueError: a non-positive length, or a policy with a custom encoder (its
+            parameters do not match a default-built network).
+
+    Examples:
+        >>> from spf_rl.modules import SPFConfig
+        >>> policy = SPFPolicy(SPFConfig(demo_length=30, feature_dim=8, hidden_size=8, image_size=(16, 16)))
+        >>> long = policy_for_length(policy, 100)
+        >>> long.config.demo_length, long.memory_length, long.cell.gru.weight_hh is policy.cell.gru.weight_hh
+        (100, 80, True)
+    """
+    check_positive_int("demo_length", demo_length)
+    if demo_length == policy.config.demo_length:
+        return policy
+    parameters = policy.state_dict(keep_vars=True)
+    view = SPFPolicy(dataclasses.replace(policy.config, demo_length=demo_length))
+    if set(view.state_dict()) != set(parameters):
+        raise ValueError(
+            "policy_for_length needs a policy built from its config (the default encoder); "
+            "this policy's parameters differ from a default-built network's."
+        )
+    for name in list(view.state_dict()):
+        module_name, _, attribute = name.rpartition(".")
+        module = view.get_submodule(module_name)
+        if attribute in module._parameters:
+            module._parameters[attribute] = parameters[name]
+        else:
+            module._buffers[attribute] = parameters[name]
+    device = parameters[next(iter(parameters))].device if parameters else torch.device("cpu")
+    return view.to(device).train(policy.training)
+
+
+def length_eval_config(config: EvalConfig, demo_length: int, image_size: int) -> EvalConfig:
+    """``config`` for demonstrations of ``demo_length`` steps: the rule's ``max_steps``, the policy's frame size."""
+    return dataclasses.replace(
+        config, demo_length=demo_length, max_steps=default_max_steps(demo_length), image_size=image_size
+    )
+
+
+def evaluate_lengths(
+    policy: SPFPolicy, lengths: list[int], config: EvalConfig, progress: bool = False
+) -> tuple[list[dict], dict[int, list[dict]]]:
+    """Success and SPL of ``policy`` at each demonstration length (:func:`policy_for_length`).
+
+    Args:
+        policy: an SPF-family policy (any ``demo_length``).
+        lengths: the demonstration lengths, steps.
+        config: the evaluation set-up; ``demo_length``, ``max_steps`` (the rule:
+            :func:`~envs.follow.default_max_steps`) and ``image_size`` (the policy's)
+            are set per length; every length plays ``config.num_episodes`` episodes.
+        progress: show progress bars.
+
+    Returns:
+        (one row per length: ``demo_length``, ``max_steps``, ``grid_size_cells`` and the
+        summary of :func:`~spf_rl.train.evaluation.evaluate_policy`; the episode records by length).
+
+    Examples:
+        >>> from spf_rl.modules import SPFConfig
+        >>> policy = SPFPolicy(SPFConfig(demo_length=5, feature_dim=8, hidden_size=8, image_size=(16, 16)))
+        >>> config = EvalConfig(split="val", num_episodes=2, num_agents=2, num_houses=1, render=False)
+        >>> rows, _ = evaluate_lengths(policy, [4, 6], config)
+        >>> [(row["demo_length"], row["max_steps"], row["episodes"]) for row in rows]
+        [(4, 7, 2), (6, 10, 2)]
+    """
+    rows, records = [], {}
+    for length in lengths:
+        length_config = length_eval_config(config, length, policy.config.image_size[0])
+        summary, records[length] = evaluate_policy(policy_for_length(policy, length), length_config, progress=progress)
+        rows.append(
+            {
+                "demo_length": length,
+                "max_steps": length_config.max_steps,
+                "grid_size_cells": default_grid_size_cells(length),
+                **summary,
+            }
+        )
+    return rows, records
+
+
+@dataclass
+class MixedLengthConfig:
+    """Behaviour cloning of one model on demonstrations of several lengths.
+
+    Args:
+        seed: seed of initialisation, batching and (through the sub-configs) data.
+        output_dir: checkpoints, results and figures.
+        device: where the policy trains (``"auto"``, ``"cpu"``, ``"cuda"``, ``"cuda:N"``).
+        data_root: directory of the per-length datasets (named by their configuration).
+        num_workers: processes generating the datasets.
+        progress: progress bars.
+        lengths: the demonstration lengths, steps (the checkpoint is saved for the first).
+        episodes: training episodes per length (same order as ``lengths``).
+        data: the datasets' common settings (split, noise, random actions, frame size,
+            chunk size, seed); ``num_episodes``, ``demo_length`` and ``max_steps`` come
+            from ``episodes``, ``lengths`` and :func:`~envs.follow.default_max_steps`.
+        model: the policy.
+        optim: the optimiser (``epochs`` passes over all datasets).
+        val: validation after each epoch, ``num_episodes`` per length (mean success, then SPL, picks the best).
+        test: final evaluation of the best checkpoint, ``num_episodes`` per length.
+
+    Examples:
+        >>> MixedLengthConfig(lengths=[30, 50], episodes=[10])
+        Traceback (most recent call last):
+        ...
+        ValueError: episodes must give one count per length (lengths=[30, 50]), got [10].
+    """
+
+    seed: int = 0
+    output_dir: str = "runs/bc_lengths"
+    device: str = DEFAULT_DEVICE
+    data_root: str = "data/lengths"
+    num_workers: int = 2
+    progress: bool = True
+    lengths: list[int] = field(default_factory=lambda: list(DEFAULT_LENGTHS))
+    episodes: list[int] = field(default_factory=lambda: list(DEFAULT_EPISODES))
+    data: DatasetConfig = field(default_factory=DatasetConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    val: EvalConfig = field(default_factory=default_val_config)
+    test: EvalConfig = field(default_factory=default_test_config)
+
+    def __post_init__(self) -> None:
+        check_device(self.device)
+        if not self.lengths or len(set(self.lengths)) != len(self.lengths):
+            raise ValueError(f"lengths must be distinct demonstration lengths (steps), got {list(self.lengths)}.")
+        for length in self.lengths:
+            check_positive_int("lengths[i]", length)
+        if len(self.episodes) != len(self.lengths):
+            raise ValueError(
+                f"episodes must give one count per length (lengths={list(self.lengths)}), got {list(self.episodes)}."
+            )
+        for count in self.episodes:
+            check_positive_int("episodes[i]", count)
+
+    def dataset_config(self, index: int) -> DatasetConfig:
+        """The dataset of ``lengths[index]``."""
+        length = self.lengths[index]
+        return dataclasses.replace(
+            self.data, num_episodes=self.episodes[index], demo_length=length, max_steps=default_max_steps(length)
+        )
+
+    def dataset_dir(self, index: int) -> Path:
+        d = self.dataset_config(index)
+        name = f"{d.split}-{d.num_episodes}ep-{d.noise}-rand{d.random_action_prob}-n{d.demo_length}-T{d.max_steps}-{d.image_size}px-s{d.seed}"
+        return Path(self.data_root) / name
+
+
+def epoch_schedule(batches_per_length: list[int], seed: int) -> np.ndarray:
+    """The order of an epoch's batches: index ``i`` of a length appears ``batches_per_length[i]`` times, shuffled.
+
+    Examples:
+        >>> sorted(epoch_schedule([3, 1], seed=0).tolist())
+        [0, 0, 0, 1]
+    """
+    order = np.repeat(np.arange(len(batches_per_length)), batches_per_length)
+    return np.random.default_rng(seed).permutation(order)
+
+
+def train_bc_mixed(config: MixedLengthConfig) -> dict:
+    """Run (or resume) a mixed-length BC run; returns its results (also ``results.json``, and
+    ``success_by_length.png`` when matplotlib is installed).
+
+    Raises:
+        ValueError: ``config.device`` names a device this machine does not have (before any work).
+    """
+    return run_on_device(_train_mixed, config)
+
+
+def _train_mixed(config: MixedLengthConfig, device: torch.device) -> dict:
+    start_time = time.time()
+    output = start_run(config)
+    datasets = [
+        EpisodeDataset.build(config.dataset_dir(i), config.dataset_config(i), config.num_workers, config.progress)
+        for i in range(len(config.lengths))
+    ]
+    model_type, image_size = config.model.name, config.data.image_size
+    policy_config = spf_config(config.model, config.lengths[0], image_size)
+    policy = build_policy(model_type, policy_config).to(device)
+    views = {length: policy_for_length(policy, length) for length in config.lengths}
+    batch_size = config.optim.batch_size
+    batches = [-(-len(dataset) // batch_size) for dataset in datasets]
+    run = TrainingRun(output, model_type, policy_config, policy, config.optim, sum(batches) * config.optim.epochs)
+    start_epoch = run.resume()
+
+    def policy_of(batch: TensorDict) -> SPFPolicy:
+        return views[batch.get("demo_actions").shape[-1]]
+
+    for epoch in range(start_epoch, config.optim.epochs):
+        seed = config.seed * 1000 + epoch
+        buffers = [dataset.replay_buffer(batch_size, seed=seed * len(datasets) + i) for i, dataset in enumerate(datasets)]
+        order = epoch_schedule(batches, seed)
+        stream = (buffers[i].sample() for i in order.tolist())
+        losses, accuracies, seconds = run.train_epoch(
+            stream, len(order), f"epoch {epoch + 1}/{config.optim.epochs}", config.progress, policy_of=policy_of
+        )
+        rows, _ = evaluate_lengths(policy, config.lengths, config.val)
+        val = mean_over_lengths(rows)
+        record = run.end_epoch(epoch, losses, accuracies, seconds, val)
+        logger.info("epoch %d: %s, val by length %s", epoch + 1, record, [round(r["success"], 3) for r in rows])
+
+    run.load_best()
+    rows, records = evaluate_lengths(policy, config.lengths, config.test, progress=config.progress)
+    results = {
+        "model": model_type,
+        "sparsity": policy_config.effective_sparsity,
+        "lengths": list(config.lengths),
+        "test_by_length": rows,
+        "test": mean_over_lengths(rows),
+        "memory_bytes_by_length": {
+            length: model_memory_bytes(model_type, length, config.model.sparsity, image_size) for length in config.lengths
+        },
+        "best_epoch": run.best["epoch"],
+        "val_best": run.best,
+        "history": run.history,
+        "datasets": [dataset.statistics() for dataset in datasets],
+        "seed": config.seed,
+        "wall_seconds_this_run": time.time() - start_time,
+        "config": asdict(config),
+    }
+    atomic_json(output / "results.json", results)
+    atomic_json(output / "test_episodes.json", {"episodes_by_length": records})
+    from spf_rl.viz import plot_if_available, plot_success_by_length, plot_training_curves
+
+    plot_if_available(plot_training_curves, run.history, output / "training_curves.png", title=f"BC {model_type}, mixed lengths")
+    plot_if_available(plot_success_by_length, {f"{model_type} (mixed lengths)": rows}, output / "success_by_length.png")
+    return results
+
+
+def mean_over_lengths(rows: list[dict]) -> dict:
+    """Mean success and SPL over the lengths (each length weighs the same), with the rows.
+
+    Examples:
+        >>> mean_over_lengths([{"demo_length": 30, "success": 1.0, "spl": 0.9}, {"demo_length": 50, "success": 0.5, "spl": 0.4}])["success"]
+        0.75
+    """
+    return {
+        "success": float(np.mean([row["success"] for row in rows])),
+        "spl": float(np.mean([row["spl"] for row in rows])),
+        "by_length": {row["demo_length"]: {"success": row["success"], "spl": row["spl"]} for row in rows},
+    }
+
+
+__all__ = [
+    "DEFAULT_EPISODES",
+    "DEFAULT_LENGTHS",
+    "MixedLengthConfig",
+    "epoch_schedule",
+    "evaluate_lengths",
+    "length_eval_config",
+    "mean_over_lengths",
+    "policy_for_length",
+    "train_bc_mixed",
+]
