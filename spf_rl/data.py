@@ -33,6 +33,7 @@ from torchrl.data import SamplerWithoutReplacement, TensorDictReplayBuffer, Tens
 from torchrl.data.replay_buffers import ImmutableDatasetWriter
 
 from envs.checks import check_episode_source, check_positive_ints
+from envs.homing import FOLLOW, check_task
 from envs.specs import NUM_RGB_CHANNELS
 from envs.transforms import DEFAULT_NOISE
 from envs.tensor_store import StoreError, TensorStore
@@ -65,6 +66,7 @@ class DatasetConfig:
         image_size: frame side, pixels.
         chunk_size: episodes generated together (one batched env of this many agents).
         seed: dataset seed; chunk ``c`` uses ``(seed, c)``.
+        task: ``"follow"`` or ``"homing"`` (:mod:`envs.homing`).
     """
 
     num_episodes: int = 2000
@@ -77,8 +79,10 @@ class DatasetConfig:
     image_size: int = 64
     chunk_size: int = 16
     seed: int = 0
+    task: str = FOLLOW
 
     def __post_init__(self) -> None:
+        check_task(self.task, "data.task")
         check_episode_source(self.split, self.num_houses, self.noise)
         check_positive_ints(self, ("num_episodes", "demo_length", "max_steps", "image_size", "chunk_size"))
         if not 0.0 <= self.random_action_prob <= 1.0:
@@ -168,7 +172,7 @@ def _chunk_env(config: DatasetConfig, count: int):
     from envs.nav_env import PathFollowEnv
     from envs.transforms import ActuationNoise
 
-    key = (config.split, config.num_houses, config.noise, config.demo_length, config.max_steps, config.image_size, count)
+    key = (config.split, config.num_houses, config.noise, config.demo_length, config.max_steps, config.image_size, count, config.task)
     if key not in _CHUNK_ENVS:
         _CHUNK_ENVS[key] = TransformedEnv(
             PathFollowEnv(
@@ -179,6 +183,7 @@ def _chunk_env(config: DatasetConfig, count: int):
                 max_steps=config.max_steps,
                 image_size=config.image_size,
                 with_expert=True,
+                task=config.task,
             ),
             ActuationNoise(config.noise),
         )

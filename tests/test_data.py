@@ -131,3 +131,17 @@ def test_stale_datasets_are_refused(built, tmp_path, changes, match):
         EpisodeDataset(root)
     with pytest.raises(DatasetError, match=match):  # and never resumed into
         EpisodeDataset.build(root, DatasetConfig(**TINY), num_workers=1, progress=False)
+
+
+def test_homing_datasets_and_evaluations_play_homing_episodes():
+    from spf_rl.data import _chunk_env
+    from spf_rl.train.evaluation import EvalConfig, make_eval_env
+
+    config = DatasetConfig(**{**TINY, "task": "homing"})
+    assert _chunk_env(config, 2).base_env.task == "homing"
+    env = make_eval_env(EvalConfig(task="homing", num_episodes=2, num_agents=2, demo_length=5, max_steps=8, image_size=32, num_houses=1, render=False))
+    assert env.base_env.task == "homing"
+    with pytest.raises(ValueError, match="task"):
+        DatasetConfig(task="fetch")
+    with pytest.raises(ValueError, match="task"):
+        EvalConfig(task="fetch")

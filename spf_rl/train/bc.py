@@ -33,6 +33,7 @@ from torchrl.record.loggers import get_logger
 from tqdm.auto import tqdm
 
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
+from envs.homing import FOLLOW
 from spf_rl.data import DatasetConfig, EpisodeDataset
 from spf_rl.device import DEFAULT_DEVICE, autocast, check_device, exact_float32, module_device, resolve_device, to_device
 from spf_rl.modules.memory import memory_bytes
@@ -124,7 +125,8 @@ class BCConfig:
         if self.data_dir:
             return Path(self.data_dir)
         d = self.data
-        return Path("data") / f"{d.split}-{d.num_episodes}ep-{d.noise}-rand{d.random_action_prob}-n{d.demo_length}-{d.image_size}px-s{d.seed}"
+        task = "" if d.task == FOLLOW else f"-{d.task}"
+        return Path("data") / f"{d.split}-{d.num_episodes}ep-{d.noise}-rand{d.random_action_prob}-n{d.demo_length}-{d.image_size}px-s{d.seed}{task}"
 
 
 def episodes_to_sequence(batch: TensorDict, device: torch.device | str | None = None) -> TensorDict:

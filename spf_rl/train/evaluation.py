@@ -23,6 +23,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from envs.nav_env import PathFollowEnv
 from envs.scripted import run_episodes
 from envs.checks import check_episode_source, check_positive_ints
+from envs.homing import FOLLOW, check_task
 from envs.transforms import DEFAULT_NOISE, ActuationNoise
 from spf_rl.device import act_on_device, module_device
 from spf_rl.metrics import summarize
@@ -44,6 +45,7 @@ class EvalConfig:
         num_houses: houses of the split (``None``: its default).
         render: render frames (policies that ignore the camera, like open-loop
             replay, can skip it; the episodes are the same).
+        task: ``"follow"`` or ``"homing"`` (:mod:`envs.homing`).
     """
 
     split: str = "test"
@@ -56,8 +58,10 @@ class EvalConfig:
     image_size: int = 64
     num_houses: int | None = None
     render: bool = True
+    task: str = FOLLOW
 
     def __post_init__(self) -> None:
+        check_task(self.task, "task")
         check_episode_source(self.split, self.num_houses, self.noise)
         check_positive_ints(self, ("num_episodes", "num_agents", "demo_length", "max_steps", "image_size"))
 
@@ -118,6 +122,7 @@ def make_eval_env(config: EvalConfig, policy: TensorDictModuleBase | None = None
             max_steps=config.max_steps,
             image_size=config.image_size,
             render=config.render,
+            task=config.task,
         ),
         Compose(*transforms),
     )
