@@ -42,6 +42,10 @@ SUCCESS_FRACTION = 0.1
 PROGRESS_REWARD_PER_M = 1.0
 SUCCESS_REWARD = 2.5
 STEP_PENALTY = 0.01
+#: The RPF lab code's success, reported beside ours: the horizontal Euclidean distance to the
+#: route's end under LAB_SUCCESS_RADIUS_M, or under LAB_SUCCESS_FRACTION x its initial value.
+LAB_SUCCESS_RADIUS_M = 0.8
+LAB_SUCCESS_FRACTION = 0.1
 #: Episode seeds are drawn in [0, MAX_EPISODE_SEED) (they also key the actuation noise).
 MAX_EPISODE_SEED = 2**62
 #: SPL's denominator never goes below this, metres (a zero-length route and path).
@@ -186,3 +190,21 @@ class FollowRules:
             - self.step_penalty
         )
         return StepOutcome(terminated=terminated, truncated=truncated, success=success, spl=spl, reward=reward)
+
+
+def lab_success(xy: np.ndarray, end_xy: np.ndarray, start_xy: np.ndarray) -> np.ndarray:
+    """The success criterion of the RPF lab code (``bareblackfoot/RobustPathFollow``), per agent.
+
+    Within :data:`LAB_SUCCESS_RADIUS_M` of the route's end, or within
+    :data:`LAB_SUCCESS_FRACTION` of the start's distance to it, both horizontal and
+    Euclidean. (The lab's ``runner.py`` takes ``position[:2]``, which in Habitat's y-up
+    frame is x and height; this is the intended horizontal version.) Ours
+    (:class:`FollowRules`) is geodesic.
+
+    Examples:
+        >>> lab_success(np.array([[0.0, 0.7], [0.0, 1.0]]), np.zeros((2, 2)), np.array([[0.0, 5.0], [0.0, 20.0]]))
+        array([ True,  True])
+    """
+    distance = np.linalg.norm(np.asarray(xy) - end_xy, axis=-1)
+    initial = np.linalg.norm(np.asarray(start_xy) - end_xy, axis=-1)
+    return (distance < LAB_SUCCESS_RADIUS_M) | (distance < LAB_SUCCESS_FRACTION * initial)

@@ -10,18 +10,14 @@ looking back along the route (:mod:`envs.homing`). Long routes are sampled in la
 houses (:func:`~envs.house_grid.default_grid_size_cells`) and get a longer step
 limit (:func:`~envs.follow.default_max_steps`: ``ceil(5/3 n)``, 50 for n = 30).
 
-Protocol (the paper's, Sec. 4.1): actions forward 0.3 m, turn left 20 deg, turn
-right 20 deg (and STOP when ``stop_action=True``); success means ending within
-``max(success_radius_m, success_fraction * initial distance)`` (geodesic) of the
-route's end; without STOP the episode terminates as soon as the agent is inside
-that radius, with STOP it terminates when the agent stops; episodes are truncated
-after ``max_steps``. The final step reports ``success``, ``spl`` (Anderson et al.
-2018), ``goal_distance`` and ``path_length``. The reward is dense: geodesic
-progress, a success bonus and a small step cost.
+Protocol (the paper's, Sec. 4.1; :mod:`envs.follow`): forward 0.3 m, turns of 20 deg
+(and STOP with ``stop_action=True``); success, SPL, termination and the dense reward
+are :class:`~envs.follow.FollowRules`'; the final step reports ``success``, ``spl``,
+``goal_distance`` and ``path_length``.
 
-Per-episode data (``demo_frames``, ``demo_actions``) is part of the observation
-spec and is emitted at every step, because ``ParallelEnv`` drops keys that only
-``_reset`` emits.
+Per-episode data (``demo_frames``, ``demo_actions``) is emitted at every step
+(``ParallelEnv`` drops keys that only ``_reset`` emits). ``success_lab`` is the RPF
+lab code's criterion (:func:`~envs.follow.lab_success`), reported beside ours.
 
 Demonstrations are sampled and rendered at each episode start, or, with
 ``demo_store``, drawn from a :class:`~envs.demo_store.DemoStore` of pre-rendered
@@ -63,6 +59,7 @@ from envs.follow import (  # noqa: F401  (the protocol's constants, re-exported)
     SUCCESS_REWARD,
     FollowRules,
     default_max_steps,
+    lab_success,
 )
 from envs.homing import FOLLOW, check_task
 from envs.playlist import DISTANCE_FIELD_CACHE_SIZE, DemonstrationPlaylist, EpisodeSource  # noqa: F401
@@ -240,6 +237,7 @@ class PathFollowEnv(EnvBase):
         self._path_length = np.zeros(count)
         self._distance = np.zeros(count)
         self._initial_distance = np.ones(count)
+        self._start_xy, self._end_xy, self._lab_success = np.zeros((count, 2)), np.zeros((count, 2)), np.zeros(count, dtype=bool)
         self._shortest = np.zeros(count)
         self._episode_seed = np.zeros(count, dtype=np.int64)
         self._episode_index = np.zeros(count, dtype=np.int64)
@@ -319,6 +317,7 @@ class PathFollowEnv(EnvBase):
         self._path_length[index] = 0.0
         self._distance[index] = demo.end_field.at(demo.start_pose[:2])
         self._initial_distance[index] = self._distance[index]
+        self._start_xy[index], self._end_xy[index], self._lab_success[index] = demo.start_pose[:2], demo.end_xy, False
         self._shortest[index] = demo.shortest_length_m
         self._success[index] = False
         self._spl[index] = 0.0
@@ -357,6 +356,7 @@ class PathFollowEnv(EnvBase):
             steps=self._steps,
         )
         self._success, self._spl = outcome.success, outcome.spl
+        self._lab_success = outcome.done & lab_success(self._pose[:, :2], self._end_xy, self._start_xy)
         pixels = torch.empty((self._count, self.image_size, self.image_size, NUM_RGB_CHANNELS), dtype=torch.uint8)
         self._render(range(self._count), out=pixels.numpy())
         self._pixels = pixels
@@ -381,7 +381,8 @@ class PathFollowEnv(EnvBase):
         ints[:, 1] = self._episode_seed
         ints[:, 2] = self._demo_id
         ints[:, 3] = self._episode_index
-        bools = np.empty((count, 4), dtype=bool)
+        bools = np.empty((count, 5), dtype=bool)
+        bools[:, 4] = self._lab_success
         bools[:, 0] = self._success
         bools[:, 1] = done
         bools[:, 2] = terminated
@@ -407,6 +408,7 @@ class PathFollowEnv(EnvBase):
             "done": bool_columns[..., 1:2],
             "terminated": bool_columns[..., 2:3],
             "truncated": bool_columns[..., 3:4],
+            "success_lab": bool_columns[..., 4:5],
         }
         if reward is not None:
             out["reward"] = float_columns[..., 7:8]

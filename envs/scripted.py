@@ -82,6 +82,7 @@ def episode_record(final: TensorDictBase) -> dict:
     """
     return {
         "success": bool(final["success"].item()),
+        "success_lab": bool(final["success_lab"].item()),
         "spl": float(final["spl"].item()),
         "goal_distance": float(final["goal_distance"].item()),
         "path_length": float(final["path_length"].item()),

@@ -32,6 +32,7 @@ PRIVILEGED_KEYS: tuple[str, ...] = (
     "shortest_path_length",
     "expert_action",
     "success",
+    "success_lab",
     "spl",
 )
 #: Done keys: ``terminated`` = success (or STOP), ``truncated`` = step limit.
@@ -79,6 +80,7 @@ def path_follow_specs(
         "path_length": unbounded(1),
         "shortest_path_length": unbounded(1),
         "success": flag(),
+        "success_lab": flag(),
         "spl": unbounded(1),
         # also an observation (always zero in outputs), so that batched envs carry the
         # state key to the root, as TorchRL's primers do for recurrent states

@@ -151,7 +151,8 @@ def summarize(
         seed (int, optional): bootstrap seed. Defaults to 0.
 
     Returns:
-        dict with ``episodes``, ``success``, ``success_ci``, ``spl``, ``spl_ci``.
+        dict with ``episodes``, ``success``, ``success_ci``, ``spl``, ``spl_ci``, and
+        ``success_lab`` / ``success_lab_ci`` when every record has ``"success_lab"``.
 
     Examples:
         >>> out = summarize([{"success": 1, "spl": 0.8}, {"success": 0, "spl": 0.0}])
@@ -166,10 +167,14 @@ def summarize(
     s = np.asarray([float(r["success"]) for r in records], dtype=np.float64)
     p = np.asarray([float(r["spl"]) for r in records], dtype=np.float64)
     nan = float("nan")
-    return {
+    summary = {
         "episodes": len(records),
         "success": float(s.mean()) if s.size else nan,
         "success_ci": bootstrap_ci(s, confidence, num_resamples, seed),
         "spl": float(p.mean()) if p.size else nan,
         "spl_ci": bootstrap_ci(p, confidence, num_resamples, seed),
     }
+    if records and all("success_lab" in r for r in records):  # the RPF lab code's criterion, beside ours
+        lab = np.asarray([float(r["success_lab"]) for r in records], dtype=np.float64)
+        summary["success_lab"], summary["success_lab_ci"] = float(lab.mean()), bootstrap_ci(lab, confidence, num_resamples, seed)
+    return summary

@@ -211,3 +211,18 @@ def test_wrong_action_is_a_clear_error() -> None:
     td["action"] = torch.tensor(7)
     with pytest.raises(ValueError, match=r"action must be an integer in \[0, 2\] \(0 forward, 1 left, 2 right\)"):
         env.step(td)
+
+
+def test_lab_success_is_reported_beside_ours() -> None:
+    """The RPF lab code's criterion: horizontal Euclidean distance < 0.8 m or < 10% of the initial one."""
+    from envs.scripted import ExpertPolicy, run_episodes
+    from spf_rl.metrics import summarize
+
+    env = TransformedEnv(PathFollowEnv(**{**SMALL, "num_agents": 4, "with_expert": True}), ActuationNoise("paper"))
+    env.set_seed(0)
+    records = run_episodes(env, ExpertPolicy(), 8)
+    assert all(isinstance(r["success_lab"], bool) for r in records)
+    summary = summarize(records)
+    assert 0.0 <= summary["success_lab"] <= 1.0 and len(summary["success_lab_ci"]) == 2
+    # the expert ends within our geodesic radius (>= 0.6 m); the Euclidean distance is no longer
+    assert all(r["success_lab"] for r in records if r["success"] and r["goal_distance"] < 0.8)
