@@ -104,6 +104,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--repeats", type=int, default=DEFAULT_REPEATS, help=f"repeats, 1 to {MAX_REPEATS} (default {DEFAULT_REPEATS})")
     parser.add_argument("--checkpoint", default=DEFAULT_CHECKPOINT, help=f"a shipped name or a .pt path (default {DEFAULT_CHECKPOINT})")
     parser.add_argument("--out", default="runs/teach", help="output directory (default runs/teach)")
+    parser.add_argument("--device", default="auto", help="where the policy runs: auto (CUDA if available, else CPU), cpu, cuda, cuda:N")
     parser.add_argument("--homing", action="store_true", help="bring the route home: from its end back to its start")
     parser.add_argument("--no-video", action="store_true", help="skip the video (the slowest output)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -142,10 +143,15 @@ def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace):
         except RouteError as err:
             parser.error(str(err))
     from spf_rl.checkpoint import CheckpointError
+    from spf_rl.device import resolve_device
     from spf_rl.hub import load_policy
 
     try:
-        policy, config = load_policy(args.checkpoint)
+        device = resolve_device(args.device, name="--device")
+    except ValueError as err:
+        parser.error(str(err))
+    try:
+        policy, config = load_policy(args.checkpoint, device=device)
     except (ValueError, FileNotFoundError, CheckpointError) as err:
         parser.error(f"--checkpoint: {err}")
     args.parsed_actions, args.parsed_waypoints = actions, waypoints

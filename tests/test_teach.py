@@ -179,3 +179,11 @@ def test_ascii_map_shows_walls_route_and_agent():
     text = "".join(lines)
     assert text.count("S") == 1 and "." in text
     assert sum(text.count(arrow) for arrow in "^/\\<>v") >= 1
+
+
+def test_teach_refuses_an_unknown_device(tmp_path, capsys):
+    import teach
+
+    with pytest.raises(SystemExit):
+        teach.main(["--actions", "F" * 30, "--device", "tpu", "--out", str(tmp_path)])
+    assert "--device" in capsys.readouterr().err
