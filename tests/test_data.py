@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 import torch
 
+from envs.version import ENV_VERSION
+
 from spf_rl.data import DatasetConfig, DatasetError, EpisodeDataset, generate_chunk
 
 TINY = dict(num_episodes=6, num_houses=1, demo_length=5, max_steps=8, image_size=32, chunk_size=2)
@@ -117,7 +119,7 @@ def test_replay_buffer_yields_each_episode_once_per_epoch(built):
     "changes, match",
     [
         (dict(format_version=1), "version 1 stored CHW frames"),
-        (dict(env_version=1), "made by env version 1, but this env is version 2"),
+        (dict(env_version=1), f"made by env version 1, but this env is version {ENV_VERSION}"),
         (dict(env_version=None), "made by env version None"),
     ],
     ids=["old-layout", "old-env", "no-env-version"],

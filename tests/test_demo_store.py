@@ -10,6 +10,8 @@ from functools import partial
 import numpy as np
 import pytest
 import torch
+
+from envs.version import ENV_VERSION
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.collectors import Collector
@@ -221,7 +223,7 @@ def _edit_meta(root, **changes):
     "changes, match",
     [
         (dict(format_version=1), "version 1 stored CHW frames"),
-        (dict(env_version=1), "made by env version 1, but this env is version 2"),
+        (dict(env_version=1), f"made by env version 1, but this env is version {ENV_VERSION}"),
     ],
     ids=["old-layout", "old-env"],
 )
