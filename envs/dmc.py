@@ -89,7 +89,8 @@ from envs.demos import DEFAULT_DEMO_LENGTH, Demonstration, apply_motion, default
 from envs.expert import ACTION_NAMES, GeodesicExpert
 from envs.follow import MAX_EPISODE_SEED, FollowRules, StepOutcome, episode_for_seed
 from envs.follow import PROGRESS_REWARD_PER_M, STEP_PENALTY, SUCCESS_FRACTION, SUCCESS_RADIUS_M, SUCCESS_REWARD
-from envs.nav_env import DEFAULT_IMAGE_SIZE, DEFAULT_MAX_STEPS
+from envs.follow import default_max_steps
+from envs.nav_env import DEFAULT_IMAGE_SIZE
 from envs.checks import check_positive_int  # noqa: E402
 from envs.dmc_physics import AGENT_JOINTS, EYE_CAMERA, HousePhysics  # noqa: E402,F401  (re-exported)
 from envs.specs import NUM_DEMO_ACTIONS, NUM_RGB_CHANNELS
@@ -120,7 +121,8 @@ class PathFollowTask(control.Task):
 
     Keyword Args:
         demo_length: demonstration length n, steps.
-        max_steps: follow-episode limit, steps.
+        max_steps: follow-episode limit, steps; ``None``: :func:`~envs.follow.default_max_steps`
+            of ``demo_length`` (``ceil(5/3 n)``, 50 for n = 30), as for :class:`~envs.nav_env.PathFollowEnv`.
         image_size: side of the square first-person frames, pixels.
         noise: actuation noise: a preset name of :data:`~envs.transforms.NOISE_PRESETS`
             (``"none"``: nominal motion) or a :class:`~envs.transforms.NoiseModel`.
@@ -143,7 +145,7 @@ class PathFollowTask(control.Task):
         house_seeds: Sequence[int],
         *,
         demo_length: int = DEFAULT_DEMO_LENGTH,
-        max_steps: int = DEFAULT_MAX_STEPS,
+        max_steps: int | None = None,
         image_size: int = DEFAULT_IMAGE_SIZE,
         noise: str | NoiseModel = NO_NOISE,
         stop_action: bool = False,
@@ -153,7 +155,9 @@ class PathFollowTask(control.Task):
         success_fraction: float = SUCCESS_FRACTION,
         random: np.random.RandomState | int | None = None,
     ) -> None:
-        for name, value in (("demo_length", demo_length), ("max_steps", max_steps), ("image_size", image_size)):
+        check_positive_int("demo_length", demo_length)
+        max_steps = default_max_steps(demo_length) if max_steps is None else max_steps
+        for name, value in (("max_steps", max_steps), ("image_size", image_size)):
             check_positive_int(name, value)
         house_seeds = list(house_seeds)
         if not house_seeds or not all(_is_int(s) and s >= 0 for s in house_seeds):

@@ -279,3 +279,10 @@ def test_follow_rules_truncation_and_stop():
     assert stopped.terminated.tolist() == [True, True] and stopped.success.tolist() == [True, False]
     limit = rules.score(action=FORWARD, distance_m=0.5, steps=3, **common)
     assert bool(limit.truncated) and bool(limit.success)  # inside at the limit counts, as in PathFollowEnv
+
+
+def test_step_limit_follows_the_route_length_as_in_path_follow_env():
+    from envs.follow import default_max_steps
+
+    assert load("train", seed=0, num_houses=1, demo_length=30).task.rules.max_steps == 50
+    assert load("train", seed=0, num_houses=1, demo_length=12).task.rules.max_steps == default_max_steps(12)
