@@ -291,3 +291,19 @@ def test_non_finite_updates_are_skipped_not_applied(tmp_path, checkpoint, monkey
     start = load_checkpoint(checkpoint)["model"]
     last = load_checkpoint(Path(tmp_path / "run" / "last.pt"))["model"]
     assert all(torch.equal(value, last[key]) and torch.isfinite(value).all() for key, value in start.items())
+
+
+def test_the_recipe_trains_the_dataclass_defaults():
+    """One home for every default: ppo.yaml only names the run."""
+    import sys
+    from dataclasses import asdict
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
+    from config_utils import load_config
+
+    from spf_rl.train.ppo_config import PPOConfig
+
+    recipe, library = asdict(load_config(PPOConfig, "ppo", [])), asdict(PPOConfig())
+    recipe.pop("output_dir"), library.pop("output_dir")
+    assert recipe == library
