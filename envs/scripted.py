@@ -25,9 +25,9 @@ class ExpertPolicy(TensorDictModuleBase):
     Examples:
         >>> from envs.nav_env import PathFollowEnv
         >>> env = PathFollowEnv(num_houses=1, demo_length=5, with_expert=True, render=False)
-        >>> td = env.rollout(3, ExpertPolicy())
-        >>> td["action"].shape
-        torch.Size([3])
+        >>> td = env.rollout(3, ExpertPolicy(), break_when_any_done=False)
+        >>> td["action"].shape, bool((td["action"] == td["expert_action"]).all())
+        (torch.Size([3]), True)
     """
 
     in_keys = ["expert_action"]
@@ -51,8 +51,8 @@ class OpenLoopReplay(TensorDictModuleBase):
     Examples:
         >>> from envs.nav_env import PathFollowEnv
         >>> env = PathFollowEnv(num_houses=1, demo_length=5, render=False)
-        >>> td = env.rollout(3, OpenLoopReplay())
-        >>> bool((td["action"] == td["demo_actions"][0, :3]).all())
+        >>> td = env.rollout(3, OpenLoopReplay())  # at most 3 steps: it stops early if the agent arrives
+        >>> bool((td["action"] == td["demo_actions"][0, : td.shape[0]]).all())
         True
     """
 

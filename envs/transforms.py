@@ -381,9 +381,9 @@ class ActuationNoise(Transform):
         >>> env = TransformedEnv(PathFollowEnv(num_houses=1, demo_length=5, render=False), ActuationNoise("paper"))
         >>> "actuation_noise" in env.state_spec.keys()
         True
-        >>> td = env.rollout(3)
-        >>> td["next", "pose"].shape
-        torch.Size([3, 3])
+        >>> td = env.rollout(3)  # at most 3 steps: it stops early if the agent arrives
+        >>> td["next", "pose"].shape[-1], td["action"].dtype
+        (3, torch.int64)
     """
 
     def __init__(self, noise: str | NoiseModel = "paper", action_key: NestedKey = "action") -> None:

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import importlib.util
 
+import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
@@ -144,6 +145,13 @@ def test_ray_backend_collects_a_batch_on_a_local_cluster():
         assert torch.equal(local["logits"].argmax(-1), batch["action"][:, 0])
         episodes = batch_to_episodes(batches[0], TINY_ENV.max_steps)
         assert int(episodes["length"].sum()) == 12
+        # the actuation noise reached the Ray actor's env: executed turns differ from the nominal ones
+        from envs.demos import nominal_motion
+
+        turned = (batch["next", "pose"][..., 2] - batch["pose"][..., 2]).numpy()
+        nominal = nominal_motion(batch["action"].numpy())[..., 2]
+        deviation = np.abs(np.angle(np.exp(1j * (turned - nominal))))
+        assert TINY_ENV.noise == "paper" and (deviation > np.deg2rad(1.0)).mean() > 0.5
     finally:
         ray.shutdown()
 
