@@ -10,7 +10,8 @@ Usage::
     python recipes/bc.py                       # SPF, sparsity 0.8 (about 30 min on 2 CPU cores)
     python recipes/bc.py --quick               # the whole pipeline in a few minutes
     python recipes/bc.py --preset bc_long      # 20,000 gradient steps on 8,000 episodes (hours on 2 CPU cores)
-    python recipes/bc.py --preset bc_homing    # the same schedule on homing episodes (returning to the route's start)
+    python recipes/bc.py --preset bc_row model=rpf   # the common 5,000-step schedule of the other Table 1 rows
+    python recipes/bc.py --preset bc_homing    # the bc_row schedule on homing episodes (returning to the route's start)
     python recipes/bc.py model=rpf             # full memory baseline
     python recipes/bc.py model=spf sparsity=0.4 noise=paper optim.epochs=4
     python recipes/bc.py device=cuda optim.amp=true   # GPU, bf16 mixed precision (default device=auto)
@@ -28,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from config_utils import load_config  # noqa: E402
 
 #: Schedules in recipes/configs/ that --preset accepts.
-PRESETS = ("bc_quick", "bc_long", "bc_homing")
+PRESETS = ("bc_quick", "bc_long", "bc_row", "bc_homing")
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -39,7 +40,7 @@ def main(argv: list[str] | None = None) -> dict:
         choices=PRESETS,
         default=None,
         help="a schedule from recipes/configs/: bc_quick (smoke run), bc_long (20,000 gradient steps on 8,000 "
-        "episodes) or bc_homing (bc_long on homing episodes)",
+        "episodes), bc_row (5,000 gradient steps on 4,000 episodes, the other Table 1 rows) or bc_homing (bc_row on homing episodes)",
     )
     parser.add_argument("overrides", nargs="*", help="key=value config overrides")
     args = parser.parse_args(argv)

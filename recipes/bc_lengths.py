@@ -8,7 +8,7 @@ again with the same config to resume.
 
 Usage::
 
-    python recipes/bc_lengths.py                          # configs/bc_lengths.yaml: 19,000 gradient steps
+    python recipes/bc_lengths.py                          # configs/bc_lengths.yaml: 5,236 gradient steps
     python recipes/bc_lengths.py --quick                  # the whole pipeline in minutes
     python recipes/bc_lengths.py lengths=[30,50] episodes=[4000,2400] device=cuda
 

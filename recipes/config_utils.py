@@ -22,6 +22,25 @@ SHORTHANDS = {
 }
 
 
+def preset_layers(preset: str, _seen: tuple[str, ...] = ()) -> list:
+    """``configs/<preset>.yaml``, after the presets its ``base:`` key names (base first).
+
+    A preset may start from another one (``base: bc_row``) and change a few keys, so a
+    schedule is written once.
+
+    Raises:
+        ValueError: for a missing preset file or a cycle of ``base:`` keys.
+    """
+    path = CONFIG_DIR / f"{preset}.yaml"
+    if not path.is_file():
+        raise ValueError(f"preset {preset!r}: no file {path}")
+    if preset in _seen:
+        raise ValueError(f"preset {preset!r}: its base: keys form a cycle ({' -> '.join((*_seen, preset))})")
+    layer = OmegaConf.load(path)
+    base = layer.pop("base", None)
+    return (preset_layers(str(base), (*_seen, preset)) if base else []) + [layer]
+
+
 def load_config(schema_cls, name: str, overrides: list[str], preset: str | None = None):
     """Merge ``configs/<name>.yaml`` (+ ``configs/<preset>.yaml``) and overrides into ``schema_cls``.
 
@@ -31,7 +50,7 @@ def load_config(schema_cls, name: str, overrides: list[str], preset: str | None 
     schema = OmegaConf.structured(schema_cls)
     layers = [schema, OmegaConf.load(CONFIG_DIR / f"{name}.yaml")]
     if preset:
-        layers.append(OmegaConf.load(CONFIG_DIR / f"{preset}.yaml"))
+        layers.extend(preset_layers(preset))
     expanded = []
     for item in overrides:
         if "=" not in item:

@@ -155,16 +155,19 @@ def test_success_by_length_recipe(tmp_path, capsys):
 
 def test_length_and_homing_configs_load():
     full = load_config(MixedLengthConfig, "bc_lengths", [])
-    assert full.lengths == [30, 50, 100] and full.episodes == [4000, 2400, 1200] and full.optim.epochs == 40
+    assert full.lengths == [30, 50, 100] and full.episodes == [2000, 1200, 600]
+    steps = sum(-(-count // full.optim.batch_size) for count in full.episodes) * full.optim.epochs
+    assert steps >= 5000  # the common schedule of the Table 1 rows, in gradient steps
     assert full.dataset_config(2).max_steps == 167 and full.dataset_config(1).max_steps == 84
     quick = load_config(MixedLengthConfig, "bc_lengths", ["sparsity=0.6"], preset="bc_lengths_quick")
     assert quick.output_dir == "runs/bc_lengths_quick/spf-s0.6-seed0" and quick.optim.epochs == 1
     from spf_rl.train.bc import BCConfig
 
-    if "task" in DatasetConfig.__dataclass_fields__:  # the dataset and evaluation configs know the task
-        homing = load_config(BCConfig, "bc", [], preset="bc_homing")
-        assert (homing.data.task, homing.val.task, homing.test.task) == ("homing", "homing", "homing")
-        assert homing.data_dir.startswith("data/homing-train-8000ep")
-    else:  # until they do, the preset is refused naming the missing key
-        with pytest.raises(ValueError, match="Key 'task' not in 'DatasetConfig'"):
-            load_config(BCConfig, "bc", [], preset="bc_homing")
+    homing = load_config(BCConfig, "bc", [], preset="bc_homing")
+    row = load_config(BCConfig, "bc", [], preset="bc_row")
+    assert (homing.data.task, homing.val.task, homing.test.task) == ("homing", "homing", "homing")
+    assert str(homing.resolved_data_dir()).endswith("-homing") and homing.output_dir.startswith("runs/bc_homing/")
+    # the homing model trains on the common row schedule, written once (base: bc_row)
+    assert (homing.data.num_episodes, homing.optim.epochs, homing.val.num_episodes, homing.test.num_episodes) == (
+        row.data.num_episodes, row.optim.epochs, row.val.num_episodes, row.test.num_episodes)
+    assert row.data.num_episodes // row.optim.batch_size * row.optim.epochs >= 5000

@@ -72,3 +72,20 @@ def test_the_recipe_trains_the_dataclass_defaults():
     recipe.pop("output_dir"), library.pop("output_dir")
     assert recipe == library
     assert library["model"]["sparsity"] == 0.8 and library["model"]["initial_pointer_step"] == 0.9
+
+
+def test_a_preset_builds_on_its_base(tmp_path, monkeypatch):
+    import config_utils
+
+    (tmp_path / "bc.yaml").write_text("output_dir: runs/x\n")
+    (tmp_path / "parent.yaml").write_text("optim:\n  epochs: 7\ndata:\n  num_episodes: 64\n")
+    (tmp_path / "child.yaml").write_text("base: parent\ndata:\n  num_episodes: 32\n")
+    (tmp_path / "loop_a.yaml").write_text("base: loop_b\n")
+    (tmp_path / "loop_b.yaml").write_text("base: loop_a\n")
+    monkeypatch.setattr(config_utils, "CONFIG_DIR", tmp_path)
+    child = load_config(BCConfig, "bc", [], preset="child")
+    assert child.optim.epochs == 7 and child.data.num_episodes == 32  # the child's keys win over its base's
+    with pytest.raises(ValueError, match="cycle"):
+        load_config(BCConfig, "bc", [], preset="loop_a")
+    with pytest.raises(ValueError, match="no file"):
+        load_config(BCConfig, "bc", [], preset="nowhere")

@@ -51,8 +51,8 @@ logger = logging.getLogger(__name__)
 #: The lengths of the issue's report (#13 part 4), steps.
 DEFAULT_LENGTHS = (30, 50, 100)
 #: Training episodes per length: about the same bytes of frames per length
-#: (episodes x (n + max_steps) frames), 19,000 gradient steps in 40 epochs of batch 16.
-DEFAULT_EPISODES = (4000, 2400, 1200)
+#: (episodes x (n + max_steps) frames); 125 + 75 + 38 = 238 batches of 16 per epoch.
+DEFAULT_EPISODES = (2000, 1200, 600)
 
 
 def policy_for_length(policy: SPFPolicy, demo_length: int) -> SPFPolicy:
