@@ -57,6 +57,31 @@ def test_headless_run_writes_video_map_and_json(taught):
     assert len({r["path_length"] for r in saved["repeats"]}) > 1
 
 
+def test_the_video_is_an_mp4_where_the_codec_is_installed(taught):
+    pytest.importorskip("imageio_ffmpeg", reason="the MP4 codec comes with the viz extra")
+    import imageio.v2 as imageio
+
+    out, content = taught
+    video = out / content["files"]["video"]
+    assert video.suffix == ".mp4"
+    frames = imageio.mimread(video)
+    # one frame per step of the longer of the demonstration (30 frames) and repeat 1 (steps + 1 frames)
+    assert len(frames) == max(30, content["repeats"][0]["steps"] + 1)
+    assert frames[0].ndim == 3 and frames[0].shape[2] == 3 and frames[0].std() > 0
+
+
+def test_video_falls_back_to_gif_without_the_codec(tmp_path, monkeypatch):
+    import importlib.util
+
+    from spf_rl.viz import write_video
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "imageio_ffmpeg" else real(name, *a))
+    frames = [np.full((16, 32, 3), 40 * i, np.uint8) for i in range(3)]
+    path = write_video(frames, tmp_path / "clip.mp4")
+    assert path.suffix == ".gif" and path.exists() and not (tmp_path / "clip.mp4").exists()
+
+
 def test_same_seed_same_json(taught, tmp_path):
     _, first = taught
     again = teach.main(headless(tmp_path, "--actions", ROUTE, "--repeats", "4", "--seed", "3", "--no-video"))
