@@ -97,6 +97,8 @@ class BCConfig:
         optim: the optimiser (:class:`OptimConfig`).
         val: validation rollouts after each epoch.
         test: final evaluation of the best checkpoint.
+        keep_epochs: also keep every epoch's weights (``epochs/epoch-001.pt``, ...), for
+            studies of checkpoint picking (``recipes/picking_study.py``).
 
     Examples:
         >>> BCConfig(device="gpu")
@@ -117,6 +119,7 @@ class BCConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
     val: EvalConfig = field(default_factory=default_val_config)
     test: EvalConfig = field(default_factory=default_test_config)
+    keep_epochs: bool = False
 
     def __post_init__(self) -> None:
         check_device(self.device)
@@ -224,10 +227,18 @@ class TrainingRun:
         policy: the policy being trained.
         optim: the optimiser settings.
         total_steps: gradient steps of the whole run (the cosine schedule's length).
+        keep_epochs: also write every epoch's weights to ``epochs/epoch-NNN.pt``.
     """
 
     def __init__(
-        self, output: Path, model_type: str, policy_config, policy: SPFPolicy, optim: OptimConfig, total_steps: int
+        self,
+        output: Path,
+        model_type: str,
+        policy_config,
+        policy: SPFPolicy,
+        optim: OptimConfig,
+        total_steps: int,
+        keep_epochs: bool = False,
     ) -> None:
         self.model_type, self.policy_config, self.policy, self.optim = model_type, policy_config, policy, optim
         self.optimizer = torch.optim.Adam(policy.parameters(), lr=optim.lr, weight_decay=optim.weight_decay)
@@ -237,6 +248,7 @@ class TrainingRun:
             else torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda _: 1.0)
         )
         self.last_path, self.best_path = output / "last.pt", output / "best.pt"
+        self.epochs_dir = output / EPOCHS_DIR if keep_epochs else None
         self.history: list[dict] = []
         self.best = {"success": -1.0, "spl": -1.0, "epoch": -1}
         self.step = 0
@@ -302,6 +314,8 @@ class TrainingRun:
         if (val["success"], val["spl"]) > (self.best["success"], self.best["spl"]):
             self.best = {"success": val["success"], "spl": val["spl"], "epoch": epoch + 1}
             save_checkpoint(self.best_path, self.model_type, self.policy_config, {**state, "val": val})
+        if self.epochs_dir is not None:
+            save_checkpoint(epoch_checkpoint(self.epochs_dir.parent, epoch + 1), self.model_type, self.policy_config, {**state, "val": val})
         extra = {"optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict()}
         save_checkpoint(
             self.last_path,
@@ -314,6 +328,15 @@ class TrainingRun:
     def load_best(self) -> None:
         """Load the weights of ``best.pt`` into the policy."""
         self.policy.load_state_dict(load_checkpoint(self.best_path, expected_model_type=self.model_type)["model"])
+
+
+#: Where a run with ``keep_epochs`` keeps every epoch's weights.
+EPOCHS_DIR = "epochs"
+
+
+def epoch_checkpoint(run_dir: str | os.PathLike, epoch: int) -> Path:
+    """The path of epoch ``epoch``'s (from 1) weights in a run kept with ``keep_epochs``."""
+    return Path(run_dir) / EPOCHS_DIR / f"epoch-{epoch:03d}.pt"
 
 
 def run_on_device(train, config) -> dict:
@@ -353,7 +376,9 @@ def _train_bc(config: BCConfig, device: torch.device) -> dict:
     policy = build_policy(model_type, policy_config).to(device)
     logger.info("training on %s%s", device, " with bf16 autocast" if config.optim.amp else "")
     batches_per_epoch = -(-len(dataset) // config.optim.batch_size)
-    run = TrainingRun(output, model_type, policy_config, policy, config.optim, batches_per_epoch * config.optim.epochs)
+    run = TrainingRun(
+        output, model_type, policy_config, policy, config.optim, batches_per_epoch * config.optim.epochs, config.keep_epochs
+    )
     start_epoch = run.resume()
 
     run_logger = get_logger(config.logger, logger_name=str(output / "logs"), experiment_name="bc") if config.logger else None
