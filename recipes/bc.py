@@ -7,7 +7,7 @@ output directory. Run it again with the same config to resume.
 
 Usage::
 
-    python recipes/bc.py                       # SPF, sparsity 0.8 (about 30 min on 2 CPU cores)
+    python recipes/bc.py                       # SPF, sparsity 0.8: 1,500 gradient steps on 2,000 episodes
     python recipes/bc.py --quick               # the whole pipeline in a few minutes
     python recipes/bc.py --preset bc_long      # 20,000 gradient steps on 8,000 episodes (hours on 2 CPU cores)
     python recipes/bc.py --preset bc_row model=rpf   # the common 5,000-step schedule of the other Table 1 rows

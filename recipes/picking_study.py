@@ -12,7 +12,7 @@ known, so an interrupted study resumes.
 
 Usage::
 
-    python recipes/bc.py --preset bc_row sparsity=0.4 keep_epochs=true
+    python recipes/bc.py --preset bc_row sparsity=0.4 keep_epochs=true   # bc_row validates every epoch
     python recipes/picking_study.py runs/bc_row/spf-s0.4-seed0 --episodes 1000
 """
 from __future__ import annotations
@@ -37,10 +37,11 @@ def epoch_files(run: Path) -> dict[int, Path]:
 
 
 def validation_history(run: Path) -> dict[int, float]:
-    """Epoch number -> validation success, from the run's ``last.pt``."""
+    """Epoch number -> validation success of the validated epochs, from the run's ``last.pt``."""
     from spf_rl.checkpoint import load_checkpoint
 
-    return {record["epoch"]: record["val_success"] for record in load_checkpoint(run / "last.pt")["history"]}
+    history = load_checkpoint(run / "last.pt")["history"]
+    return {record["epoch"]: record["val_success"] for record in history if record["val_success"] is not None}
 
 
 def rank_agreement(val: list[float], test: list[float]) -> dict:
@@ -127,6 +128,8 @@ def main(argv: list[str] | None = None) -> dict:
         test_fields["num_episodes"] = args.episodes
     test = EvalConfig(**{**test_fields, "demo_length": data["demo_length"], "max_steps": data["max_steps"], "image_size": data["image_size"]})
     val = validation_history(run)
+    if len(set(files) & set(val)) < 3:
+        parser.error(f"run {run} validated {len(set(files) & set(val))} of its kept epochs; train it with val_every=1")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     path = out / f"{run.parent.name}-{run.name}.json"

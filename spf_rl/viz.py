@@ -56,7 +56,7 @@ def plot_training_curves(history: list[dict], path: str | Path, title: str = "tr
 
     Args:
         history: one dict per epoch with ``epoch``, ``train_loss``, ``train_accuracy``,
-            ``val_success``, ``val_spl``.
+            ``val_success``, ``val_spl`` (``None`` for an epoch that was not validated).
         path: output PNG.
         title: figure title.
 
@@ -79,8 +79,9 @@ def plot_training_curves(history: list[dict], path: str | Path, title: str = "tr
     twin.set_ylabel("accuracy")
     left.legend(loc="upper left", fontsize=8)
     twin.legend(loc="upper right", fontsize=8)
-    right.plot(epochs, [h["val_success"] for h in history], "o-", label="val success")
-    right.plot(epochs, [h["val_spl"] for h in history], "s-", label="val SPL")
+    validated = [h for h in history if h["val_success"] is not None]  # epochs a run validated (val_every)
+    right.plot([h["epoch"] for h in validated], [h["val_success"] for h in validated], "o-", label="val success")
+    right.plot([h["epoch"] for h in validated], [h["val_spl"] for h in validated], "s-", label="val SPL")
     right.set_ylim(0, 1)
     right.set_xlabel("epoch")
     right.legend(fontsize=8)

@@ -70,3 +70,20 @@ def test_resume_refuses_another_model_type(tmp_path):
 
     with pytest.raises(CheckpointError, match="'action_only' model, but a 'spf' model"):
         train_bc(dataclasses.replace(tiny_config(tmp_path, epochs=2, model="spf")))
+
+
+def test_val_every_validates_some_epochs_and_picks_among_them(tmp_path):
+    config = dataclasses.replace(tiny_config(tmp_path, epochs=3), val_every=2)
+    results = train_bc(config)
+    scored = [h["val_success"] is not None for h in results["history"]]
+    assert scored == [False, True, True]  # epoch 2, then the last epoch
+    assert results["best_epoch"] in (2, 3)
+    with pytest.raises(ValueError, match="val_every"):
+        dataclasses.replace(config, val_every=0)
+
+
+def test_the_main_job_budget_is_stated_in_steps_and_episodes():
+    config = BCConfig()
+    steps = -(-config.data.num_episodes // config.optim.batch_size) * config.optim.epochs
+    assert (config.data.num_episodes, steps) == (2000, 1500)
+    assert config.val.num_episodes >= 300  # checkpoints are picked on at least 300 validation episodes

@@ -22,7 +22,7 @@ from spf_rl.train.bc import epoch_checkpoint, train_bc  # noqa: E402
 @pytest.fixture(scope="module")
 def kept_run(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("picking")
-    config = dataclasses.replace(tiny_config(tmp, epochs=3), keep_epochs=True)
+    config = dataclasses.replace(tiny_config(tmp, epochs=3), keep_epochs=True, val_every=1)
     train_bc(config)
     return Path(config.output_dir)
 

@@ -1,6 +1,7 @@
 """Tests for the recipes' configuration loading (YAML + preset + key=value overrides)."""
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -89,3 +90,17 @@ def test_a_preset_builds_on_its_base(tmp_path, monkeypatch):
         load_config(BCConfig, "bc", [], preset="loop_a")
     with pytest.raises(ValueError, match="no file"):
         load_config(BCConfig, "bc", [], preset="nowhere")
+
+
+def test_main_job_benchmark_compares_the_previous_and_current_budgets(tmp_path):
+    import bench_main_job
+
+    out = tmp_path / "main_job.json"
+    report = bench_main_job.main(["--quick", "--output", str(out), "--workdir", str(tmp_path / "work")])
+    assert json.loads(out.read_text()) == json.loads(json.dumps(report))
+    previous, current = report["jobs"]["previous"], report["jobs"]["current"]
+    assert (previous["epochs"], current["epochs"]) == (6, BCConfig().optim.epochs)
+    assert report["gradient_step_ratio"] == current["gradient_steps"] / previous["gradient_steps"] == 2.0
+    assert report["wall_ratio_current_to_previous"] == current["wall_seconds"] / previous["wall_seconds"] > 0
+    assert previous["validation_episodes"] == 6 * 4  # every epoch, 4 episodes (quick)
+    assert current["validation_episodes"] == 4 * 4  # epochs 3, 6, 9 and 12

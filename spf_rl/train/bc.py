@@ -34,6 +34,7 @@ from tqdm.auto import tqdm
 
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from envs.homing import FOLLOW
+from envs.checks import check_positive_ints
 from spf_rl.data import DatasetConfig, EpisodeDataset
 from spf_rl.device import DEFAULT_DEVICE, autocast, check_device, exact_float32, module_device, resolve_device, to_device
 from spf_rl.modules.memory import memory_bytes
@@ -52,7 +53,8 @@ class OptimConfig:
         lr: Adam learning rate.
         weight_decay: Adam weight decay.
         batch_size: episodes per gradient step.
-        epochs: passes over the dataset.
+        epochs: passes over the dataset (12 on the default 2,000 episodes at batch 16 =
+            1,500 gradient steps, the main job's budget).
         max_grad_norm: gradient-norm clip.
         cosine_schedule: decay the learning rate to 0 over the run (cosine), which
             steadies the final checkpoints.
@@ -63,15 +65,16 @@ class OptimConfig:
     lr: float = 1e-3
     weight_decay: float = 0.0
     batch_size: int = 16
-    epochs: int = 6
+    epochs: int = 12
     max_grad_norm: float = 1.0
     cosine_schedule: bool = True
     amp: bool = False
 
 
 def default_val_config() -> EvalConfig:
-    """Validation after each epoch: 100 episodes of the ``val`` split, seed 1."""
-    return EvalConfig(split="val", num_episodes=100, seed=1)
+    """Validation that picks the checkpoint: 300 episodes of the ``val`` split, seed 1
+    (fewer pick noisily: the standard error of a success rate on 100 episodes is about 0.05)."""
+    return EvalConfig(split="val", num_episodes=300, seed=1)
 
 
 def default_test_config() -> EvalConfig:
@@ -95,7 +98,8 @@ class BCConfig:
         data: the dataset (:class:`~spf_rl.data.DatasetConfig`).
         model: the policy (:class:`~spf_rl.train.models.ModelConfig`).
         optim: the optimiser (:class:`OptimConfig`).
-        val: validation rollouts after each epoch.
+        val: validation rollouts; the best validated epoch is kept as ``best.pt``.
+        val_every: validate after every ``val_every``-th epoch and after the last one.
         test: final evaluation of the best checkpoint.
         keep_epochs: also keep every epoch's weights (``epochs/epoch-001.pt``, ...), for
             studies of checkpoint picking (``recipes/picking_study.py``).
@@ -119,10 +123,16 @@ class BCConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
     val: EvalConfig = field(default_factory=default_val_config)
     test: EvalConfig = field(default_factory=default_test_config)
+    val_every: int = 3
     keep_epochs: bool = False
 
     def __post_init__(self) -> None:
         check_device(self.device)
+        check_positive_ints(self, ("val_every",))
+
+    def validates_after(self, epoch: int) -> bool:
+        """Whether epoch ``epoch`` (from 1) is validated: every ``val_every``-th one and the last."""
+        return epoch % self.val_every == 0 or epoch == self.optim.epochs
 
     def resolved_data_dir(self) -> Path:
         if self.data_dir:
@@ -295,23 +305,30 @@ class TrainingRun:
                 run_logger.log_scalar("train/loss", losses[-1], step=self.step)
         return losses, accuracies, time.time() - start
 
-    def end_epoch(self, epoch: int, losses: list, accuracies: list, train_seconds: float, val: dict, run_logger=None) -> dict:
-        """Record epoch ``epoch`` (from 0), keep ``best.pt`` if ``val`` is the best so far, write ``last.pt``."""
+    def end_epoch(
+        self, epoch: int, losses: list, accuracies: list, train_seconds: float, val: dict | None, run_logger=None
+    ) -> dict:
+        """Record epoch ``epoch`` (from 0), keep ``best.pt`` if ``val`` is the best so far, write ``last.pt``.
+
+        ``val`` is ``None`` for an epoch that was not validated (its record says so with
+        ``None`` scores; it cannot become ``best.pt``).
+        """
         record = {
             "epoch": epoch + 1,
             "step": self.step,
             "train_loss": sum(losses) / len(losses),
             "train_accuracy": sum(accuracies) / len(accuracies),
-            "val_success": val["success"],
-            "val_spl": val["spl"],
+            "val_success": None if val is None else val["success"],
+            "val_spl": None if val is None else val["spl"],
             "train_seconds": train_seconds,
         }
         self.history.append(record)
         if run_logger is not None:
             for key in ("train_accuracy", "val_success", "val_spl"):
-                run_logger.log_scalar(f"epoch/{key}", record[key], step=self.step)
+                if record[key] is not None:
+                    run_logger.log_scalar(f"epoch/{key}", record[key], step=self.step)
         state = {"model": self.policy.state_dict(), "epoch": epoch + 1}
-        if (val["success"], val["spl"]) > (self.best["success"], self.best["spl"]):
+        if val is not None and (val["success"], val["spl"]) > (self.best["success"], self.best["spl"]):
             self.best = {"success": val["success"], "spl": val["spl"], "epoch": epoch + 1}
             save_checkpoint(self.best_path, self.model_type, self.policy_config, {**state, "val": val})
         if self.epochs_dir is not None:
@@ -391,7 +408,7 @@ def _train_bc(config: BCConfig, device: torch.device) -> dict:
         losses, accuracies, train_seconds = run.train_epoch(
             batches, batches_per_epoch, f"epoch {epoch + 1}/{config.optim.epochs}", config.progress, run_logger
         )
-        val, _ = evaluate_policy(policy, val_config, progress=False)
+        val = evaluate_policy(policy, val_config, progress=False)[0] if config.validates_after(epoch + 1) else None
         record = run.end_epoch(epoch, losses, accuracies, train_seconds, val, run_logger)
         logger.info("epoch %d: %s", epoch + 1, record)
     history, best = run.history, run.best
@@ -430,7 +447,3 @@ def atomic_json(path: Path, payload: dict) -> None:
     tmp = path.with_name(f".{path.name}.tmp")
     tmp.write_text(json.dumps(payload, indent=2, default=str))
     os.replace(tmp, path)
-
-
-#: The former private name, still imported by the DAgger and PPO loops.
-_atomic_json = atomic_json

@@ -51,7 +51,7 @@ from envs.transforms import philox_uniforms
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.data import DatasetConfig, EpisodeDataset
 from spf_rl.device import DEFAULT_DEVICE, check_device, exact_float32, module_device
-from spf_rl.train.bc import BCConfig, OptimConfig, _atomic_json, bc_loss
+from spf_rl.train.bc import BCConfig, OptimConfig, atomic_json, bc_loss
 from spf_rl.train.collection import (
     CollectionEnvConfig,
     CollectorConfig,
@@ -344,7 +344,7 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
         "wall_seconds_this_run": time.time() - start_time,
         "config": asdict(config),
     }
-    _atomic_json(output / "results.json", results)
+    atomic_json(output / "results.json", results)
     plot_if_available(plot_rounds, history, output / "dagger.png", title=f"DAgger from {Path(config.checkpoint).name}")
     return results
 

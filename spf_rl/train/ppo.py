@@ -60,7 +60,7 @@ from tqdm.auto import tqdm
 
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.device import autocast, exact_float32
-from spf_rl.train.bc import _atomic_json
+from spf_rl.train.bc import atomic_json
 from spf_rl.train.collection import collection_device, make_collector
 from spf_rl.train.evaluation import evaluate_policy, with_episode_sizes
 from spf_rl.train.models import build_policy
@@ -135,7 +135,7 @@ class _PPORun:
         self.device = collection_device(config.device, config.collector)  # first: a missing GPU fails here
         self.output = Path(config.output_dir)
         self.output.mkdir(parents=True, exist_ok=True)
-        _atomic_json(self.output / "config.json", asdict(config))
+        atomic_json(self.output / "config.json", asdict(config))
         self.last_path, self.best_path = self.output / "last.pt", self.output / "best.pt"
 
         payload = load_checkpoint(config.checkpoint)
@@ -378,7 +378,7 @@ class _PPORun:
             "wall_seconds_this_run": seconds,
             "config": asdict(self.config),
         }
-        _atomic_json(self.output / "results.json", results)
+        atomic_json(self.output / "results.json", results)
         plot_if_available(
             plot_ppo, val_history, start, self.output / "ppo.png", title=f"PPO from {Path(self.config.checkpoint).name}"
         )
