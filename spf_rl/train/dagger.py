@@ -179,7 +179,7 @@ class DAggerConfig:
     env: CollectionEnvConfig = field(default_factory=CollectionEnvConfig)
     collector: CollectorConfig = field(default_factory=CollectorConfig)
     optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=3e-4, cosine_schedule=False))
-    val: EvalConfig = field(default_factory=lambda: EvalConfig(split="val", num_episodes=100, seed=1))
+    val: EvalConfig = field(default_factory=lambda: EvalConfig(split="val", num_episodes=300, seed=1))
     test: EvalConfig = field(default_factory=lambda: EvalConfig(split="test", num_episodes=500, seed=2))
 
     def __post_init__(self) -> None:
