@@ -27,7 +27,7 @@ emits it *instead of* ``demo_frames`` (30 frames less per step), for policies th
 look the frames up in the store (:meth:`~envs.demo_store.DemoStore.lookup_module`).
 
 Frames are HWC uint8, as TorchRL's pixel envs emit them (see :mod:`envs.specs`).
-``pose``, ``goal_distance``, ``expert_action`` and the episode metrics are
+``pose``, ``goal_distance``, ``house_seed``, ``expert_action`` and the episode metrics are
 privileged keys (:data:`~envs.specs.PRIVILEGED_KEYS`) for metrics, plotting and
 labelling; append :class:`~envs.specs.HidePrivileged` to hide them from a policy.
 
@@ -241,9 +241,8 @@ class PathFollowEnv(EnvBase):
         self._shortest = np.zeros(count)
         self._episode_seed = np.zeros(count, dtype=np.int64)
         self._episode_index = np.zeros(count, dtype=np.int64)
-        self._demo_id = np.zeros(count, dtype=np.int64)
-        self._success = np.zeros(count, dtype=bool)
-        self._spl = np.zeros(count)
+        self._demo_id, self._house_seed = np.zeros(count, dtype=np.int64), np.zeros(count, dtype=np.int64)
+        self._success, self._spl = np.zeros(count, dtype=bool), np.zeros(count)
         # (count, 0, ...) when the frames are not emitted: the per-episode copies cost nothing
         self._demo_frames = torch.zeros(
             (count, n if self.emit_demo_frames else 0, size, size, NUM_RGB_CHANNELS), dtype=torch.uint8
@@ -306,7 +305,7 @@ class PathFollowEnv(EnvBase):
     def _start_episode(self, index: int, demo_frames: torch.Tensor, demo_actions: torch.Tensor, pixels: torch.Tensor) -> None:
         self._episode_index[index], episode_seed = self._numbering.next(index)
         house, demo, self._demo_id[index] = self._source.episode(index, episode_seed)
-        self._houses[index] = house
+        self._houses[index], self._house_seed[index] = house, house.seed
         self._demos[index] = demo
         self._experts[index] = GeodesicExpert(
             house.occupancy, demo.end_field, stop_radius_m=self.rules.radius(demo.shortest_length_m) if self.stop_action else None
@@ -376,11 +375,12 @@ class PathFollowEnv(EnvBase):
         floats[:, 4:7] = self._pose
         if reward is not None:
             floats[:, 7] = reward
-        ints = np.empty((count, 4), dtype=np.int64)
+        ints = np.empty((count, 5), dtype=np.int64)
         ints[:, 0] = self._steps
         ints[:, 1] = self._episode_seed
         ints[:, 2] = self._demo_id
         ints[:, 3] = self._episode_index
+        ints[:, 4] = self._house_seed
         bools = np.empty((count, 5), dtype=bool)
         bools[:, 4] = self._lab_success
         bools[:, 0] = self._success
@@ -399,6 +399,7 @@ class PathFollowEnv(EnvBase):
             "step_count": int_columns[..., 0:1],
             "episode_seed": int_columns[..., 1:2],
             "episode_index": int_columns[..., 3:4],
+            "house_seed": int_columns[..., 4:5],
             "pose": float_columns[..., 4:7],
             "goal_distance": float_columns[..., 0:1],
             "path_length": float_columns[..., 1:2],

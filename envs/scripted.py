@@ -78,7 +78,9 @@ def episode_record(final: TensorDictBase) -> dict:
 
     Returns:
         success, spl, goal_distance (m), path_length (m), shortest_path_length (m),
-        steps, episode_seed, as Python scalars.
+        steps, episode_seed and house_seed (the house the episode was played in, the key
+        of per-house statistics such as :func:`spf_rl.stats.hierarchical_bootstrap_ci`),
+        as Python scalars.
     """
     return {
         "success": bool(final["success"].item()),
@@ -89,6 +91,7 @@ def episode_record(final: TensorDictBase) -> dict:
         "shortest_path_length": float(final["shortest_path_length"].item()),
         "steps": int(final["step_count"].item()),
         "episode_seed": int(final["episode_seed"].item()),
+        "house_seed": int(final["house_seed"].item()),
     }
 
 
@@ -113,7 +116,7 @@ def run_episodes(env, policy, num_episodes: int, progress: bool = False) -> list
 
     Returns:
         one dict per episode, ordered by episode number: ``episode_index``, success,
-        spl, goal_distance, path_length, shortest_path_length, steps, episode_seed.
+        spl, goal_distance, path_length, shortest_path_length, steps, episode_seed, house_seed.
     """
     if num_episodes <= 0:
         raise ValueError(f"num_episodes must be > 0, got {num_episodes}.")

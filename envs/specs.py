@@ -7,7 +7,7 @@ Frames follow TorchRL's pixel envs (``GymEnv``/``DMControlEnv`` with
 (:class:`~spf_rl.modules.ImageEncoder` reads HWC).
 
 Privileged keys (:data:`PRIVILEGED_KEYS`: the agent's pose, the geodesic distance
-to the goal, the expert's action and the episode's metrics) are there for
+to the goal, the house's seed, the expert's action and the episode's metrics) are there for
 metrics, plotting and labelling. A policy must not read them: append
 :class:`HidePrivileged` to the env, and a policy input built from the
 observation spec no longer contains them.
@@ -28,6 +28,7 @@ NUM_DEMO_ACTIONS = 3
 PRIVILEGED_KEYS: tuple[str, ...] = (
     "pose",
     "goal_distance",
+    "house_seed",
     "path_length",
     "shortest_path_length",
     "expert_action",
@@ -75,6 +76,8 @@ def path_follow_specs(
         "step_count": unbounded(1, dtype=torch.int64),
         "episode_seed": unbounded(1, dtype=torch.int64),
         "episode_index": unbounded(1, dtype=torch.int64),
+        # the seed of the episode's house (envs.scenes.build_house), for per-house statistics
+        "house_seed": unbounded(1, dtype=torch.int64),
         "pose": unbounded(3),
         "goal_distance": unbounded(1),
         "path_length": unbounded(1),

@@ -1,216 +1,358 @@
-"""Reproduce the paper's Table 1: SPF at sparsity 0.4 / 0.6 / 0.8, RPF (full memory),
-RPF action-only, and open-loop replay, under ``paper`` noise on the test split.
+"""Reproduce the paper's Table 1 over training seeds, with house-level statistics.
 
-Beyond the paper, one more model, ``spf_random``, is trained once with a sparsity
-drawn per episode from ``model.sparsity_range`` (default 0.2-1.0; checkpoint
-``checkpoints/spf_random-s0.2-1.pt``) and evaluated at each of
-:data:`RANDOM_EVAL_SPARSITIES` (rows without paper numbers). With
-``--from-checkpoints`` and no such checkpoint, those rows are skipped with a warning.
+Rows (``--rows`` names them; each is also the stem of its shipped checkpoint):
 
-Trains each missing model with ``recipes/bc.py``'s pipeline (all rows share one
-dataset), evaluates every row on the same test episodes, copies each row's best
-checkpoint to ``checkpoints/`` and writes:
+* ``spf-s0.4``, ``spf-s0.6``, ``spf-s0.8``: SPF at sparsity 0.4 / 0.6 / 0.8;
+* ``rpf-s1``: SPF at sparsity 1 (RPF as SPF: full memory, SPF's network);
+* ``rpf_original-s1``: the original RPF (the RPF lab code's memory network);
+* ``action_only-s0``: RPF action only; ``open_loop``: open-loop replay (no training);
+* ``spf_random-s0.2-1``: one model trained with a random sparsity per episode in
+  [0.2, 1], evaluated at each of :data:`RANDOM_EVAL_SPARSITIES` (one table line each).
 
-* ``results/table1.md`` and ``results/table1.json``: ours beside the paper's numbers;
-* ``results/table1.png``: success and SPL against sparsity and against memory bytes.
+Every learned row is trained with each of ``--seeds`` (default 0, 1, 2) under the
+``paper`` noise: SPF 0.8 with the long schedule (``--preset bc_long``, 20,000 gradient
+steps), every other row with ``--preset bc_row`` (5,000 steps); run directories
+``runs/bc_long/<model>-s<sparsity>-seed<S>`` and ``runs/bc_row/...`` (the presets'
+``output_dir``; an interrupted run resumes). A finished run's ``best.pt`` (best by
+validation) is copied to ``checkpoints/table1/<row>-seed<S>.pt``, and the seed with
+the best validation success of each row to the row's shipped name
+``checkpoints/<row>.pt``. DAgger checkpoints (a DAgger column for ``spf-s0.8`` and
+``rpf-s1``) are never trained here: a finished ``runs/dagger/<row>-seed<S>`` is copied
+to ``checkpoints/table1/dagger-<row>-seed<S>.pt``, or put one there yourself.
+
+Every checkpoint is scored on the same episodes: the ``test`` set (``bc_long``'s test
+config: 1,000 episodes of the 18 test houses, seed 2, ``paper`` noise) and the
+``extended`` set (the same with 100 test-split houses). Per-episode records are cached
+in ``results/eval/table1/<set>/<line>-seed<S>.json``, keyed by the evaluation config and
+the checkpoint's SHA-256, so a rerun evaluates only what is missing or changed.
+Seeds without a checkpoint are listed as missing, never silently dropped.
+
+Writes ``results/table1.json``, ``results/table1.md`` and ``results/table1.png``
+(:mod:`table1_report`): mean +- sd over seeds, house-level bootstrap intervals, paired
+bootstrap tests of the ordering claims (:data:`CLAIMS`), both success criteria.
 
 Usage::
 
-    python recipes/table1.py                      # trains what is missing (hours on 2 CPU cores)
-    python recipes/table1.py --from-checkpoints   # only evaluates the shipped checkpoints
-    python recipes/table1.py optim.epochs=4 data.num_episodes=1500
-    python recipes/table1.py device=cuda optim.amp=true   # train and evaluate on a GPU (default device=auto)
-
-``device=`` (as for ``bc.py``) places training and the evaluated policies; envs stay on the CPU.
+    python recipes/table1.py --from-checkpoints          # score checkpoints/table1/ (no training)
+    python recipes/table1.py                             # train what is missing, then score
+    python recipes/table1.py --rows spf-s0.8,action_only-s0 --seeds 0,1 --sets test
+    python recipes/table1.py --quick --from-checkpoints --rows open_loop   # smoke run under runs/table1_quick/
+    python recipes/table1.py device=cuda optim.amp=true   # key=value overrides reach every training run
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import json
 import logging
 import shutil
 import sys
-from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from config_utils import load_config  # noqa: E402
+from table1_report import Line, build_table, load_cached, write_cached, write_reports  # noqa: E402
 
-#: (row label, model name, sparsity, paper success, paper SPL); paper: Table 1 (Habitat, MP3D).
-ROWS = [
-    ("SPF sparsity 0.4", "spf", 0.4, 0.782, 0.683),
-    ("SPF sparsity 0.6", "spf", 0.6, 0.803, 0.724),
-    ("SPF sparsity 0.8", "spf", 0.8, 0.819, 0.737),
-    ("RPF action only", "action_only", 0.0, 0.782, 0.648),
-    ("RPF (full memory)", "rpf", 1.0, 0.833, 0.752),
-    ("open-loop replay", "open_loop", 0.0, None, None),
-]
-#: Sparsities the one random-sparsity model (``spf_random``) is evaluated at.
+logger = logging.getLogger("table1")
+
+
+@dataclass(frozen=True)
+class RowSpec:
+    """A row of Table 1: what is trained, with which schedule, and the paper's numbers."""
+
+    name: str
+    label: str
+    model: str
+    sparsity: float
+    preset: str | None
+    overrides: tuple[str, ...] = ()
+    paper: tuple[float | None, float | None] = (None, None)
+    eval_sparsities: tuple[float, ...] = ()
+    dagger: bool = False
+
+
+#: Sparsities the random-sparsity model is evaluated at.
 RANDOM_EVAL_SPARSITIES = (0.4, 0.6, 0.8, 1.0)
 RANDOM_MODEL = "spf_random"
+#: Paper: Table 1 (Habitat, MP3D), (success, SPL).
+ROWS = (
+    RowSpec("spf-s0.4", "SPF sparsity 0.4", "spf", 0.4, "bc_row", ("model=spf", "sparsity=0.4"), (0.782, 0.683)),
+    RowSpec("spf-s0.6", "SPF sparsity 0.6", "spf", 0.6, "bc_row", ("model=spf", "sparsity=0.6"), (0.803, 0.724)),
+    RowSpec("spf-s0.8", "SPF sparsity 0.8", "spf", 0.8, "bc_long", ("model=spf", "sparsity=0.8"), (0.819, 0.737), dagger=True),
+    RowSpec("rpf-s1", "SPF at sparsity 1 (RPF as SPF)", "rpf", 1.0, "bc_row", ("model=rpf", "sparsity=1"), dagger=True),
+    RowSpec("rpf_original-s1", "RPF (original)", "rpf_original", 1.0, "bc_row", ("model=rpf_original", "sparsity=1"),
+            (0.833, 0.752)),
+    RowSpec("action_only-s0", "RPF action only", "action_only", 0.0, "bc_row", ("model=action_only",), (0.782, 0.648)),
+    RowSpec("open_loop", "open-loop replay", "open_loop", 0.0, None),
+    RowSpec("spf_random-s0.2-1", "SPF random sparsity 0.2-1", RANDOM_MODEL, 0.8, "bc_row", ("model=spf_random",),
+            eval_sparsities=RANDOM_EVAL_SPARSITIES),
+)
+ROW_BY_NAME = {row.name: row for row in ROWS}
+#: Ordering claims, each "a > b" on the shared episodes: (a, b, text); lines absent from a run are skipped.
+CLAIMS = (
+    ("spf-s0.8", "action_only-s0", "SPF 0.8 beats action-only"),
+    ("spf-s0.6", "spf-s0.4", "SPF 0.6 beats SPF 0.4"),
+    ("spf-s0.8", "spf-s0.6", "SPF 0.8 beats SPF 0.6"),
+    ("rpf-s1", "spf-s0.8", "full memory (SPF at sparsity 1) beats SPF 0.8"),
+    ("rpf_original-s1", "action_only-s0", "the original RPF beats action-only"),
+    ("spf-s0.8", "open_loop", "SPF 0.8 beats open-loop replay"),
+    ("action_only-s0", "open_loop", "action-only beats open-loop replay"),
+    ("dagger-spf-s0.8", "spf-s0.8", "DAgger improves SPF 0.8"),
+    ("dagger-rpf-s1", "rpf-s1", "DAgger improves SPF at sparsity 1"),
+)
+SETS = ("test", "extended")
+#: Houses of the extended test set.
+EXTENDED_HOUSES = 100
+#: --quick: episodes per set, and where everything goes.
+QUICK_EPISODES = 8
+QUICK_DIR = Path("runs/table1_quick")
 
 
-def checkpoint_name(model: str, sparsity: float | Sequence[float]) -> str:
-    """File name of a model's checkpoint: ``spf-s0.4.pt``, or ``spf_random-s0.2-1.pt``
-    for a sparsity range ``(0.2, 1.0)``."""
-    if isinstance(sparsity, Sequence):
+def checkpoint_name(model: str, sparsity) -> str:
+    """File name of a model's checkpoint: ``spf-s0.4.pt``, or ``spf_random-s0.2-1.pt`` for a range ``(0.2, 1.0)``."""
+    if isinstance(sparsity, (tuple, list)):
         return f"{model}-s" + "-".join(f"{s:g}" for s in sparsity) + ".pt"
     return f"{model}-s{sparsity:g}.pt"
 
 
-def load_or_train(path: Path, config, train: bool):
-    """The policy in checkpoint ``path``, on ``config.device``; if it is missing and ``train``,
-    first train ``config`` (a ``BCConfig``) with ``train_bc`` and copy its best checkpoint to ``path``."""
-    from spf_rl.hub import policy_from_checkpoint
+def seed_checkpoint(checkpoints: Path, line: str, seed: int) -> Path:
+    """Per-seed checkpoint of a line (a row, or ``dagger-<row>``): ``<checkpoints>/table1/<line>-seed<S>.pt``."""
+    return checkpoints / "table1" / f"{line}-seed{seed}.pt"
+
+
+def table_lines(rows: list[RowSpec], demo_length: int, image_size: int) -> list[Line]:
+    """The lines of the table: one per row, one per evaluated sparsity of the random model, and DAgger lines."""
+    from spf_rl.train.bc import model_memory_bytes
+
+    def memory(model: str, sparsity: float) -> int:
+        return demo_length if model == "open_loop" else model_memory_bytes(model, demo_length, sparsity, image_size)
+
+    lines = []
+    for row in rows:
+        common = dict(row=row.name, model=row.model, paper_success=row.paper[0], paper_spl=row.paper[1])
+        if row.eval_sparsities:
+            for s in row.eval_sparsities:
+                lines.append(Line(name=f"{row.name}@{s:g}", label=f"{row.label}, at {s:g}", sparsity=s,
+                                  memory_bytes=memory(row.model, s), checkpoint_stem=row.name, **common))
+        else:
+            lines.append(Line(name=row.name, label=row.label, sparsity=row.sparsity,
+                              memory_bytes=memory(row.model, row.sparsity), checkpoint_stem=row.name, **common))
+        if row.dagger:
+            lines.append(Line(name=f"dagger-{row.name}", label=f"DAgger from {row.label}", sparsity=row.sparsity,
+                              memory_bytes=memory(row.model, row.sparsity), checkpoint_stem=f"dagger-{row.name}",
+                              dagger_of=row.name, row=row.name, model=row.model))
+    return lines
+
+
+# ------------------------------------------------------------------------- options
+def comma_list(allowed: tuple[str, ...], what: str):
+    def parse(text: str) -> list[str]:
+        items = [item.strip() for item in text.split(",") if item.strip()]
+        unknown = [item for item in items if item not in allowed]
+        if unknown or not items:
+            raise argparse.ArgumentTypeError(f"unknown {what} {unknown or text!r}; allowed: {', '.join(allowed)}")
+        return list(dict.fromkeys(items))
+
+    return parse
+
+
+def seed_list(text: str) -> list[int]:
+    try:
+        seeds = [int(item) for item in text.split(",") if item.strip()]
+    except ValueError:
+        seeds = []
+    if not seeds or any(seed < 0 for seed in seeds):
+        raise argparse.ArgumentTypeError(f"seeds must be comma-separated integers >= 0 (e.g. 0,1,2), got {text!r}")
+    return sorted(set(seeds))
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    """The options, all checked before any work (a bad one exits with a message naming it)."""
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--from-checkpoints", action="store_true", help="only score existing checkpoints (no training)")
+    parser.add_argument("--rows", type=comma_list(tuple(ROW_BY_NAME), "row"), default=list(ROW_BY_NAME))
+    parser.add_argument("--seeds", type=seed_list, default=[0, 1, 2])
+    parser.add_argument("--sets", type=comma_list(SETS, "set"), default=list(SETS))
+    parser.add_argument(
+        "--quick", action="store_true",
+        help=f"smoke run: {QUICK_EPISODES} episodes per set, bc_quick training, all under {QUICK_DIR}/",
+    )
+    parser.add_argument("--checkpoints", type=Path, default=None, help="default checkpoints/ (quick: under runs/table1_quick/)")
+    parser.add_argument("--eval-dir", type=Path, default=None, help="per-episode cache, default results/eval/table1/")
+    parser.add_argument("--out", type=Path, default=None, help="where table1.{json,md,png} go, default results/")
+    parser.add_argument("--num-resamples", type=int, default=10_000, help="bootstrap resamples")
+    parser.add_argument("overrides", nargs="*", help="key=value overrides for every training run (as for bc.py)")
+    args = parser.parse_args(argv)
+    if args.num_resamples < 1:
+        parser.error(f"argument --num-resamples: must be >= 1, got {args.num_resamples}")
+    if any(item.split("=", 1)[0] == "seed" for item in args.overrides):
+        parser.error("the override seed=... is not allowed: choose the training seeds with --seeds (e.g. --seeds 0,1,2)")
+    root = QUICK_DIR if args.quick else Path(".")
+    args.checkpoints = args.checkpoints or root / "checkpoints"
+    args.eval_dir = args.eval_dir or (root / "eval" if args.quick else Path("results/eval/table1"))
+    args.out = args.out or (root / "results" if args.quick else Path("results"))
+    try:  # bad overrides are refused here, before any work
+        args.eval_sets = eval_sets(args.overrides, args.quick)
+        for row in (ROW_BY_NAME[name] for name in args.rows if ROW_BY_NAME[name].preset):
+            row_config(row, args.seeds[0], args.overrides, args.quick)
+    except ValueError as err:
+        parser.error(f"overrides: {err}")
+    return args
+
+
+# ---------------------------------------------------------------------- configs
+def preset_of(row: RowSpec, quick: bool) -> str | None:
+    """The training schedule of a row: its preset, or ``bc_quick`` for every row with ``--quick``."""
+    return "bc_quick" if quick and row.preset else row.preset
+
+
+def row_config(row: RowSpec, seed: int, overrides: list[str], quick: bool):
+    """The ``BCConfig`` of one row and seed: the row's preset (``bc_quick`` with ``--quick``) and overrides."""
+    from spf_rl.train.bc import BCConfig
+
+    items = [*row.overrides, f"seed={seed}", *overrides]
+    if quick:
+        items.append(f"output_dir={QUICK_DIR}/runs/{row.name}-seed{seed}")
+    return load_config(BCConfig, "bc", items, preset=preset_of(row, quick))
+
+
+def eval_sets(overrides: list[str], quick: bool) -> dict:
+    """``{"test": EvalConfig, "extended": EvalConfig}``: ``bc_long``'s test config, and the same on 100 houses."""
+    from spf_rl.train.bc import BCConfig
+    from spf_rl.train.evaluation import with_episode_sizes
+
+    base = load_config(BCConfig, "bc", overrides, preset="bc_long")
+    test = with_episode_sizes(base.test, base.data)
+    if quick:
+        test = dataclasses.replace(test, num_episodes=QUICK_EPISODES, num_agents=QUICK_EPISODES)
+    return {"test": test, "extended": dataclasses.replace(test, num_houses=EXTENDED_HOUSES)}
+
+
+# --------------------------------------------------------------------- training
+def copy_atomic(source: Path, target: Path) -> None:
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = target.with_name(f".{target.name}.tmp")
+    shutil.copyfile(source, tmp)
+    tmp.replace(target)
+
+
+def train_missing(rows: list[RowSpec], seeds: list[int], overrides: list[str], checkpoints: Path, quick: bool) -> dict:
+    """Train (or resume) every missing row x seed, copy per-seed and best checkpoints; returns ``{row: shipped}``."""
     from spf_rl.train.bc import train_bc
 
-    model = config.model.name
-    if train and not path.exists():
-        train_bc(config)
-        shutil.copyfile(Path(config.output_dir) / "best.pt", path)
-    return policy_from_checkpoint(path, expected_model_type=model, device=config.device)[0]
+    shipped = {}
+    for row in (row for row in rows if row.preset):
+        scores = {}
+        for seed in seeds:
+            config = row_config(row, seed, overrides, quick)
+            run_dir, target = Path(config.output_dir), seed_checkpoint(checkpoints, row.name, seed)
+            if not (run_dir / "results.json").exists() and not target.exists():
+                logger.info("training %s seed %d in %s (preset %s)", row.name, seed, run_dir, preset_of(row, quick))
+                train_bc(config)
+            if (run_dir / "results.json").exists():
+                if not target.exists():
+                    copy_atomic(run_dir / "best.pt", target)
+                best = json.loads((run_dir / "results.json").read_text())["val_best"]
+                scores[seed] = (best["success"], best["spl"], -seed)
+            dagger_dir = Path("runs/dagger") / f"{row.name}-seed{seed}"
+            dagger_target = seed_checkpoint(checkpoints, f"dagger-{row.name}", seed)
+            if row.dagger and (dagger_dir / "results.json").exists() and not dagger_target.exists():
+                copy_atomic(dagger_dir / "best.pt", dagger_target)
+        if scores:
+            seed = max(scores, key=scores.get)
+            copy_atomic(seed_checkpoint(checkpoints, row.name, seed), checkpoints / f"{row.name}.pt")
+            shipped[row.name] = {"seed": seed, "val_success": scores[seed][0], "val_spl": scores[seed][1]}
+            logger.info("%s: seed %d is the best by validation (success %.3f): copied to %s.pt", row.name, seed,
+                        scores[seed][0], checkpoints / row.name)
+    return shipped
 
 
-def make_row(
-    label: str,
-    model: str,
-    sparsity: float,
-    memory: int,
-    summary: dict,
-    paper: tuple[float | None, float | None] = (None, None),
-    **extra,
-) -> dict:
-    """One table row: the label, the model, its memory, the paper's (success, SPL) and our summary."""
-    return {
-        "row": label,
-        "model": model,
-        "sparsity": sparsity,
-        "memory_bytes": memory,
-        "paper_success": paper[0],
-        "paper_spl": paper[1],
-        **extra,
-        **summary,
-    }
+# ------------------------------------------------------------------- evaluation
+def file_sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def main(argv: list[str] | None = None) -> list[dict]:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--from-checkpoints", action="store_true", help="evaluate checkpoints/ without training")
-    parser.add_argument("--checkpoints", default="checkpoints")
-    parser.add_argument("--out", default="results")
-    parser.add_argument("overrides", nargs="*", help="key=value overrides applied to every row (as for bc.py)")
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+def eval_config(config, line: Line):
+    """The evaluation config of a line: open-loop replay ignores the camera, so its (same) episodes are not rendered."""
+    return dataclasses.replace(config, render=False) if line.model == "open_loop" else config
 
-    import envs  # noqa: F401
-    from spf_rl.device import resolve_device
-    from spf_rl.modules.policy import OpenLoopPolicy
-    from spf_rl.train.bc import BCConfig, model_memory_bytes
+
+def evaluate_line(line: Line, checkpoint: Path | None, config, device: str) -> list[dict]:
+    """Per-episode records of one line (and checkpoint) on one evaluation set."""
+    from spf_rl.hub import policy_from_checkpoint
+    from spf_rl.modules import OpenLoopPolicy
     from spf_rl.train.evaluation import evaluate_policy
 
-    base = load_config(BCConfig, "bc", args.overrides, preset="table1")
-    logging.info("training and evaluating on %s", resolve_device(base.device))  # a missing CUDA fails here, first
-    checkpoints, out = Path(args.checkpoints), Path(args.out)
-    checkpoints.mkdir(parents=True, exist_ok=True)
-    out.mkdir(parents=True, exist_ok=True)
-    test_config = dataclasses.replace(
-        base.test, demo_length=base.data.demo_length, max_steps=base.data.max_steps, image_size=base.data.image_size
-    )
-    rows: list[dict] = []
-
-    def row_config(model: str, sparsity: float, path: Path):
-        model_config = dataclasses.replace(base.model, name=model, sparsity=sparsity)
-        return dataclasses.replace(base, model=model_config, output_dir=f"runs/table1/{path.stem}")
-
-    def evaluate(label, model, sparsity, policy, memory, paper=(None, None), **extra):
-        summary, _ = evaluate_policy(policy, test_config, progress=base.progress)
-        rows.append(make_row(label, model, sparsity, memory, summary, paper, **extra))
-        logging.info("%s: success %.3f SPL %.3f", label, summary["success"], summary["spl"])
-
-    for label, model, sparsity, paper_success, paper_spl in ROWS:
-        if model == "open_loop":
-            policy, memory = OpenLoopPolicy(), base.data.demo_length
-        else:
-            shipped = checkpoints / checkpoint_name(model, sparsity)
-            train_sparsity = sparsity if model == "spf" else base.model.sparsity
-            policy = load_or_train(shipped, row_config(model, train_sparsity, shipped), not args.from_checkpoints)
-            memory = model_memory_bytes(model, base.data.demo_length, sparsity, base.data.image_size)
-        evaluate(label, model, sparsity, policy, memory, (paper_success, paper_spl))
-
-    sparsity_range = tuple(base.model.sparsity_range)
-    shipped = checkpoints / checkpoint_name(RANDOM_MODEL, sparsity_range)
-    if args.from_checkpoints and not shipped.exists():
-        logging.warning("%s is missing: skipping the %s rows (run without --from-checkpoints to train it).", shipped, RANDOM_MODEL)
+    if checkpoint is None:
+        policy = OpenLoopPolicy()
     else:
-        policy = load_or_train(shipped, row_config(RANDOM_MODEL, base.model.sparsity, shipped), not args.from_checkpoints)
-        span = "-".join(f"{s:g}" for s in sparsity_range)
-        for sparsity in RANDOM_EVAL_SPARSITIES:
-            policy.set_sparsity(sparsity)
-            memory = model_memory_bytes(RANDOM_MODEL, base.data.demo_length, sparsity, base.data.image_size)
-            label = f"SPF random sparsity {span}, at {sparsity:g}"
-            evaluate(label, RANDOM_MODEL, sparsity, policy, memory, sparsity_range=list(sparsity_range))
-    (out / "table1.json").write_text(json.dumps({"rows": rows, "test": dataclasses.asdict(test_config)}, indent=2))
-    (out / "table1.md").write_text(markdown_table(rows, test_config))
-    plot_rows(rows, out / "table1.png")
-    print(markdown_table(rows, test_config))
-    return rows
+        policy = policy_from_checkpoint(checkpoint, expected_model_type=line.model, device=device)[0]
+        if line.model == RANDOM_MODEL:
+            policy.set_sparsity(line.sparsity)
+    return evaluate_policy(policy, config, progress=False)[1]
 
 
-def markdown_table(rows: list[dict], test_config) -> str:
-    def fmt(value):
-        return "-" if value is None else f"{value:.3f}"
+def cache_entry(line: Line, seed: int | None, set_name: str, config, checkpoint: Path | None, eval_dir: Path):
+    """``(path, meta)`` of the cached records of one line x seed x set: the cache is used only when
+    ``meta`` (evaluation config, checkpoint file and its SHA-256, env version) is unchanged."""
+    from envs.version import ENV_VERSION
 
-    lines = [
-        f"Test split, {test_config.num_episodes} episodes, `{test_config.noise}` noise, seed {test_config.seed}. "
-        "95% bootstrap confidence intervals in brackets. Paper: Habitat / Matterport3D.",
-        "",
-        "| model | memory (bytes) | success | SPL | paper success | paper SPL |",
-        "|---|---|---|---|---|---|",
-    ]
-    for row in rows:
-        s_low, s_high = row["success_ci"]
-        p_low, p_high = row["spl_ci"]
-        lines.append(
-            f"| {row['row']} | {row['memory_bytes']:,} | {row['success']:.3f} [{s_low:.3f}, {s_high:.3f}] "
-            f"| {row['spl']:.3f} [{p_low:.3f}, {p_high:.3f}] | {fmt(row['paper_success'])} | {fmt(row['paper_spl'])} |"
-        )
-    return "\n".join(lines) + "\n"
+    meta = {
+        "line": line.name, "seed": seed, "set": set_name, "eval": dataclasses.asdict(config),
+        "checkpoint": None if checkpoint is None else str(checkpoint),
+        "checkpoint_sha256": None if checkpoint is None else file_sha256(checkpoint),
+        "env_version": ENV_VERSION,
+    }
+    return eval_dir / set_name / (line.name + ("" if seed is None else f"-seed{seed}") + ".json"), meta
 
 
-def plot_rows(rows: list[dict], path: Path) -> None:
-    import matplotlib
+def evaluate_all(lines: list[Line], seeds: list[int], sets: dict, args, device: str) -> tuple[dict, list[dict]]:
+    """Records ``{line: {set: {seed: records}}}`` of every line x seed x set whose checkpoint exists, from
+    the cache or evaluated now (then cached), and the list of what is missing."""
+    evaluations: dict = {line.name: {name: {} for name in sets} for line in lines}
+    missing = []
+    for line in lines:
+        line_seeds = [None] if line.model == "open_loop" else seeds
+        for seed in line_seeds:
+            checkpoint = None if seed is None else seed_checkpoint(args.checkpoints, line.checkpoint_stem, seed)
+            if checkpoint is not None and not checkpoint.exists():
+                entry = {"line": line.checkpoint_stem, "seed": seed, "checkpoint": str(checkpoint)}
+                missing += [entry] if entry not in missing else []  # the random model's lines share checkpoints
+                continue
+            for set_name, config in sets.items():
+                config = eval_config(config, line)
+                path, meta = cache_entry(line, seed, set_name, config, checkpoint, args.eval_dir)
+                records = load_cached(path, meta)
+                if records is None:
+                    logger.info("evaluating %s seed %s on the %s set (%d episodes)", line.name, seed, set_name,
+                                config.num_episodes)
+                    records = evaluate_line(line, checkpoint, config, device)
+                    write_cached(path, meta, records)
+                evaluations[line.name][set_name][seed] = records
+    return evaluations, missing
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
-    fig, (by_sparsity, by_bytes) = plt.subplots(1, 2, figsize=(10, 4))
-    learned = [r for r in rows if r["model"] not in ("open_loop", RANDOM_MODEL)]
-    random_rows = [r for r in rows if r["model"] == RANDOM_MODEL]
-    for metric, marker in (("success", "o"), ("spl", "s")):
-        xs = [r["sparsity"] for r in learned]
-        by_sparsity.plot(xs, [r[metric] for r in learned], marker, label=f"ours {metric}")
-        paper = [(r["sparsity"], r[f"paper_{metric}"]) for r in learned if r[f"paper_{metric}"] is not None]
-        by_sparsity.plot(*zip(*paper), marker, mfc="none", label=f"paper {metric}")
-        by_bytes.plot([r["memory_bytes"] for r in learned], [r[metric] for r in learned], marker, label=metric)
-        if random_rows:  # one model at several sparsities: a separate series, joined by a line
-            label = f"one random-sparsity model {metric}"
-            ys = [r[metric] for r in random_rows]
-            by_sparsity.plot([r["sparsity"] for r in random_rows], ys, marker + ":", label=label)
-            by_bytes.plot([r["memory_bytes"] for r in random_rows], ys, marker + ":", label=label)
-    open_loop = [r for r in rows if r["model"] == "open_loop"]
-    if open_loop:
-        by_sparsity.axhline(open_loop[0]["success"], color="grey", linestyle="--", label="open-loop success")
-    by_sparsity.set_xlabel("memory sparsity (0 = action only)")
-    by_bytes.set_xlabel("memory per demonstration (bytes)")
-    by_bytes.set_xscale("symlog")
-    for ax in (by_sparsity, by_bytes):
-        ax.set_ylim(0, 1)
-        ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+def main(argv: list[str] | None = None) -> dict:
+    args = parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    from spf_rl.device import resolve_device
+    from spf_rl.train.bc import BCConfig
+
+    base = load_config(BCConfig, "bc", args.overrides, preset="bc_long")
+    device = str(resolve_device(base.device))
+    rows = [ROW_BY_NAME[name] for name in args.rows]
+    shipped = {} if args.from_checkpoints else train_missing(rows, args.seeds, args.overrides, args.checkpoints, args.quick)
+    sets = {name: args.eval_sets[name] for name in args.sets}
+    lines = table_lines(rows, base.data.demo_length, base.data.image_size)
+    evaluations, missing = evaluate_all(lines, args.seeds, sets, args, device)
+    table = build_table(lines, evaluations, sets, args.seeds, CLAIMS, missing, args.num_resamples)
+    table["shipped"] = shipped
+    table["schedules"] = {row.name: preset_of(row, args.quick) for row in rows}
+    write_reports(table, args.out)
+    return table
 
 
 if __name__ == "__main__":

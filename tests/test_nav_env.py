@@ -171,3 +171,31 @@ def test_episode_numbers_fix_the_episodes_whatever_the_number_of_agents():
         seeds[num_agents] = played
     for number in range(4):
         assert seeds[1][number] == seeds[2][number] == seeds[3][number]
+
+
+def test_episode_records_name_the_house_each_episode_was_played_in():
+    """``house_seed`` (env output and :func:`~envs.scripted.run_episodes` record) is the house the agent drove in."""
+    from envs.scripted import OpenLoopReplay, run_episodes
+    from envs.specs import PRIVILEGED_KEYS
+
+    assert "house_seed" in PRIVILEGED_KEYS
+    env = PathFollowEnv("test", num_houses=6, demo_length=5, max_steps=4, image_size=32, render=False, num_agents=3)
+    env.set_seed(3)
+    td = env.reset()
+    assert td["house_seed"].reshape(-1).tolist() == [house.seed for house in env.houses]
+    td = env.rand_step(td)
+    assert td["next", "house_seed"].reshape(-1).tolist() == [house.seed for house in env.houses]
+    check_env_specs(env)
+
+    played = {}  # episode number -> house of the agent that played it, read from the env itself
+    original = env._start_episode
+
+    def spy(index, *args):
+        original(index, *args)
+        played[int(env._episode_index[index])] = env.houses[index].seed
+
+    env._start_episode = spy
+    env.set_seed(3)
+    records = run_episodes(env, OpenLoopReplay(), 12)
+    assert [r["house_seed"] for r in records] == [played[r["episode_index"]] for r in records]
+    assert len({r["house_seed"] for r in records}) > 1  # several houses, so the check can fail

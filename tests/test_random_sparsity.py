@@ -21,7 +21,7 @@ from test_policy import N, DemoEnv, _make_trajectory, _random_td, _run_steps
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
 
 from config_utils import load_config  # noqa: E402
-from table1 import RANDOM_MODEL, checkpoint_name, make_row, markdown_table, plot_rows  # noqa: E402
+from table1 import RANDOM_EVAL_SPARSITIES, RANDOM_MODEL, ROW_BY_NAME, checkpoint_name, table_lines  # noqa: E402
 
 RANGE = (0.2, 1.0)
 CFG = dataclasses.replace(FIXED_CFG, sparsity_range=RANGE)  # n = 6, 16x16 frames, D = 16
@@ -223,20 +223,15 @@ def test_bc_recipe_config_for_spf_random():
         load_config(BCConfig, "bc", ["model.sparsity_range=[0.9,0.4]"])
 
 
-def test_table1_rows_for_the_random_model(tmp_path):
+def test_table1_lines_for_the_random_model():
+    """One trained random-sparsity model (per seed) gives one table line per evaluated sparsity, with the
+    memory of SPF at that sparsity; its shipped checkpoint is named by the range."""
     assert checkpoint_name(RANDOM_MODEL, (0.2, 1.0)) == "spf_random-s0.2-1.pt"
     assert checkpoint_name("spf", 0.4) == "spf-s0.4.pt"
-    summary = {"success": 0.5, "spl": 0.4, "success_ci": [0.4, 0.6], "spl_ci": [0.3, 0.5]}
-    rows = [
-        make_row("SPF sparsity 0.4", "spf", 0.4, 100, summary, (0.782, 0.683)),
-        make_row("open-loop replay", "open_loop", 0.0, 30, summary),
-    ] + [
-        make_row(f"SPF random sparsity 0.2-1, at {s:g}", RANDOM_MODEL, s, int(100 * s), summary, sparsity_range=[0.2, 1.0])
-        for s in EVAL_SPARSITIES
-    ]
-    test_config = BCConfig().test
-    table = markdown_table(rows, test_config)
-    assert "| SPF sparsity 0.4 | 100 | 0.500 [0.400, 0.600] | 0.400 [0.300, 0.500] | 0.782 | 0.683 |" in table
-    assert "| SPF random sparsity 0.2-1, at 0.6 | 60 | 0.500 [0.400, 0.600] | 0.400 [0.300, 0.500] | - | - |" in table
-    plot_rows(rows, tmp_path / "table1.png")
-    assert (tmp_path / "table1.png").stat().st_size > 0
+    row = ROW_BY_NAME["spf_random-s0.2-1"]
+    lines = table_lines([row, ROW_BY_NAME["spf-s0.4"]], demo_length=30, image_size=64)
+    random_lines = [line for line in lines if line.model == RANDOM_MODEL]
+    assert [line.sparsity for line in random_lines] == list(RANDOM_EVAL_SPARSITIES) == list(EVAL_SPARSITIES)
+    assert {line.checkpoint_stem for line in random_lines} == {"spf_random-s0.2-1"}
+    assert [line.memory_bytes for line in random_lines] == [model_memory_bytes("spf", 30, s, 64) for s in EVAL_SPARSITIES]
+    assert lines[-1].name == "spf-s0.4" and lines[-1].memory_bytes == random_lines[0].memory_bytes

@@ -1,0 +1,176 @@
+"""Tests for recipes/table1.py and recipes/table1_report.py: the table over seeds from cached
+per-episode records (no env, no policy), bad options, the cache, and a real open-loop smoke run."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
+
+import table1  # noqa: E402
+from table1_report import build_table, load_cached, write_cached  # noqa: E402
+
+ROWS = "spf-s0.8,action_only-s0,open_loop"
+HOUSES = np.repeat(np.arange(12), 10) + 400  # 120 episodes in 12 houses
+
+
+def fake_records(rate: float, seed: int) -> list[dict]:
+    """Episodes with a shared difficulty (the same uniforms for every line), a rate per line, a little seed noise."""
+    difficulty = np.random.default_rng(0).random(HOUSES.size)
+    noise = np.random.default_rng(seed + 1).normal(0, 0.02, HOUSES.size)
+    success = difficulty + noise < rate
+    return [
+        {"episode_index": i, "episode_seed": 10_000 + i, "house_seed": int(h), "success": bool(s),
+         "success_lab": bool(s or d < rate + 0.05), "spl": 0.9 * float(s), "steps": 20}
+        for i, (h, s, d) in enumerate(zip(HOUSES, success, difficulty))
+    ]
+
+
+def options(tmp_path: Path, *more: str) -> list[str]:
+    return ["--quick", "--checkpoints", str(tmp_path / "ckpt"), "--eval-dir", str(tmp_path / "eval"),
+            "--out", str(tmp_path / "out"), "--num-resamples", "300", *more]
+
+
+def cache_fake_evaluations(tmp_path: Path, plan: dict[str, tuple[float, list]]) -> None:
+    """Fake checkpoints and cached records, exactly where and as table1.py looks for them."""
+    sets = table1.eval_sets([], quick=True)
+    lines = {line.name: line for line in table1.table_lines(list(table1.ROWS), 30, 64)}
+    for name, (rate, seeds) in plan.items():
+        line = lines[name]
+        for seed in seeds:
+            checkpoint = None
+            if seed is not None:
+                checkpoint = table1.seed_checkpoint(tmp_path / "ckpt", line.checkpoint_stem, seed)
+                checkpoint.parent.mkdir(parents=True, exist_ok=True)
+                checkpoint.write_bytes(f"weights of {line.checkpoint_stem} {seed}".encode())
+            config = table1.eval_config(sets["test"], line)
+            path, meta = table1.cache_entry(line, seed, "test", config, checkpoint, tmp_path / "eval")
+            write_cached(path, meta, fake_records(rate, seed or 0))
+
+
+def test_table_from_cached_records_counts_seeds_and_tests_the_claims(tmp_path, monkeypatch):
+    cache_fake_evaluations(tmp_path, {
+        "spf-s0.8": (0.8, [0, 1, 2]),
+        "action_only-s0": (0.5, [0, 1]),  # seed 2 has no checkpoint: listed as missing
+        "open_loop": (0.5, [None]),
+        "dagger-spf-s0.8": (0.9, [0]),
+    })
+    monkeypatch.setattr(table1, "evaluate_line", lambda *a: pytest.fail("everything is cached: nothing to evaluate"))
+    table = table1.main(options(tmp_path, "--from-checkpoints", "--rows", ROWS, "--sets", "test"))
+
+    saved = json.loads((tmp_path / "out" / "table1.json").read_text())
+    assert saved["seeds"] == [0, 1, 2] and saved["claims"] == json.loads(json.dumps(table["claims"]))
+    rows = {row["name"]: row for row in saved["rows"]}
+    assert rows["spf-s0.8"]["seeds"] == [0, 1, 2] and rows["spf-s0.8"]["missing_seeds"] == []
+    assert rows["action_only-s0"]["seeds"] == [0, 1] and rows["action_only-s0"]["missing_seeds"] == [2]
+    assert rows["dagger-spf-s0.8"]["dagger_of"] == "spf-s0.8" and rows["dagger-spf-s0.8"]["missing_seeds"] == [1, 2]
+    test = rows["spf-s0.8"]["sets"]["test"]
+    per_seed = [test["per_seed"][str(s)]["success"] for s in (0, 1, 2)]
+    assert test["success"]["mean"] == pytest.approx(np.mean(per_seed))
+    assert test["success"]["sd"] == pytest.approx(np.std(per_seed, ddof=1))
+    assert test["success"]["ci"][0] < test["success"]["mean"] < test["success"]["ci"][1]
+    assert test["houses"] == 12 and test["episodes"] == 120
+    assert list(rows["spf-s0.8"]["sets"]) == ["test"]  # --sets test
+    assert rows["open_loop"]["sets"]["test"]["success"]["sd"] is None  # one evaluation, no seeds
+
+    claims = {(c["a"], c["b"], c.get("metric")): c for c in saved["claims"]}
+    beats = claims[("spf-s0.8", "action_only-s0", "success")]
+    assert beats["holds"] and beats["p_greater"] < 0.05 and beats["seeds_a"] == 3 and beats["seeds_b"] == 2
+    assert beats["difference"] == pytest.approx(test["success"]["mean"] - rows["action_only-s0"]["sets"]["test"]["success"]["mean"])
+    assert not claims[("action_only-s0", "open_loop", "success")]["holds"]  # the same success rate
+    assert claims[("dagger-spf-s0.8", "spf-s0.8", "success")]["seeds_a"] == 1
+    assert claims[("spf-s0.6", "spf-s0.4", None)]["skipped"].startswith("no records of spf-s0.6")
+    assert {c["metric"] for c in saved["claims"] if "metric" in c} == {"success", "spl", "success_lab"}
+
+    text = (tmp_path / "out" / "table1.md").read_text()
+    assert "| SPF sparsity 0.8 | 3 of 3 |" in text
+    assert "| RPF action only | 2 of 3 (missing: 2) |" in text
+    assert "| open-loop replay | - (not trained) |" in text
+    assert "(1 of 3 (missing: 1, 2) seeds)" in text  # the DAgger column
+    assert "| SPF 0.8 beats action-only | test | success |" in text and "| yes |" in text
+    assert "action_only-s0 seed 2: no `" in text
+    assert (tmp_path / "out" / "table1.png").stat().st_size > 10_000
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--rows", "spf-s0.8,spf-s0.9"], "argument --rows: unknown row ['spf-s0.9']; allowed: spf-s0.4, spf-s0.6"),
+        (["--seeds", "0,x"], "argument --seeds: seeds must be comma-separated integers >= 0"),
+        (["--seeds", "-1"], "argument --seeds: seeds must be comma-separated integers >= 0"),
+        (["--sets", "test,val"], "argument --sets: unknown set ['val']; allowed: test, extended"),
+        (["seed=3"], "seed=... is not allowed: choose the training seeds with --seeds"),
+        (["optim.no_such_key=1"], "overrides: invalid configuration"),
+        (["--num-resamples", "0"], "argument --num-resamples: must be >= 1"),
+    ],
+)
+def test_bad_options_are_refused_before_any_work(tmp_path, capsys, argv, message):
+    with pytest.raises(SystemExit) as exit_info:
+        table1.main(options(tmp_path, *argv))
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())  # nothing written
+
+
+def test_the_cache_is_used_only_for_the_same_evaluation(tmp_path):
+    meta = {"line": "spf-s0.8", "seed": 0, "eval": {"num_episodes": 120}, "checkpoint_sha256": "abc"}
+    path = tmp_path / "test" / "spf-s0.8-seed0.json"
+    write_cached(path, meta, fake_records(0.7, 0))
+    assert load_cached(path, meta) == fake_records(0.7, 0)
+    assert load_cached(path, {**meta, "checkpoint_sha256": "other"}) is None  # a new checkpoint
+    assert load_cached(path, {**meta, "eval": {"num_episodes": 1000}}) is None
+    assert load_cached(tmp_path / "absent.json", meta) is None
+    assert not list(path.parent.glob(".*"))  # no temporary file left behind
+
+
+def test_evaluations_of_other_episodes_cannot_be_compared(tmp_path):
+    line = table1.table_lines([table1.ROW_BY_NAME["spf-s0.8"]], 30, 64)[0]
+    shifted = [{**r, "episode_seed": r["episode_seed"] + 1} for r in fake_records(0.5, 1)]
+    with pytest.raises(ValueError, match="did not play the same test episodes"):
+        build_table([line], {line.name: {"test": {0: fake_records(0.5, 0), 1: shifted}}}, {"test": None}, [0, 1], [], [], 100)
+
+
+def test_quick_open_loop_run_plays_real_episodes_once(tmp_path, monkeypatch):
+    """The smoke run: open-loop replay needs no checkpoint; 8 episodes per set, no rendering; a rerun reads the cache."""
+    from envs.scenes import split_seeds
+
+    table = table1.main(options(tmp_path, "--from-checkpoints", "--rows", "open_loop"))
+    row = table["rows"][0]
+    assert row["sets"]["test"]["episodes"] == table1.QUICK_EPISODES
+    line = table1.table_lines([table1.ROW_BY_NAME["open_loop"]], 30, 64)[0]
+    config = table1.eval_config(table1.eval_sets([], quick=True)["extended"], line)
+    records = load_cached(*table1.cache_entry(line, None, "extended", config, None, tmp_path / "eval"))
+    assert len(records) == table1.QUICK_EPISODES and not config.render
+    assert {r["house_seed"] for r in records} <= set(split_seeds("test", table1.EXTENDED_HOUSES))
+    monkeypatch.setattr(table1, "evaluate_line", lambda *a: pytest.fail("a rerun must read the cache"))
+    again = table1.main(options(tmp_path, "--from-checkpoints", "--rows", "open_loop"))
+    assert again["rows"] == table["rows"]
+
+
+def test_training_copies_each_finished_seed_and_ships_the_best_by_validation(tmp_path, monkeypatch):
+    """train_bc is replaced by a fake that writes what a finished run leaves: best.pt and results.json."""
+    monkeypatch.chdir(tmp_path)
+    trained = []
+
+    def fake_train_bc(config):
+        run = Path(config.output_dir)
+        run.mkdir(parents=True)
+        (run / "best.pt").write_text(f"seed {config.seed}")
+        val = {0: 0.70, 1: 0.76, 2: 0.73}[config.seed]
+        (run / "results.json").write_text(json.dumps({"val_best": {"success": val, "spl": val - 0.1, "epoch": 3}}))
+        trained.append((config.model.name, config.model.sparsity, config.seed, config.optim.epochs, config.output_dir))
+
+    monkeypatch.setattr("spf_rl.train.bc.train_bc", fake_train_bc)
+    checkpoints = tmp_path / "checkpoints"
+    shipped = table1.train_missing([table1.ROW_BY_NAME["spf-s0.8"], table1.ROW_BY_NAME["rpf-s1"]], [0, 1, 2], [], checkpoints, False)
+    assert [t[:4] for t in trained] == [("spf", 0.8, s, 40) for s in (0, 1, 2)] + [("rpf", 1.0, s, 20) for s in (0, 1, 2)]
+    assert trained[0][4] == "runs/bc_long/spf-s0.8-seed0" and trained[3][4] == "runs/bc_row/rpf-s1.0-seed0"
+    assert (checkpoints / "table1" / "spf-s0.8-seed2.pt").read_text() == "seed 2"
+    assert (checkpoints / "spf-s0.8.pt").read_text() == "seed 1" and shipped["spf-s0.8"]["seed"] == 1
+    trained.clear()
+    table1.train_missing([table1.ROW_BY_NAME["spf-s0.8"]], [0, 1, 2], [], checkpoints, False)
+    assert trained == []  # finished runs are not trained again
