@@ -17,7 +17,8 @@ steps), every other row with ``--preset bc_row`` (5,000 steps); run directories
 validation) is copied to ``checkpoints/table1/<row>-seed<S>.pt``, and the seed with
 the best validation success of each row to the row's shipped name
 ``checkpoints/<row>.pt``. DAgger checkpoints (a DAgger column for ``spf-s0.8`` and
-``rpf-s1``) are never trained here: a finished ``runs/dagger/<row>-seed<S>`` is copied
+``rpf-s1``) are never trained here: a finished run of the row's DAgger preset
+(``python recipes/dagger.py --preset dagger_long|dagger_rpf seed=S``) is copied
 to ``checkpoints/table1/dagger-<row>-seed<S>.pt``, or put one there yourself.
 
 Every checkpoint is scored on the same episodes: the ``test`` set (``bc_long``'s test
@@ -71,7 +72,7 @@ class RowSpec:
     overrides: tuple[str, ...] = ()
     paper: tuple[float | None, float | None] = (None, None)
     eval_sparsities: tuple[float, ...] = ()
-    dagger: bool = False
+    dagger_preset: str | None = None  # the DAgger preset (recipes/configs/) whose runs give the DAgger column
 
 
 #: Sparsities the random-sparsity model is evaluated at.
@@ -81,8 +82,10 @@ RANDOM_MODEL = "spf_random"
 ROWS = (
     RowSpec("spf-s0.4", "SPF sparsity 0.4", "spf", 0.4, "bc_row", ("model=spf", "sparsity=0.4"), (0.782, 0.683)),
     RowSpec("spf-s0.6", "SPF sparsity 0.6", "spf", 0.6, "bc_row", ("model=spf", "sparsity=0.6"), (0.803, 0.724)),
-    RowSpec("spf-s0.8", "SPF sparsity 0.8", "spf", 0.8, "bc_long", ("model=spf", "sparsity=0.8"), (0.819, 0.737), dagger=True),
-    RowSpec("rpf-s1", "SPF at sparsity 1 (RPF as SPF)", "rpf", 1.0, "bc_row", ("model=rpf", "sparsity=1"), dagger=True),
+    RowSpec("spf-s0.8", "SPF sparsity 0.8", "spf", 0.8, "bc_long", ("model=spf", "sparsity=0.8"), (0.819, 0.737),
+            dagger_preset="dagger_long"),
+    RowSpec("rpf-s1", "SPF at sparsity 1 (RPF as SPF)", "rpf", 1.0, "bc_row", ("model=rpf", "sparsity=1"),
+            dagger_preset="dagger_rpf"),
     RowSpec("rpf_original-s1", "RPF (original)", "rpf_original", 1.0, "bc_row", ("model=rpf_original", "sparsity=1"),
             (0.833, 0.752)),
     RowSpec("action_only-s0", "RPF action only", "action_only", 0.0, "bc_row", ("model=action_only",), (0.782, 0.648)),
@@ -140,7 +143,7 @@ def table_lines(rows: list[RowSpec], demo_length: int, image_size: int) -> list[
         else:
             lines.append(Line(name=row.name, label=row.label, sparsity=row.sparsity,
                               memory_bytes=memory(row.model, row.sparsity), checkpoint_stem=row.name, **common))
-        if row.dagger:
+        if row.dagger_preset:
             lines.append(Line(name=f"dagger-{row.name}", label=f"DAgger from {row.label}", sparsity=row.sparsity,
                               memory_bytes=memory(row.model, row.sparsity), checkpoint_stem=f"dagger-{row.name}",
                               dagger_of=row.name, row=row.name, model=row.model))
@@ -239,6 +242,15 @@ def copy_atomic(source: Path, target: Path) -> None:
     tmp.replace(target)
 
 
+def dagger_run_dir(row: RowSpec, seed: int) -> Path | None:
+    """The run directory of a row's DAgger run for ``seed`` (its preset's ``output_dir``), if the row has one."""
+    if row.dagger_preset is None:
+        return None
+    from spf_rl.train.dagger import DAggerConfig
+
+    return Path(load_config(DAggerConfig, "dagger", [f"seed={seed}"], preset=row.dagger_preset).output_dir)
+
+
 def train_missing(rows: list[RowSpec], seeds: list[int], overrides: list[str], checkpoints: Path, quick: bool) -> dict:
     """Train (or resume) every missing row x seed, copy per-seed and best checkpoints; returns ``{row: shipped}``."""
     from spf_rl.train.bc import train_bc
@@ -257,9 +269,9 @@ def train_missing(rows: list[RowSpec], seeds: list[int], overrides: list[str], c
                     copy_atomic(run_dir / "best.pt", target)
                 best = json.loads((run_dir / "results.json").read_text())["val_best"]
                 scores[seed] = (best["success"], best["spl"], -seed)
-            dagger_dir = Path("runs/dagger") / f"{row.name}-seed{seed}"
+            dagger_dir = dagger_run_dir(row, seed)
             dagger_target = seed_checkpoint(checkpoints, f"dagger-{row.name}", seed)
-            if row.dagger and (dagger_dir / "results.json").exists() and not dagger_target.exists():
+            if dagger_dir and (dagger_dir / "results.json").exists() and not dagger_target.exists():
                 copy_atomic(dagger_dir / "best.pt", dagger_target)
         if scores:
             seed = max(scores, key=scores.get)

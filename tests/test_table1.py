@@ -12,6 +12,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
 
 import table1  # noqa: E402
+from config_utils import load_config  # noqa: E402
 from table1_report import build_table, load_cached, write_cached  # noqa: E402
 
 ROWS = "spf-s0.8,action_only-s0,open_loop"
@@ -174,3 +175,17 @@ def test_training_copies_each_finished_seed_and_ships_the_best_by_validation(tmp
     trained.clear()
     table1.train_missing([table1.ROW_BY_NAME["spf-s0.8"]], [0, 1, 2], [], checkpoints, False)
     assert trained == []  # finished runs are not trained again
+
+
+def test_dagger_column_reads_the_dagger_presets_run_directories():
+    assert table1.dagger_run_dir(table1.ROW_BY_NAME["spf-s0.8"], 2) == Path("runs/dagger_long/spf-s0.8-seed2")
+    assert table1.dagger_run_dir(table1.ROW_BY_NAME["rpf-s1"], 0) == Path("runs/dagger_rpf/rpf-s1.0-seed0")
+    assert table1.dagger_run_dir(table1.ROW_BY_NAME["spf-s0.4"], 0) is None
+    # each DAgger preset starts from the BC run of its row's schedule
+    from spf_rl.train.dagger import DAggerConfig
+
+    for name in ("spf-s0.8", "rpf-s1"):
+        row = table1.ROW_BY_NAME[name]
+        dagger = load_config(DAggerConfig, "dagger", ["seed=1"], preset=row.dagger_preset)
+        bc = table1.row_config(row, 1, [], quick=False)
+        assert Path(dagger.checkpoint) == Path(bc.output_dir) / "best.pt" and dagger.bc_data == bc.data
