@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
 
 from spf_rl.modules import SPFConfig, make_spf_policy
 from spf_rl.train.collection import (
@@ -102,6 +103,23 @@ def test_local_collection_of_a_recurrent_policy_is_deterministic():
     assert int(first["length"].sum()) == 2 * 18  # every collected step is in one episode
     assert torch.equal(first["steps", "pixels"], second["steps", "pixels"])
     assert torch.equal(first["steps", "action"], second["steps", "action"])
+
+
+@pytest.mark.parametrize("num_collectors", [1, 2])
+def test_first_batch_is_a_function_of_the_seed_without_resets(num_collectors):
+    """Collectors reset their envs when built, before the seed: the first batch must still be seeded."""
+    forward = TensorDictModule(lambda p: torch.zeros(p.shape[0], dtype=torch.long), ["pixels"], ["action"])
+
+    def first_batch(seed: int):
+        config = CollectorConfig(num_agents=2, num_collectors=num_collectors)
+        collector = make_collector(forward, TINY_ENV, config, frames_per_batch=8 * num_collectors, seed=seed)
+        try:
+            return next(iter(collector))["episode_seed"].flatten()
+        finally:
+            collector.shutdown()
+
+    assert torch.equal(first_batch(3), first_batch(3))
+    assert not torch.equal(first_batch(3), first_batch(4))
 
 
 def test_parallel_env_mode_matches_spec():

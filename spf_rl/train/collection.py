@@ -214,7 +214,8 @@ def make_collector(
     Keyword Args:
         frames_per_batch: frames per yielded batch (over all collectors).
         total_frames: frames before the collector stops (``-1``: never).
-        seed: seed of the envs (each collector's envs get their own seed from it).
+        seed: seed of the envs (each collector's envs get their own seed from it); the
+            batches are a function of it (the envs are reset once seeded).
         reset_at_each_iter: reset every env at the start of each batch (batches
             then hold whole episodes from their start).
         device: where the policy runs (``None``: the CPU, as is).
@@ -292,6 +293,13 @@ def make_collector(
     else:
         collector = Collector(env_factory(), policy, auto_register_policy_transforms=False, **common)
     collector.set_seed(seed)
+    if config.backend != "ray":
+        # the collector reset its envs when it was built, before they had a seed: start the
+        # first batch from seeded episodes too (Ray's collectors have no reset; there, pass
+        # reset_at_each_iter=True for batches that are a function of the seed)
+        collector.reset()
+    elif not reset_at_each_iter:
+        logger.warning("collector.backend='ray' without reset_at_each_iter: the first batch starts from unseeded episodes")
     return collector
 
 
