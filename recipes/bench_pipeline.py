@@ -60,7 +60,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Sequence
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+# this checkout's recipes and packages (not an installed copy of another checkout's)
+sys.path[:0] = [str(Path(__file__).resolve().parent), str(Path(__file__).resolve().parents[1])]
 
 from bench_baseline import SIDES, baseline_worktree, interleaved_runs, resolve_commit, run_json_child  # noqa: E402
 
