@@ -21,12 +21,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
-import subprocess
 import sys
-import tempfile
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_baseline import baseline_worktree, interleaved_runs, resolve_commit, run_json_child  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 #: The commit before the SPF policy was composed of TensorDict modules.
@@ -100,9 +101,7 @@ def _run_child(tree: Path, args: argparse.Namespace) -> dict[str, float]:
         f"import json, sys; sys.path.insert(0, {str(ROOT / 'recipes')!r}); import bench_policy; "
         f"print(json.dumps(bench_policy.measure({args.episodes}, {args.steps}, {args.iterations}, {args.threads})))"
     )
-    environment = {**os.environ, "PYTHONPATH": str(tree)}
-    output = subprocess.run([sys.executable, "-c", code], env=environment, check=True, capture_output=True, text=True, cwd=tree)
-    return json.loads(output.stdout.strip().splitlines()[-1])
+    return run_json_child(["-c", code], tree)
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -116,17 +115,12 @@ def main(argv: list[str] | None = None) -> dict:
     args.episodes, args.steps, args.iterations = (4, 20, 2) if args.quick else (16, 50, 3)
     if args.repeats < 1 or args.threads < 1:
         parser.error("--repeats and --threads must be >= 1")
-    baseline = subprocess.run(["git", "rev-parse", args.baseline], cwd=ROOT, check=True, capture_output=True, text=True).stdout.strip()
-    runs: dict[str, list[dict[str, float]]] = {"old": [], "new": []}
-    with tempfile.TemporaryDirectory() as scratch:
-        worktree = Path(scratch) / "baseline"
-        subprocess.run(["git", "worktree", "add", "--detach", str(worktree), baseline], cwd=ROOT, check=True, capture_output=True)
-        try:
-            for _ in range(args.repeats):  # interleaved, so drifts in machine speed hit both
-                runs["old"].append(_run_child(worktree, args))
-                runs["new"].append(_run_child(ROOT, args))
-        finally:
-            subprocess.run(["git", "worktree", "remove", "--force", str(worktree)], cwd=ROOT, check=False, capture_output=True)
+    try:
+        baseline = resolve_commit(args.baseline, ROOT)
+    except ValueError as err:
+        parser.error(f"--baseline: {err}")
+    with baseline_worktree(ROOT, baseline) as worktree:  # a temporary worktree, removed afterwards
+        runs = interleaved_runs(lambda side, _: _run_child(worktree if side == "old" else ROOT, args), args.repeats)
     measures = {
         name: {
             "old": statistics.median(run[name] for run in runs["old"]),
