@@ -19,8 +19,9 @@ The policy then repeats the route ``--repeats`` times, each under its own actuat
 noise, greedily. With ``--homing`` it brings the route home instead: each repeat
 starts at the route's end, facing back along it, and must return to the route's
 start, its memory the env's homing demonstration of the route (frames rendered
-looking back along it, :mod:`envs.homing`); the shipped checkpoints are follow
-policies, pass a homing one with ``--checkpoint`` (``recipes/configs/bc_homing.yaml``).
+looking back along it, :mod:`envs.homing`), with ``homing-spf-s0.8`` (SPF 0.8 trained
+on homing episodes, ``python recipes/bc.py --preset bc_homing``) unless ``--checkpoint``
+says otherwise.
 Written to ``--out``:
 
 * ``teach.mp4`` (where ``imageio-ffmpeg`` is installed) or ``teach.gif``: the
@@ -55,6 +56,8 @@ logger = logging.getLogger("teach")
 
 #: The default policy: the best shipped SPF checkpoint (docs/results.md).
 DEFAULT_CHECKPOINT = "dagger-spf-s0.8"
+#: The default policy with --homing: SPF 0.8 trained on homing episodes (python recipes/bc.py --preset bc_homing).
+DEFAULT_HOMING_CHECKPOINT = "homing-spf-s0.8"
 #: The default house: the first house of the test split (never seen in training).
 DEFAULT_HOUSE = split_seeds("test")[0]
 #: Default and largest number of repeats (one agent each, stepped together).
@@ -102,7 +105,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--noise", default=DEFAULT_NOISE, help=f"actuation-noise preset: {', '.join(sorted(NOISE_PRESETS))} (default {DEFAULT_NOISE})")
     parser.add_argument("--seed", type=int, default=0, help="seed of the repeats' noise (default 0)")
     parser.add_argument("--repeats", type=int, default=DEFAULT_REPEATS, help=f"repeats, 1 to {MAX_REPEATS} (default {DEFAULT_REPEATS})")
-    parser.add_argument("--checkpoint", default=DEFAULT_CHECKPOINT, help=f"a shipped name or a .pt path (default {DEFAULT_CHECKPOINT})")
+    parser.add_argument(
+        "--checkpoint",
+        default=None,
+        help=f"a shipped name or a .pt path (default {DEFAULT_CHECKPOINT}; with --homing {DEFAULT_HOMING_CHECKPOINT})",
+    )
     parser.add_argument("--out", default="runs/teach", help="output directory (default runs/teach)")
     parser.add_argument("--device", default="auto", help="where the policy runs: auto (CUDA if available, else CPU), cpu, cuda, cuda:N")
     parser.add_argument("--homing", action="store_true", help="bring the route home: from its end back to its start")
@@ -128,6 +135,8 @@ def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace):
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         parser.error(f"--out must be a directory, but {out} is a file.")
+    if args.checkpoint is None:
+        args.checkpoint = DEFAULT_HOMING_CHECKPOINT if args.homing else DEFAULT_CHECKPOINT
     if args.actions is None and args.waypoints is None and not sys.stdin.isatty():
         parser.error("no route given and no terminal for the keyboard: give --actions or --waypoints.")
     try:

@@ -94,6 +94,7 @@ def test_homing_brings_the_route_back_to_its_start(tmp_path):
     content = teach.main(headless(tmp_path, "--actions", ROUTE, "--repeats", "2", "--seed", "3", "--no-video", "--homing"))
     route, home = content["route"], content["homing"]
     assert content["task"] == "homing" and content["max_steps"] == 50 and route["actions"] == ROUTE
+    assert content["checkpoint"] == teach.DEFAULT_HOMING_CHECKPOINT  # the homing policy brings routes home
     # the env's homing demonstration: from the route's end, facing back, to the route's start
     taught = demonstration_from_actions(0, (7.5, 1.5, 0.0), ROUTE)
     np.testing.assert_allclose(home["start"][:2], taught.poses[-1, :2])
