@@ -55,7 +55,7 @@ from envs.user_demos import RouteError, check_position, default_start, parse_act
 logger = logging.getLogger("teach")
 
 #: The default policy: the best shipped SPF checkpoint (docs/results.md).
-DEFAULT_CHECKPOINT = "dagger-spf-s0.8"
+DEFAULT_CHECKPOINT = "spf-s0.8"
 #: The default policy with --homing: SPF 0.8 trained on homing episodes (python recipes/bc.py --preset bc_homing).
 DEFAULT_HOMING_CHECKPOINT = "homing-spf-s0.8"
 #: The default house: the first house of the test split (never seen in training).

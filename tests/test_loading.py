@@ -15,6 +15,7 @@ from spf_rl.train.models import build_policy
 SHIPPED = [
     "action_only-s0",
     "dagger-spf-s0.8",
+    "homing-spf-s0.8",
     "ppo-spf-s0.8",
     "rpf-s1",
     "spf-s0.4",
