@@ -214,3 +214,11 @@ def test_learner_driven_rounds_train_fixed_steps_on_a_sliding_window(tmp_path, b
     assert [r["beta"] for r in history] == [None, 0.0, 0.0, 0.0]
     assert [r.get("gradient_steps") for r in history] == [None, 3, 3, 3]
     assert [r["training_episodes"] for r in history] == [0, 4, 8, 8]  # round 3 trains on rounds 2 and 3
+
+
+def test_resuming_without_the_round_data_names_what_is_missing(tmp_path):
+    from spf_rl.train.dagger import _training_sources
+
+    (tmp_path / "rounds" / "round-01").mkdir(parents=True)
+    with pytest.raises(FileNotFoundError, match="round-02 is missing"):
+        _training_sources(None, tmp_path, round_index=3, window=4)

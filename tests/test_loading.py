@@ -16,6 +16,7 @@ SHIPPED = [
     "action_only-s0",
     "dagger-spf-s0.8",
     "homing-spf-s0.8",
+    "lengths-spf-s0.8",
     "ppo-spf-s0.8",
     "rpf-s1",
     "spf-s0.4",

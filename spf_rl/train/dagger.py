@@ -387,8 +387,10 @@ def _training_sources(
 ) -> list[TensorDictBase]:
     """The episodes retraining sees after round ``round_index``: the BC data and the window of rounds."""
     first = 1 if window is None else max(1, round_index - window + 1)
-    rounds = [TensorDict.load_memmap(output / "rounds" / f"round-{r:02d}") for r in range(first, round_index + 1)]
-    return ([bc_episodes] if bc_episodes is not None else []) + rounds
+    paths = [output / "rounds" / f"round-{r:02d}" for r in range(first, round_index + 1)]
+    if missing := [path for path in paths if not path.is_dir()]:  # e.g. last.pt copied without the rounds
+        raise FileNotFoundError(f"DAgger round data {missing[0]} is missing, so {output} cannot resume; delete it to start over.")
+    return ([bc_episodes] if bc_episodes is not None else []) + [TensorDict.load_memmap(path) for path in paths]
 
 
 def _train_round(
