@@ -44,9 +44,15 @@ META = torch.device("meta")
 POLICY = SPFConfig(demo_length=5, sparsity=0.4, feature_dim=16, hidden_size=16, image_size=(32, 32))
 ENV = CollectionEnvConfig(num_houses=1, demo_length=5, max_steps=6, image_size=32, with_expert=False)
 ALLOWED = r"must be one of 'auto', 'cpu', 'cuda' or 'cuda:N'"
-#: bf16 autocast: step-mode and sequence-mode logits agree within this (bf16 keeps 8
-#: mantissa bits, ~0.4% per rounding; measured: 0.016 at |logit| ~2.7 on spf-s0.8).
-AMP_LOGIT_TOLERANCE = {"rtol": 2e-2, "atol": 2e-2}
+#: bf16 autocast: step-mode and sequence-mode logits agree within this fraction of the
+#: largest |logit| (bf16 keeps 8 mantissa bits, ~0.4% per rounding, and the error grows
+#: with the logits' scale; measured: 0.082 at max |logit| 5.5 on spf-s0.8).
+AMP_LOGIT_RELATIVE_TOLERANCE = 2e-2
+
+
+def amp_tolerance(reference: torch.Tensor) -> dict:
+    """``assert_close`` tolerances for bf16 logits against ``reference`` logits."""
+    return {"rtol": 0.0, "atol": AMP_LOGIT_RELATIVE_TOLERANCE * max(1.0, float(reference.abs().max()))}
 no_cuda = pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without CUDA")
 
 
@@ -207,6 +213,9 @@ def test_collectors_get_the_policy_on_the_device_and_the_envs_on_the_cpu(monkeyp
         def set_seed(self, seed):
             pass
 
+        def reset(self):
+            pass
+
     monkeypatch.setattr(collection, "Collector", RecordingCollector)
     policy = build_policy("spf", POLICY).to(META)
     for layout in (CollectorConfig(num_agents=2), CollectorConfig(num_agents=2, num_collectors=2)):
@@ -328,9 +337,9 @@ def test_step_and_sequence_logits_agree_under_bf16_autocast():
     step32, whole32 = step_and_sequence_logits(policy, sequence, amp=False)
     torch.testing.assert_close(step32, whole32, rtol=1e-5, atol=1e-5)
     step16, whole16 = step_and_sequence_logits(policy, sequence, amp=True)
-    torch.testing.assert_close(step16, whole16, **AMP_LOGIT_TOLERANCE)
+    torch.testing.assert_close(step16, whole16, **amp_tolerance(whole16))
     assert (step16 - step32).abs().max() > 0  # bf16 did change the numbers
-    torch.testing.assert_close(whole16, whole32, rtol=5e-2, atol=5e-2)
+    torch.testing.assert_close(whole16, whole32, **amp_tolerance(whole32))  # and bf16 stays near float32
 
 
 def test_amp_bc_loss_and_ppo_collection_on_the_cpu():
