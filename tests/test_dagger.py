@@ -217,8 +217,8 @@ def test_learner_driven_rounds_train_fixed_steps_on_a_sliding_window(tmp_path, b
 
 
 def test_resuming_without_the_round_data_names_what_is_missing(tmp_path):
-    from spf_rl.train.dagger import _training_sources
+    from spf_rl.train.dagger_rounds import training_sources
 
     (tmp_path / "rounds" / "round-01").mkdir(parents=True)
     with pytest.raises(FileNotFoundError, match="round-02 is missing"):
-        _training_sources(None, tmp_path, round_index=3, window=4)
+        training_sources(None, tmp_path, round_index=3, window=4)

@@ -33,8 +33,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
-import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -59,6 +57,7 @@ from spf_rl.train.collection import (
     collection_device,
     make_collector,
 )
+from spf_rl.train.dagger_rounds import store_round, training_sources
 from spf_rl.train.evaluation import EvalConfig, evaluate_policy, with_episode_sizes
 from spf_rl.train.models import build_policy
 from spf_rl.viz import plot_if_available, pyplot
@@ -201,15 +200,6 @@ class DAggerConfig:
         return self.beta0 * self.beta_decay ** (round_index - 1)
 
 
-def _store_round(directory: Path, episodes: TensorDict) -> None:
-    """Write one round's episodes as a memory-mapped TensorDict, atomically (temp dir + rename)."""
-    tmp = directory.with_name(f".{directory.name}.tmp")
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    episodes.memmap(tmp)
-    os.replace(tmp, directory)
-
-
 def behaviour_statistics(episodes: TensorDictBase, max_steps: int) -> dict:
     """Counts and success rate of a round's behaviour episodes.
 
@@ -322,9 +312,9 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
             logger.info("round %d: reusing the episodes stored in %s", round_index, round_dir)
         else:
             episodes = _collect_round(policy, config, beta, round_seed)
-            _store_round(round_dir, episodes)
+            store_round(round_dir, episodes)
         collected = {"beta": beta, **behaviour_statistics(episodes, env.max_steps)}
-        sources = _training_sources(bc_episodes, output, round_index, config.window_rounds)
+        sources = training_sources(bc_episodes, output, round_index, config.window_rounds)
         collected["training_episodes"] = sum(source.shape[0] for source in sources)
         collected["train_loss"], collected["gradient_steps"] = _train_round(policy, optimizer, sources, config, round_index)
         history.append(score(round_index, collected))
@@ -380,17 +370,6 @@ def _collect_round(policy: TensorDictModuleBase, config: DAggerConfig, beta: flo
         bar.close()
     policy.train()
     return torch.cat(episodes, 0)[: config.episodes_per_round]
-
-
-def _training_sources(
-    bc_episodes: TensorDictBase | None, output: Path, round_index: int, window: int | None
-) -> list[TensorDictBase]:
-    """The episodes retraining sees after round ``round_index``: the BC data and the window of rounds."""
-    first = 1 if window is None else max(1, round_index - window + 1)
-    paths = [output / "rounds" / f"round-{r:02d}" for r in range(first, round_index + 1)]
-    if missing := [path for path in paths if not path.is_dir()]:  # e.g. last.pt copied without the rounds
-        raise FileNotFoundError(f"DAgger round data {missing[0]} is missing, so {output} cannot resume; delete it to start over.")
-    return ([bc_episodes] if bc_episodes is not None else []) + [TensorDict.load_memmap(path) for path in paths]
 
 
 def _train_round(
