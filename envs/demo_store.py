@@ -36,6 +36,8 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 
 from envs.demos import Demonstration, default_min_route_length_m, sample_demonstration
+from envs.episode_numbering import episode_seed
+from envs.follow import episode_for_seed
 from envs.geometry import DistanceField
 from envs.homing import FOLLOW, check_task, task_demonstration
 from envs.house_grid import check_grid_size, default_grid_size_cells
@@ -74,6 +76,11 @@ class DemoStoreConfig:
             looking back along the route; envs of the same task only may draw from it.
         grid_size_cells: the houses' labmaze grid, cells (``None``: the env's default
             for ``demo_length``, :func:`~envs.house_grid.default_grid_size_cells`).
+        episodes_seed: ``None`` (a pool of demonstrations, drawn uniformly by the env)
+            or an env seed: then demonstration ``k`` is the one episode ``k`` of an env
+            seeded with it plays (:func:`~envs.follow.episode_for_seed`), and an env
+            seeded with it plays demonstration ``k`` in episode ``k``: the same
+            episodes as without the store, frames rendered once (evaluation sets).
     """
 
     num_demos: int = 1000
@@ -85,6 +92,7 @@ class DemoStoreConfig:
     seed: int = 0
     task: str = FOLLOW
     grid_size_cells: int | None = None
+    episodes_seed: int | None = None
 
     def __post_init__(self) -> None:
         check_task(self.task, "DemoStoreConfig.task")
@@ -96,6 +104,10 @@ class DemoStoreConfig:
                 raise ValueError(f"{name} must be a positive int, got {value!r}.")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"seed must be a non-negative int, got {self.seed!r}.")
+        if self.episodes_seed is not None and (
+            isinstance(self.episodes_seed, bool) or not isinstance(self.episodes_seed, int) or self.episodes_seed < 0
+        ):
+            raise ValueError(f"episodes_seed must be None or a non-negative int (an env seed), got {self.episodes_seed!r}.")
         split_seeds(self.split, self.num_houses)  # validates split and num_houses
         if self.min_route_length_m is None:
             self.min_route_length_m = default_min_route_length_m(self.demo_length)
@@ -113,7 +125,11 @@ class DemoStoreConfig:
 
 
 def sample_store_demonstration(config: DemoStoreConfig, index: int) -> Demonstration:
-    """Demonstration ``index`` of a store (a pure function of ``(config.seed, index)``), for its task."""
+    """Demonstration ``index`` of a store, for its task: a pure function of ``(config.seed, index)``,
+    or of the seed of episode ``index`` under ``config.episodes_seed`` when that is set."""
+    if config.episodes_seed is not None:
+        seed = episode_seed(int(np.random.SeedSequence(config.episodes_seed).entropy), index)
+        return episode_for_seed(seed, config.house_seeds, config.demo_length, config.min_route_length_m, config.task)[1]
     rng = np.random.default_rng([config.seed, index])
     house = build_house(int(rng.choice(config.house_seeds)))
     route = sample_demonstration(house, rng, config.demo_length, min_route_length_m=config.min_route_length_m)
@@ -351,6 +367,11 @@ def check_store_matches(
         mismatches.append(
             f"success_radius_m={success_radius_m} needs routes longer than {needed:.2f} m "
             f"(store: min_route_length_m={config.min_route_length_m:.2f})"
+        )
+    elif config.episodes_seed is not None and config.min_route_length_m > needed + 1e-9:
+        mismatches.append(
+            f"success_radius_m={success_radius_m} draws routes longer than {needed:.2f} m, and an episode store "
+            f"must draw the env's own episodes (store: min_route_length_m={config.min_route_length_m:.2f})"
         )
     if mismatches:
         raise ValueError(f"demo_store {store.root} does not match the env: {', '.join(mismatches)}.")

@@ -254,7 +254,7 @@ class PathFollowEnv(EnvBase):
     # ---------------------------------------------------------------- seeding
     def _set_seed(self, seed: int | None) -> None:
         # agent i's k-th episode is a fixed episode number, whatever the other agents do
-        self._numbering.reset(seed)
+        self._numbering.reset(self._source.env_seed(seed))
         self._playlist.restart()
 
     # ------------------------------------------------------------- rendering
@@ -304,7 +304,7 @@ class PathFollowEnv(EnvBase):
 
     def _start_episode(self, index: int, demo_frames: torch.Tensor, demo_actions: torch.Tensor, pixels: torch.Tensor) -> None:
         self._episode_index[index], episode_seed = self._numbering.next(index)
-        house, demo, self._demo_id[index] = self._source.episode(index, episode_seed)
+        house, demo, self._demo_id[index] = self._source.episode(index, episode_seed, self._episode_index[index])
         self._houses[index], self._house_seed[index] = house, house.seed
         self._demos[index] = demo
         self._experts[index] = GeodesicExpert(

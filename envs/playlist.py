@@ -163,16 +163,39 @@ class EpisodeSource:
         self.demo_store = demo_store
         self._field_cache: OrderedDict[int, DistanceField] = OrderedDict()
 
-    def episode(self, index: int, episode_seed: int) -> tuple[House, Demonstration, int]:
-        """``(house, demonstration, demo_id)`` of agent ``index``'s next episode (``demo_id`` 0 without a store)."""
+    def episode(self, index: int, episode_seed: int, number: int = 0) -> tuple[House, Demonstration, int]:
+        """``(house, demonstration, demo_id)`` of agent ``index``'s next episode, episode
+        ``number`` (``demo_id`` 0 without a store). An episode store
+        (``episodes_seed`` set) plays demonstration ``number``, wrapping past its end."""
         if (given := self.playlist.next(index)) is not None:
             return build_house(given.house_seed), given, 0
         if self.demo_store is not None:
-            demo_id = int(np.random.default_rng(episode_seed).integers(len(self.demo_store)))
+            if self.demo_store.config.episodes_seed is not None:
+                demo_id = int(number) % len(self.demo_store)
+            else:
+                demo_id = int(np.random.default_rng(episode_seed).integers(len(self.demo_store)))
             demo = self.stored_demonstration(demo_id)
             return build_house(demo.house_seed), demo, demo_id
         house, demo = episode_for_seed(episode_seed, self.house_seeds, self.demo_length, self.min_route_length_m, self.task)
         return house, demo, 0
+
+    def env_seed(self, seed: int | None) -> int | None:
+        """The seed the env's episode numbering takes for ``set_seed(seed)``: an episode
+        store's ``episodes_seed`` when ``seed`` is ``None``; the seed itself otherwise.
+
+        Raises:
+            ValueError: ``seed`` differs from the episode store's ``episodes_seed`` (its
+                demonstrations would not be the episodes' own).
+        """
+        store_seed = None if self.demo_store is None else self.demo_store.config.episodes_seed
+        if store_seed is None or seed is None:
+            return store_seed if seed is None else seed
+        if int(seed) != store_seed:
+            raise ValueError(
+                f"seed must be {store_seed} for the episode store {self.demo_store.root} (it holds the "
+                f"demonstrations of that env seed's episodes), got {seed}."
+            )
+        return seed
 
     def stored_demonstration(self, demo_id: int) -> Demonstration:
         """Demonstration ``demo_id`` of the store, its distance field cached (LRU)."""

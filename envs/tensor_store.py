@@ -35,6 +35,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from filelock import FileLock
 from tensordict import TensorDict, TensorDictBase
 from tqdm.auto import tqdm
 
@@ -44,6 +45,8 @@ logger = logging.getLogger(__name__)
 
 #: Suffix of the directory a store is built in before it is renamed into place.
 PARTIAL_SUFFIX = ".partial"
+#: Suffix of the lock file that lets one process at a time build a store directory.
+LOCK_SUFFIX = ".lock"
 _DATA_DIR = "data"
 
 
@@ -220,11 +223,33 @@ class TensorStore:
             num_workers: ``spawn`` worker processes producing chunks (1: in this process).
             progress: show a progress bar.
 
+        Processes building the same ``root`` at once take turns (a lock file
+        ``<root>.lock``, removed once the store is in place): the first builds, the
+        others open what it wrote.
+
         Raises:
             StoreError: ``root`` holds a store of another configuration, or is a
                 non-empty directory that is not a store.
         """
         root = Path(root)
+        root.parent.mkdir(parents=True, exist_ok=True)
+        lock = root.with_name(root.name + LOCK_SUFFIX)
+        with FileLock(str(lock)):
+            store = cls._create_locked(root, config, make_chunk, chunk_rows, num_workers, progress)
+            # the store is in place: whoever waits on this lock, or takes a new one, opens it
+            lock.unlink(missing_ok=True)
+        return store
+
+    @classmethod
+    def _create_locked(
+        cls,
+        root: Path,
+        config: Any,
+        make_chunk: Callable[[Any, int], TensorDict],
+        chunk_rows: int,
+        num_workers: int,
+        progress: bool,
+    ):
         config_dict = cls.config_to_dict(config)
         if (root / "meta.json").exists():
             store = cls(root, verify=False)

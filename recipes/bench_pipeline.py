@@ -13,6 +13,9 @@ and episode counts (:class:`Sizes`). Measures:
 * ``dagger_collection`` (episodes/s): one DAgger round's collection with the learner
   driving (``spf_rl.train.dagger._collect_round``, ``beta = 0``);
 * ``evaluation`` (episodes/s): ``evaluate_policy`` of the learner;
+* ``evaluation_repeat`` (episodes/s): a second evaluation of the same episodes, as
+  every validation of a training run after the first (the new tree reads the episode
+  store the first one kept under ``store_root``);
 * ``bc_training`` (labelled steps/s): expert-labelled (``mask``-ed) steps through
   ``bc_loss`` + backward + Adam step per second, at each tree's default batch size;
 * ``collection`` (frames/s): the learner in ``make_collector`` with the expert's
@@ -84,12 +87,13 @@ UNITS = {
     "dataset_generation": "episodes/s",
     "dagger_collection": "episodes/s",
     "evaluation": "episodes/s",
+    "evaluation_repeat": "episodes/s",
     "bc_training": "labelled steps/s",
     "collection": "frames/s",
 }
 MEASURES = tuple(UNITS)
 #: The measures whose new/old ratio goes to ``speedups``.
-SPEEDUPS = ("dataset_generation", "dagger_collection", "evaluation", "bc_training")
+SPEEDUPS = ("dataset_generation", "dagger_collection", "evaluation", "evaluation_repeat", "bc_training")
 #: The issue's targets: (minimum, what is compared).
 TARGETS = {
     "dataset_generation": (4.0, "speed-up new/old"),

@@ -151,21 +151,23 @@ def measure_dagger_collection(sizes: Sizes, scratch: Path, branches: dict) -> di
     }
 
 
-def measure_evaluation(sizes: Sizes, scratch: Path, branches: dict) -> dict:
-    """Episodes/s of ``evaluate_policy`` (the learner, greedy) on the test split."""
-    from spf_rl.train.evaluation import EvalConfig, evaluate_policy
+def _evaluation_config(sizes: Sizes, optional: dict, applied: list[str]):
+    from spf_rl.train.evaluation import EvalConfig
 
-    applied: list[str] = []
     values = dict(
         split="test", num_episodes=sizes.eval_episodes, noise="paper", seed=sizes.seed, num_agents=sizes.eval_agents,
         num_houses=sizes.num_houses, **_episode_sizes(sizes),
     )
-    config = configured(EvalConfig(), values, dict.fromkeys(WORKER_FIELDS, sizes.workers), applied)
+    return configured(EvalConfig(), values, {**dict.fromkeys(WORKER_FIELDS, sizes.workers), **optional}, applied)
+
+
+def _timed_evaluation(config, sizes: Sizes) -> dict:
+    from spf_rl.train.evaluation import evaluate_policy
+
     policy = build_learner(sizes)
     start = time.perf_counter()
     summary, records = evaluate_policy(policy, config)
     seconds = time.perf_counter() - start
-    branches["evaluation"] = applied
     return {
         "value": len(records) / seconds,
         "episodes": len(records),
@@ -173,6 +175,29 @@ def measure_evaluation(sizes: Sizes, scratch: Path, branches: dict) -> dict:
         "mean_steps": sum(record["steps"] for record in records) / len(records),
         "success": summary["success"],
     }
+
+
+def measure_evaluation(sizes: Sizes, scratch: Path, branches: dict) -> dict:
+    """Episodes/s of ``evaluate_policy`` (the learner, greedy) on the test split, as the
+    tree's ``EvalConfig()`` runs it (in a tree with episode stores: a temporary one, built
+    and timed with the evaluation)."""
+    applied: list[str] = []
+    config = _evaluation_config(sizes, {}, applied)
+    branches["evaluation"] = applied
+    return _timed_evaluation(config, sizes)
+
+
+def measure_evaluation_repeat(sizes: Sizes, scratch: Path, branches: dict) -> dict:
+    """Episodes/s of a second ``evaluate_policy`` of the same episodes, as every validation
+    of a training run after the first: in a tree whose ``EvalConfig`` has ``store_root``,
+    from the episode store the first (untimed) evaluation kept in the scratch directory."""
+    applied: list[str] = []
+    root = scratch / "episode_stores"
+    shutil.rmtree(root, ignore_errors=True)
+    config = _evaluation_config(sizes, {"store_root": str(root)}, applied)
+    branches["evaluation_repeat"] = applied
+    _timed_evaluation(config, sizes)  # the first evaluation (builds the store where there is one)
+    return _timed_evaluation(config, sizes)
 
 
 def measure_bc_training(sizes: Sizes, scratch: Path, branches: dict) -> dict:
@@ -287,6 +312,7 @@ MEASURE_FUNCTIONS: dict[str, Callable[[Sizes, Path, dict], dict]] = {
     "dataset_generation": measure_dataset_generation,
     "dagger_collection": measure_dagger_collection,
     "evaluation": measure_evaluation,
+    "evaluation_repeat": measure_evaluation_repeat,
     "bc_training": measure_bc_training,
     "collection": measure_collection,
 }

@@ -64,6 +64,7 @@ def evaluate_path(path: str, args: argparse.Namespace) -> dict:
         max_steps=args.max_steps,
         image_size=image_size,
         render=path != "open_loop",
+        store_root=args.store_root,
     )
     summary, records = evaluate_policy(policy, eval_config, progress=not args.no_progress)
     return {
@@ -79,6 +80,8 @@ def evaluate_path(path: str, args: argparse.Namespace) -> dict:
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
+    from spf_rl.train.evaluation import EPISODE_STORE_ROOT
+
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("paths", nargs="+", help="checkpoint files, directories of *.pt, or 'open_loop'")
     parser.add_argument("--split", default="test", choices=SPLITS, help="house split (default: test)")
@@ -97,6 +100,11 @@ def main(argv: list[str] | None = None) -> list[dict]:
         "--device", default=DEFAULT_DEVICE, help=f"where the policy runs: {DEVICE_CHOICES} (default: %(default)s, CUDA if available)"
     )
     parser.add_argument("--out", default="results/eval", help="output directory for the JSON files")
+    parser.add_argument(
+        "--store-root",
+        default=EPISODE_STORE_ROOT,
+        help="directory keeping the episode stores (demonstrations rendered once) for later evaluations (default: %(default)s)",
+    )
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")

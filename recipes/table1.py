@@ -311,9 +311,10 @@ def cache_entry(line: Line, seed: int | None, set_name: str, config, checkpoint:
     """``(path, meta)`` of the cached records of one line x seed x set: the cache is used only when
     ``meta`` (evaluation config, checkpoint file and its SHA-256, env version) is unchanged."""
     from envs.version import ENV_VERSION
+    from spf_rl.train.evaluation import episode_identity
 
     meta = {
-        "line": line.name, "seed": seed, "set": set_name, "eval": dataclasses.asdict(config),
+        "line": line.name, "seed": seed, "set": set_name, "eval": episode_identity(config),
         "checkpoint": None if checkpoint is None else str(checkpoint),
         "checkpoint_sha256": None if checkpoint is None else file_sha256(checkpoint),
         "env_version": ENV_VERSION,

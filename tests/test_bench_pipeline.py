@@ -89,7 +89,9 @@ def test_repeats_are_interleaved_and_each_figure_is_the_median():
     evaluation = summary["measures"]["evaluation"]
     assert (evaluation["old"], evaluation["new"], evaluation["unit"]) == (2.0, 20.0, "episodes/s")
     assert evaluation["old_repeats"] == [3.0, 1.0, 2.0] and evaluation["new_repeats"] == [10.0, 30.0, 20.0]
-    assert summary["speedups"] == {"dataset_generation": None, "dagger_collection": None, "evaluation": 10.0, "bc_training": None}
+    assert summary["speedups"] == {
+        "dataset_generation": None, "dagger_collection": None, "evaluation": 10.0, "evaluation_repeat": None, "bc_training": None
+    }
     assert summary["targets"]["evaluation"]["holds"] is True
     assert summary["targets"]["bc_training"] == {"target": 1.5, "of": "speed-up new/old", "measured": None, "holds": None}
     assert summary["raw_fps"] is None and summary["store_lookup_ratio_to_raw"] is None
@@ -101,8 +103,10 @@ def _no_worktree(repo, sha, path=None):
 
 
 def test_json_layout_and_targets_from_canned_worker_outputs(tmp_path, monkeypatch):
-    old = {"dataset_generation": 10.0, "dagger_collection": 4.0, "evaluation": 10.0, "bc_training": 100.0, "collection": 500.0}
-    new = {"dataset_generation": 50.0, "dagger_collection": 8.0, "evaluation": 30.0, "bc_training": 150.0, "collection": 900.0}
+    old = {"dataset_generation": 10.0, "dagger_collection": 4.0, "evaluation": 10.0, "evaluation_repeat": 10.0,
+           "bc_training": 100.0, "collection": 500.0}
+    new = {"dataset_generation": 50.0, "dagger_collection": 8.0, "evaluation": 30.0, "evaluation_repeat": 40.0,
+           "bc_training": 150.0, "collection": 900.0}
     canned = {
         "old": [_output(old, raw_fps=2000.0) for _ in range(3)],
         "new": [_output(new, raw_fps=raw) for raw in (1000.0, 900.0, 1100.0)],
@@ -125,8 +129,9 @@ def test_json_layout_and_targets_from_canned_worker_outputs(tmp_path, monkeypatc
     assert written["baseline_commit"] == _git(ROOT, "rev-parse", "HEAD") and written["quick"] is True
     for key in ("raw_fps", "measures", "speedups", "store_lookup_ratio_to_raw", "targets", "setup", "machine", "runs"):
         assert key in written
-    assert set(written["speedups"]) == {"dataset_generation", "dagger_collection", "evaluation", "bc_training"}
+    assert set(written["speedups"]) == {"dataset_generation", "dagger_collection", "evaluation", "evaluation_repeat", "bc_training"}
     assert written["speedups"]["dataset_generation"] == 5.0 and written["speedups"]["dagger_collection"] == 2.0
+    assert written["speedups"]["evaluation_repeat"] == 4.0
     bc = written["measures"]["bc_training"]
     assert (bc["old"], bc["new"], bc["unit"], bc["new_over_old"]) == (100.0, 150.0, "labelled steps/s", 1.5)
     assert written["raw_fps"] == 1000.0  # the median of the new tree's raw loop

@@ -49,7 +49,7 @@ from envs.transforms import philox_uniforms
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.data import DatasetConfig, EpisodeDataset
 from spf_rl.device import DEFAULT_DEVICE, check_device, exact_float32, module_device
-from spf_rl.train.bc import BCConfig, OptimConfig, atomic_json, bc_loss
+from spf_rl.train.bc import BCConfig, OptimConfig, atomic_json, bc_loss, default_test_config, default_val_config
 from spf_rl.train.collection import (
     CollectionEnvConfig,
     CollectorConfig,
@@ -178,8 +178,8 @@ class DAggerConfig:
     env: CollectionEnvConfig = field(default_factory=CollectionEnvConfig)
     collector: CollectorConfig = field(default_factory=CollectorConfig)
     optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=3e-4, cosine_schedule=False))
-    val: EvalConfig = field(default_factory=lambda: EvalConfig(split="val", num_episodes=300, seed=1))
-    test: EvalConfig = field(default_factory=lambda: EvalConfig(split="test", num_episodes=500, seed=2))
+    val: EvalConfig = field(default_factory=default_val_config)
+    test: EvalConfig = field(default_factory=default_test_config)
 
     def __post_init__(self) -> None:
         check_device(self.device)

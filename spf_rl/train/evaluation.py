@@ -4,6 +4,14 @@ Every policy evaluated with the same ``seed``, split and number of episodes
 plays the same episodes (the env gives each agent its own episode stream), so
 scores are comparable across models and reproducible.
 
+By default the episodes' demonstrations are rendered once into an episode store
+(:class:`~envs.demo_store.DemoStore` with ``episodes_seed``): the env then emits
+``demo_id`` instead of 30 frames at every step, and the frames are looked up for
+the policy where it reads them (for the SPF policies, only where ``is_init``). The
+episodes, and so the scores, are the same as without the store. ``store_root``
+keeps the stores on disk, by configuration, so that repeated evaluations (every
+validation of a run, every checkpoint of Table 1) render them once.
+
 The env and its rendering run on the CPU; the policy runs where its weights are
 (move it with ``policy.to(device)`` first): each step's inputs go to that device and
 the logits, action and next recurrent state come back
@@ -13,13 +21,18 @@ trained with mixed precision.
 from __future__ import annotations
 
 import dataclasses
+import tempfile
+from contextlib import contextmanager
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import Compose, InitTracker, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from envs.demo_store import DemoStore, DemoStoreConfig
 from envs.nav_env import PathFollowEnv
 from envs.scripted import run_episodes
 from envs.checks import check_episode_source, check_positive_ints
@@ -46,6 +59,12 @@ class EvalConfig:
         render: render frames (policies that ignore the camera, like open-loop
             replay, can skip it; the episodes are the same).
         task: ``"follow"`` or ``"homing"`` (:mod:`envs.homing`).
+        episode_store: play the episodes from an episode store (demonstrations
+            rendered once, frames looked up on the policy side); the same episodes
+            and scores as without it. Used only where ``render`` is true.
+        store_root: directory keeping episode stores by configuration, reused by
+            later evaluations (``EPISODE_STORE_ROOT`` in the training recipes);
+            ``None``: a temporary store, deleted after the evaluation.
     """
 
     split: str = "test"
@@ -59,11 +78,23 @@ class EvalConfig:
     num_houses: int | None = None
     render: bool = True
     task: str = FOLLOW
+    episode_store: bool = True
+    store_root: str | None = None
 
     def __post_init__(self) -> None:
         check_task(self.task, "task")
         check_episode_source(self.split, self.num_houses, self.noise)
         check_positive_ints(self, ("num_episodes", "num_agents", "demo_length", "max_steps", "image_size"))
+
+
+#: Fields of :class:`EvalConfig` that choose how episodes are played, never which.
+HOW_FIELDS = ("episode_store", "store_root")
+
+
+def episode_identity(config: EvalConfig) -> dict:
+    """The fields of ``config`` that fix its episodes and scores (all but :data:`HOW_FIELDS`):
+    the key of cached per-episode records."""
+    return {key: value for key, value in dataclasses.asdict(config).items() if key not in HOW_FIELDS}
 
 
 def with_episode_sizes(config: EvalConfig, sizes) -> EvalConfig:
@@ -108,8 +139,18 @@ def greedy_on_device(policy: TensorDictModuleBase):
     return act_on_device(greedy(policy), device, in_keys=policy.in_keys, out_keys=out_keys)
 
 
-def make_eval_env(config: EvalConfig, policy: TensorDictModuleBase | None = None) -> TransformedEnv:
-    """Batched env with noise, ``is_init`` and the policy's recurrent-state primer."""
+#: Where the training recipes keep their evaluation episode stores.
+EPISODE_STORE_ROOT = "data/episodes"
+
+
+def make_eval_env(
+    config: EvalConfig, policy: TensorDictModuleBase | None = None, demo_store: DemoStore | None = None
+) -> TransformedEnv:
+    """Batched env with noise, ``is_init`` and the policy's recurrent-state primer.
+
+    With ``demo_store`` (an episode store of ``config``, :func:`episode_store`) it
+    emits ``demo_id`` instead of the demonstration frames.
+    """
     transforms = [ActuationNoise(config.noise), InitTracker()]
     if policy is not None and hasattr(policy, "make_tensordict_primer"):
         transforms.append(policy.make_tensordict_primer())
@@ -123,11 +164,70 @@ def make_eval_env(config: EvalConfig, policy: TensorDictModuleBase | None = None
             image_size=config.image_size,
             render=config.render,
             task=config.task,
+            demo_store=demo_store,
+            emit_demo_frames=demo_store is None,
         ),
         Compose(*transforms),
     )
     env.set_seed(config.seed)
     return env
+
+
+def episode_store_config(config: EvalConfig) -> DemoStoreConfig:
+    """The episode store of ``config``: the demonstrations of its episodes ``0 .. E - 1``."""
+    return DemoStoreConfig(
+        num_demos=config.num_episodes,
+        split=config.split,
+        num_houses=config.num_houses,
+        demo_length=config.demo_length,
+        image_size=config.image_size,
+        task=config.task,
+        episodes_seed=config.seed,
+    )
+
+
+def episode_store_name(config: EvalConfig) -> str:
+    """The directory name of ``config``'s episode store under ``store_root``."""
+    houses = "" if config.num_houses is None else f"-{config.num_houses}houses"
+    return (
+        f"{config.split}{houses}-{config.task}-n{config.demo_length}-{config.image_size}px"
+        f"-seed{config.seed}-{config.num_episodes}ep"
+    )
+
+
+@contextmanager
+def episode_store(config: EvalConfig):
+    """Yield the episode store of ``config`` (built under ``store_root``, or in a
+    temporary directory removed on exit), or ``None`` where it is not used
+    (``episode_store=False``, or ``render=False``: nothing to look up)."""
+    if not (config.episode_store and config.render):
+        yield None
+        return
+    if config.store_root is not None:
+        root = Path(config.store_root) / episode_store_name(config)
+        yield DemoStore.build(root, episode_store_config(config), progress=False)
+        return
+    with tempfile.TemporaryDirectory(prefix="spf-episodes-") as directory:
+        yield DemoStore.build(Path(directory) / "store", episode_store_config(config), progress=False)
+
+
+def with_store_lookup(act, policy: TensorDictModuleBase, store: DemoStore | None):
+    """``act`` (a callable running ``policy``) fed ``demo_frames`` looked up from
+    ``demo_id`` in ``store`` (on the CPU, before it runs), the frames dropped after it.
+
+    Only where ``is_init`` for policies that carry their memory in a recurrent state
+    (a ``memory_key`` among their ``in_keys``); in every row for other policies
+    reading ``demo_frames``; not at all for policies that do not read them.
+    """
+    if store is None or "demo_frames" not in policy.in_keys:
+        return act
+    carries_memory = getattr(policy, "memory_key", None) in policy.in_keys
+    lookup = store.lookup_module(only_where=getattr(policy, "is_init_key", "is_init") if carries_memory else None)
+
+    def act_with_frames(tensordict: TensorDictBase) -> TensorDictBase:
+        return act(lookup(tensordict)).exclude("demo_frames", inplace=True)
+
+    return act_with_frames
 
 
 def evaluate_policy(policy: TensorDictModuleBase, config: EvalConfig, progress: bool = False) -> tuple[dict, list[dict]]:
@@ -142,17 +242,19 @@ def evaluate_policy(policy: TensorDictModuleBase, config: EvalConfig, progress: 
     Returns:
         (summary with success, SPL, 95% CIs, mean goal distance; per-episode records).
     """
-    env = make_eval_env(config, policy)
-
-    act = greedy_on_device(policy)
     was_training = policy.training
     policy.eval()
     try:
-        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-            records = run_episodes(env, act, config.num_episodes, progress=progress)
+        with episode_store(config) as store:
+            env = make_eval_env(config, policy, store)
+            act = with_store_lookup(greedy_on_device(policy), policy, store)
+            try:
+                with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+                    records = run_episodes(env, act, config.num_episodes, progress=progress)
+            finally:
+                env.close()
     finally:
         policy.train(was_training)
-        env.close()
     summary = summarize(records)
     summary["mean_goal_distance_m"] = float(sum(r["goal_distance"] for r in records) / len(records))
     return summary, records

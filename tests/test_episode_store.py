@@ -1,0 +1,170 @@
+"""Episode stores: the demonstrations of a seed's episodes rendered once, played as the same episodes.
+
+Evaluation (:func:`spf_rl.train.evaluation.evaluate_policy`) plays its episodes
+from such a store by default; every record must be what the rendering path gives.
+"""
+from __future__ import annotations
+
+import dataclasses
+import threading
+
+import pytest
+import torch
+from tensordict.nn import TensorDictModule
+from torchrl.envs import Compose, InitTracker, TransformedEnv
+
+import envs.demo_store as demo_store_module
+from envs.demo_store import DemoStore, DemoStoreConfig
+from envs.nav_env import PathFollowEnv
+from envs.scripted import ExpertPolicy, run_episodes
+from envs.transforms import ActuationNoise
+from spf_rl.modules.policy import SPFConfig
+from spf_rl.train.evaluation import EvalConfig, episode_store_name, evaluate_policy
+from spf_rl.train.models import build_policy
+
+SIZES = dict(demo_length=6, image_size=32)
+EPISODES, AGENTS, SEED = 7, 3, 11
+
+
+def _store(root, episodes=EPISODES, seed=SEED, **kwargs) -> DemoStore:
+    config = DemoStoreConfig(num_demos=episodes, split="val", num_houses=2, episodes_seed=seed, **SIZES, **kwargs)
+    return DemoStore.build(root, config, progress=False)
+
+
+def _env(store=None, seed=SEED):
+    env = TransformedEnv(
+        PathFollowEnv("val", num_houses=2, num_agents=AGENTS, with_expert=True, demo_store=store, emit_demo_frames=store is None, **SIZES),
+        Compose(ActuationNoise("paper"), InitTracker()),
+    )
+    env.set_seed(seed)
+    return env
+
+
+def test_episode_store_plays_the_episodes_of_its_seed(tmp_path):
+    """Same episodes, noise and outcomes as the env that samples and renders each demonstration."""
+    store = _store(tmp_path / "episodes")
+    rendered = run_episodes(_env(), ExpertPolicy(), EPISODES)
+    stored = run_episodes(_env(store), ExpertPolicy(), EPISODES)
+    assert stored == rendered
+    assert len({r["episode_seed"] for r in stored}) == EPISODES
+
+
+def test_episode_store_frames_are_the_rendered_demonstrations(tmp_path):
+    store = _store(tmp_path / "episodes")
+    env = _env()
+    first = env.reset()
+    for agent in range(AGENTS):
+        number = int(first["episode_index"][agent])
+        assert torch.equal(store.frames[number], first["demo_frames"][agent])
+        assert torch.equal(store.actions[number], first["demo_actions"][agent])
+
+
+def test_env_refuses_a_seed_other_than_the_episode_store_s(tmp_path):
+    store = _store(tmp_path / "episodes")
+    with pytest.raises(ValueError, match=f"seed must be {SEED} for the episode store"):
+        _env(store, seed=SEED + 1)
+
+
+def test_unseeded_env_plays_the_episode_store_s_seed(tmp_path):
+    store = _store(tmp_path / "episodes")
+    env = PathFollowEnv("val", num_houses=2, num_agents=AGENTS, demo_store=store, **SIZES)
+    seeded = PathFollowEnv("val", num_houses=2, num_agents=AGENTS, **SIZES)
+    seeded.set_seed(SEED)
+    assert torch.equal(env.reset()["episode_seed"], seeded.reset()["episode_seed"])
+
+
+def test_episodes_past_the_store_wrap_around(tmp_path):
+    store = _store(tmp_path / "episodes", episodes=2)
+    env = PathFollowEnv("val", num_houses=2, num_agents=AGENTS, demo_store=store, **SIZES)
+    reset = env.reset()
+    assert reset["demo_id"].reshape(-1).tolist() == [0, 1, 0]
+    assert reset["episode_index"].reshape(-1).tolist() == [0, 1, 2]
+
+
+@pytest.mark.parametrize("bad", [-1, 1.5, True, "3"])
+def test_episodes_seed_is_checked(bad):
+    with pytest.raises(ValueError, match="episodes_seed must be None or a non-negative int"):
+        DemoStoreConfig(num_demos=2, episodes_seed=bad)
+
+
+def test_a_store_with_other_route_lengths_cannot_be_an_episode_store(tmp_path):
+    store = _store(tmp_path / "episodes", min_route_length_m=1.0)
+    with pytest.raises(ValueError, match="an episode store must draw the env's own episodes"):
+        PathFollowEnv("val", num_houses=2, demo_store=store, **SIZES)
+
+
+def _eval_config(**kwargs) -> EvalConfig:
+    base = dict(split="val", num_houses=2, num_episodes=EPISODES, num_agents=AGENTS, seed=SEED, max_steps=10, **SIZES)
+    return EvalConfig(**{**base, **kwargs})
+
+
+class FramesEveryStep(torch.nn.Module):
+    """Reads the demonstration frames at every step (no recurrent memory): needs a lookup in every row."""
+
+    def forward(self, frames: torch.Tensor) -> torch.Tensor:
+        means = frames.float().mean(dim=(-1, -2, -3))  # [B, n]
+        return torch.stack([means[:, 0], means[:, 1], means[:, 2]], dim=-1)
+
+
+@pytest.mark.parametrize("kind", ["spf", "frames_every_step"])
+def test_evaluation_scores_the_same_with_and_without_the_store(kind, tmp_path):
+    if kind == "spf":
+        torch.manual_seed(0)
+        policy = build_policy("spf", SPFConfig(sparsity=0.5, feature_dim=8, hidden_size=8, demo_length=6, image_size=(32, 32)))
+    else:
+        policy = TensorDictModule(FramesEveryStep(), in_keys=["demo_frames"], out_keys=["logits"])
+    summary_rendered, rendered = evaluate_policy(policy, _eval_config(episode_store=False))
+    summary_stored, stored = evaluate_policy(policy, _eval_config(store_root=str(tmp_path)))
+    assert stored == rendered
+    assert summary_stored == summary_rendered
+    assert (tmp_path / episode_store_name(_eval_config()) / "meta.json").exists()
+
+
+def test_a_kept_episode_store_is_built_once(tmp_path, monkeypatch):
+    policy = TensorDictModule(FramesEveryStep(), in_keys=["demo_frames"], out_keys=["logits"])
+    config = _eval_config(store_root=str(tmp_path), num_episodes=3)
+    first = evaluate_policy(policy, config)[1]
+    calls = []
+    monkeypatch.setattr(demo_store_module, "make_demo_chunk", lambda *args: calls.append(args))
+    assert evaluate_policy(policy, config)[1] == first
+    assert calls == []
+    other = dataclasses.replace(config, seed=SEED + 1)
+    assert episode_store_name(other) != episode_store_name(config)
+
+
+def test_temporary_episode_store_is_removed(tmp_path, monkeypatch):
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    policy = TensorDictModule(FramesEveryStep(), in_keys=["demo_frames"], out_keys=["logits"])
+    evaluate_policy(policy, _eval_config(num_episodes=2))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_concurrent_builds_of_one_store_take_turns(tmp_path):
+    root = tmp_path / "shared"
+    results, errors = [], []
+
+    def build():
+        try:
+            results.append(_store(root, episodes=3))
+        except Exception as err:  # noqa: BLE001 - reported below
+            errors.append(err)
+
+    threads = [threading.Thread(target=build) for _ in range(2)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert errors == []
+    assert len(results) == 2
+    assert torch.equal(results[0].frames, results[1].frames)
+    DemoStore(root)  # complete and verified
+
+
+def test_episode_identity_ignores_how_episodes_are_played():
+    from spf_rl.train.evaluation import episode_identity
+
+    config = _eval_config()
+    assert episode_identity(dataclasses.replace(config, episode_store=False, store_root="elsewhere")) == episode_identity(config)
+    assert episode_identity(dataclasses.replace(config, seed=SEED + 1)) != episode_identity(config)
