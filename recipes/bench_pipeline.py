@@ -63,8 +63,9 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Sequence
 
-# this checkout's recipes and packages (not an installed copy of another checkout's)
-sys.path[:0] = [str(Path(__file__).resolve().parent), str(Path(__file__).resolve().parents[1])]
+# this checkout's recipes; never its packages here: the workers import this module, and each
+# must import ``envs`` and ``spf_rl`` from its own tree (its ``PYTHONPATH``)
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_baseline import SIDES, baseline_worktree, interleaved_runs, resolve_commit, run_json_child  # noqa: E402
 
@@ -266,6 +267,9 @@ def run_benchmark(args: argparse.Namespace, trees: dict[str, Path], scratch: Pat
         output = run_json_child(
             _worker_argv(args.measures, args.sizes, scratch / side, args.threads), trees[side], timeout=WORKER_TIMEOUT_S
         )
+        imported = Path(output.get("spf_rl_file", "")).resolve()
+        if not imported.is_relative_to(Path(trees[side]).resolve()):
+            raise RuntimeError(f"the {side} worker imported spf_rl from {imported}, not from its tree {trees[side]}.")
         figures = ", ".join(f"{name} {m['value']:.1f} {m['unit']}" for name, m in output["measures"].items())
         logger.info("repeat %d/%d %s (%.0f s): %s", repeat + 1, args.repeats, side, time.perf_counter() - start, figures)
         return {**output, "wall_seconds": time.perf_counter() - start}

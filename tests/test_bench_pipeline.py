@@ -193,3 +193,22 @@ def test_smoke_every_measure_runs_against_the_working_tree(tmp_path):
     assert measures["collection"]["raw_fps"] > 0 and measures["collection"]["frames_per_batch"] == 2 * 6
     assert (tmp_path / "new" / "bc_data" / "meta.json").exists()  # the first dataset built, kept for bc_training
     assert output["branches"]["collection"][0].startswith("default env")  # this tree has no demo-store collection
+
+
+def test_a_worker_imports_the_packages_of_its_own_tree(tmp_path):
+    """Importing the driver module (as the worker does) must not put this checkout's packages
+    ahead of the tree on ``PYTHONPATH``: otherwise "old" would measure the working tree."""
+    tree = tmp_path / "tree"
+    (tree / "spf_rl").mkdir(parents=True)
+    (tree / "spf_rl" / "__init__.py").write_text("")
+    code = "import bench_pipeline, json, spf_rl; print(json.dumps({'spf_rl_file': spf_rl.__file__}))"
+    output = bench_baseline.run_json_child(["-c", f"import sys; sys.path.insert(0, {str(ROOT / 'recipes')!r}); {code}"], tree)
+    assert Path(output["spf_rl_file"]).resolve() == (tree / "spf_rl" / "__init__.py").resolve()
+
+
+def test_a_worker_that_imported_another_tree_is_refused(tmp_path, monkeypatch):
+    monkeypatch.setattr(bench_pipeline, "run_json_child", lambda argv, tree, timeout=None: {
+        **_output({"evaluation": 1.0}), "spf_rl_file": str(ROOT / "spf_rl" / "__init__.py")})
+    args = bench_pipeline.parse_args(["--quick", "--only", "evaluation"])
+    with pytest.raises(RuntimeError, match="the old worker imported spf_rl from"):
+        bench_pipeline.run_benchmark(args, {"old": tmp_path / "baseline", "new": ROOT}, tmp_path)
