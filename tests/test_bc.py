@@ -87,3 +87,47 @@ def test_the_main_job_budget_is_stated_in_steps_and_episodes():
     steps = -(-config.data.num_episodes // config.optim.batch_size) * config.optim.epochs
     assert (config.data.num_episodes, steps) == (2000, 1500)
     assert config.val.num_episodes >= 300  # checkpoints are picked on at least 300 validation episodes
+
+
+@pytest.mark.parametrize("model", ["spf", "rpf_original", "action_only", "spf_random"])
+def test_padded_steps_are_not_encoded_and_change_no_valid_output(model, tmp_path):
+    """``bc_loss`` encodes only the valid (``mask``-ed) steps: the loss and its gradients equal
+    those of the full sequence, padded steps included."""
+    from torch.nn import functional as F
+    from torchrl.modules import set_recurrent_mode
+
+    from spf_rl.train.bc import episodes_to_sequence
+
+    dataset = EpisodeDataset.build(tmp_path / "data", DATA, num_workers=1, progress=False)
+    batch = dataset.episodes[:8]
+    mask = batch.get("steps").get("mask")
+    assert not mask.all(), "the test needs padded steps"
+    torch.manual_seed(0)
+    policy = build_policy(model, spf_config(ModelConfig(name=model, sparsity=0.4, feature_dim=16, hidden_size=16), 5, 32))
+
+    torch.manual_seed(1)  # spf_random draws its memory masks: the same draws for both passes
+    loss, _ = bc_loss(policy, batch)
+    loss.backward()
+    masked_grads = [p.grad.clone() for p in policy.parameters() if p.grad is not None]
+    policy.zero_grad()
+    sequence = episodes_to_sequence(batch)
+    torch.manual_seed(1)
+    with set_recurrent_mode(True):
+        full = policy(sequence)
+    valid = full.get("mask")
+    reference = F.cross_entropy(full.get("logits")[valid], full.get("expert_action")[valid])
+    reference.backward()
+    full_grads = [p.grad.clone() for p in policy.parameters() if p.grad is not None]
+    torch.testing.assert_close(loss, reference)
+    assert len(masked_grads) == len(full_grads)
+    for masked, whole in zip(masked_grads, full_grads):
+        torch.testing.assert_close(masked, whole)
+
+
+def test_valid_steps_are_for_sequence_mode_only():
+    policy = build_policy("spf", spf_config(ModelConfig(sparsity=0.4, feature_dim=16, hidden_size=16), 5, 32))
+    from tensordict import TensorDict
+
+    td = TensorDict({"pixels": torch.zeros(2, 32, 32, 3, dtype=torch.uint8)}, [2])
+    with pytest.raises(ValueError, match="valid applies to recurrent"):
+        policy(td, valid=torch.ones(2, dtype=torch.bool))

@@ -336,15 +336,33 @@ class SPFPolicy(TensorDictModuleBase):
             check(td.get(self.pixels_key), "pixels")
 
     # ------------------------------------------------------------------ forward
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Run one step (step mode) or a ``[*B, T]`` sequence (recurrent mode)."""
+    def forward(self, tensordict: TensorDictBase, valid: torch.Tensor | None = None) -> TensorDictBase:
+        """Run one step (step mode) or a ``[*B, T]`` sequence (recurrent mode).
+
+        ``valid`` (recurrent mode only; ``[*B, T]`` bool): encode only these steps'
+        frames, for sequences padded after their episodes' ends (see
+        :func:`~spf_rl.modules.sequence.unroll_sequence`).
+        """
         if recurrent_mode():
-            return unroll_sequence(self, tensordict)
+            return unroll_sequence(self, tensordict, valid)
+        if valid is not None:
+            raise ValueError("valid applies to recurrent (sequence) mode only; step mode encodes every row.")
         return with_batch_dim(self._forward_step, tensordict)
 
-    def encode_pixels(self, td: TensorDictBase) -> None:
-        """Write the encoder's features (the module called on the tensor: no TensorDictModule overhead)."""
-        td.set(self.encoder.out_keys[0], self.encoder.module(td.get(self.encoder.in_keys[0])))
+    def encode_pixels(self, td: TensorDictBase, valid: torch.Tensor | None = None) -> None:
+        """Write the encoder's features (the module called on the tensor: no TensorDictModule overhead);
+        with ``valid`` (bool of ``td``'s batch shape), only those rows are encoded, the others are zeros."""
+        pixels = td.get(self.encoder.in_keys[0])
+        if valid is None:
+            td.set(self.encoder.out_keys[0], self.encoder.module(pixels))
+            return
+        if valid.shape != td.batch_size:
+            raise ValueError(f"valid must have the batch shape {tuple(td.batch_size)}, got {tuple(valid.shape)}.")
+        valid = valid.to(device=pixels.device, dtype=torch.bool)
+        encoded = self.encoder.module(pixels[valid])
+        features = encoded.new_zeros(*valid.shape, encoded.shape[-1])
+        features[valid] = encoded
+        td.set(self.encoder.out_keys[0], features)
 
     def _forward_step(self, td: TensorDictBase) -> TensorDictBase:
         # the parts' step forwards, called directly: the batch dim is already there

@@ -18,11 +18,16 @@ if TYPE_CHECKING:
     from spf_rl.modules.policy import SPFPolicy
 
 
-def unroll_sequence(policy: SPFPolicy, tensordict: TensorDictBase) -> TensorDictBase:
+def unroll_sequence(policy: SPFPolicy, tensordict: TensorDictBase, valid: torch.Tensor | None = None) -> TensorDictBase:
     """Run ``policy`` over a ``[*B, T]`` sequence (time last), writing its outputs for every step.
 
     A segment (``t = 0`` or ``is_init``) starts from the stored ``h`` and ``eta`` of
     that step, as in :class:`~torchrl.modules.GRUModule`.
+
+    ``valid`` (``[*B, T]`` bool, e.g. a training batch's ``mask``): only these steps'
+    frames are encoded; the others get zero features. For padding *after* an
+    episode's last step: every output is causal, so the valid steps' outputs are
+    those of the full sequence, and the padded steps' outputs are meaningless.
     """
     if tensordict.batch_dims == 0:
         raise ValueError(
@@ -30,7 +35,7 @@ def unroll_sequence(policy: SPFPolicy, tensordict: TensorDictBase) -> TensorDict
             "(batch shape [*B, T]); got a 0-d tensordict."
         )
     policy.check_inputs(tensordict)
-    policy.encode_pixels(tensordict)
+    policy.encode_pixels(tensordict, valid)
     segments = policy.memory.encode_segments(tensordict) if policy.use_memory else None
     td = tensordict.reshape(-1, tensordict.shape[-1])
     rows, steps = td.batch_size

@@ -202,7 +202,8 @@ def bc_loss(policy: SPFPolicy, batch: TensorDict, amp: bool = False) -> tuple[to
     device = module_device(policy)
     sequence = episodes_to_sequence(batch, device)
     with set_recurrent_mode(True), autocast(device, amp):
-        sequence = policy(sequence)
+        # padded steps (after each episode's end) are not encoded: they are not in the loss
+        sequence = policy(sequence, valid=sequence.get("mask"))
     mask = sequence.get("mask")
     logits = sequence.get("logits")[mask].float()
     labels = sequence.get("expert_action")[mask]
