@@ -179,8 +179,7 @@ def _timed_evaluation(config, sizes: Sizes) -> dict:
 
 def measure_evaluation(sizes: Sizes, scratch: Path, branches: dict) -> dict:
     """Episodes/s of ``evaluate_policy`` (the learner, greedy) on the test split, as the
-    tree's ``EvalConfig()`` runs it (in a tree with episode stores: a temporary one, built
-    and timed with the evaluation)."""
+    tree's ``EvalConfig()`` runs it."""
     applied: list[str] = []
     config = _evaluation_config(sizes, {}, applied)
     branches["evaluation"] = applied

@@ -64,7 +64,7 @@ def evaluate_path(path: str, args: argparse.Namespace) -> dict:
         max_steps=args.max_steps,
         image_size=image_size,
         render=path != "open_loop",
-        store_root=args.store_root,
+        store_root=args.store_root or None,
     )
     summary, records = evaluate_policy(policy, eval_config, progress=not args.no_progress)
     return {
@@ -103,7 +103,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument(
         "--store-root",
         default=EPISODE_STORE_ROOT,
-        help="directory keeping the episode stores (demonstrations rendered once) for later evaluations (default: %(default)s)",
+        help="directory keeping the episode stores (demonstrations rendered once, reused by later evaluations of "
+        "the same episodes; the scores do not change); '' renders them at every episode start (default: %(default)s)",
     )
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)

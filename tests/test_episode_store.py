@@ -1,7 +1,8 @@
 """Episode stores: the demonstrations of a seed's episodes rendered once, played as the same episodes.
 
 Evaluation (:func:`spf_rl.train.evaluation.evaluate_policy`) plays its episodes
-from such a store by default; every record must be what the rendering path gives.
+from such a store when given a ``store_root``; every record must be what the
+rendering path gives.
 """
 from __future__ import annotations
 
@@ -113,7 +114,7 @@ def test_evaluation_scores_the_same_with_and_without_the_store(kind, tmp_path):
         policy = build_policy("spf", SPFConfig(sparsity=0.5, feature_dim=8, hidden_size=8, demo_length=6, image_size=(32, 32)))
     else:
         policy = TensorDictModule(FramesEveryStep(), in_keys=["demo_frames"], out_keys=["logits"])
-    summary_rendered, rendered = evaluate_policy(policy, _eval_config(episode_store=False))
+    summary_rendered, rendered = evaluate_policy(policy, _eval_config())
     summary_stored, stored = evaluate_policy(policy, _eval_config(store_root=str(tmp_path)))
     assert stored == rendered
     assert summary_stored == summary_rendered
@@ -132,12 +133,11 @@ def test_a_kept_episode_store_is_built_once(tmp_path, monkeypatch):
     assert episode_store_name(other) != episode_store_name(config)
 
 
-def test_temporary_episode_store_is_removed(tmp_path, monkeypatch):
-    import tempfile
+def test_no_store_without_a_store_root_or_rendering(tmp_path):
+    from spf_rl.train.evaluation import episode_store
 
-    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
-    policy = TensorDictModule(FramesEveryStep(), in_keys=["demo_frames"], out_keys=["logits"])
-    evaluate_policy(policy, _eval_config(num_episodes=2))
+    assert episode_store(_eval_config()) is None
+    assert episode_store(_eval_config(store_root=str(tmp_path), render=False)) is None
     assert list(tmp_path.iterdir()) == []
 
 
@@ -166,5 +166,5 @@ def test_episode_identity_ignores_how_episodes_are_played():
     from spf_rl.train.evaluation import episode_identity
 
     config = _eval_config()
-    assert episode_identity(dataclasses.replace(config, episode_store=False, store_root="elsewhere")) == episode_identity(config)
+    assert episode_identity(dataclasses.replace(config, store_root="elsewhere")) == episode_identity(config)
     assert episode_identity(dataclasses.replace(config, seed=SEED + 1)) != episode_identity(config)

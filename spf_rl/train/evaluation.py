@@ -4,13 +4,14 @@ Every policy evaluated with the same ``seed``, split and number of episodes
 plays the same episodes (the env gives each agent its own episode stream), so
 scores are comparable across models and reproducible.
 
-By default the episodes' demonstrations are rendered once into an episode store
-(:class:`~envs.demo_store.DemoStore` with ``episodes_seed``): the env then emits
-``demo_id`` instead of 30 frames at every step, and the frames are looked up for
-the policy where it reads them (for the SPF policies, only where ``is_init``). The
-episodes, and so the scores, are the same as without the store. ``store_root``
-keeps the stores on disk, by configuration, so that repeated evaluations (every
-validation of a run, every checkpoint of Table 1) render them once.
+With ``store_root`` set, the episodes' demonstrations are rendered once into an
+episode store (:class:`~envs.demo_store.DemoStore` with ``episodes_seed``) kept
+there by configuration: every later evaluation of the same episodes (each
+validation of a training run, each checkpoint of Table 1) skips the route search
+and the demonstration renders at every episode start, the env emits ``demo_id``
+instead of 30 frames at every step, and the frames are looked up for the policy
+where it reads them (for the SPF policies, only where ``is_init``). The episodes,
+and so the scores, are the same as without the store.
 
 The env and its rendering run on the CPU; the policy runs where its weights are
 (move it with ``policy.to(device)`` first): each step's inputs go to that device and
@@ -21,8 +22,6 @@ trained with mixed precision.
 from __future__ import annotations
 
 import dataclasses
-import tempfile
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -59,12 +58,11 @@ class EvalConfig:
         render: render frames (policies that ignore the camera, like open-loop
             replay, can skip it; the episodes are the same).
         task: ``"follow"`` or ``"homing"`` (:mod:`envs.homing`).
-        episode_store: play the episodes from an episode store (demonstrations
-            rendered once, frames looked up on the policy side); the same episodes
-            and scores as without it. Used only where ``render`` is true.
-        store_root: directory keeping episode stores by configuration, reused by
-            later evaluations (``EPISODE_STORE_ROOT`` in the training recipes);
-            ``None``: a temporary store, deleted after the evaluation.
+        store_root: directory of episode stores, kept by configuration and reused
+            by later evaluations (the training recipes use ``EPISODE_STORE_ROOT``);
+            the same episodes and scores as without. ``None``: every episode samples
+            and renders its demonstration (as fast for an evaluation run once).
+            Used only where ``render`` is true.
     """
 
     split: str = "test"
@@ -78,7 +76,6 @@ class EvalConfig:
     num_houses: int | None = None
     render: bool = True
     task: str = FOLLOW
-    episode_store: bool = True
     store_root: str | None = None
 
     def __post_init__(self) -> None:
@@ -88,7 +85,7 @@ class EvalConfig:
 
 
 #: Fields of :class:`EvalConfig` that choose how episodes are played, never which.
-HOW_FIELDS = ("episode_store", "store_root")
+HOW_FIELDS = ("store_root",)
 
 
 def episode_identity(config: EvalConfig) -> dict:
@@ -195,20 +192,12 @@ def episode_store_name(config: EvalConfig) -> str:
     )
 
 
-@contextmanager
-def episode_store(config: EvalConfig):
-    """Yield the episode store of ``config`` (built under ``store_root``, or in a
-    temporary directory removed on exit), or ``None`` where it is not used
-    (``episode_store=False``, or ``render=False``: nothing to look up)."""
-    if not (config.episode_store and config.render):
-        yield None
-        return
-    if config.store_root is not None:
-        root = Path(config.store_root) / episode_store_name(config)
-        yield DemoStore.build(root, episode_store_config(config), progress=False)
-        return
-    with tempfile.TemporaryDirectory(prefix="spf-episodes-") as directory:
-        yield DemoStore.build(Path(directory) / "store", episode_store_config(config), progress=False)
+def episode_store(config: EvalConfig) -> DemoStore | None:
+    """The episode store of ``config`` under ``store_root`` (built on first use), or ``None``
+    where none is used (no ``store_root``, or ``render=False``: nothing to look up)."""
+    if config.store_root is None or not config.render:
+        return None
+    return DemoStore.build(Path(config.store_root) / episode_store_name(config), episode_store_config(config), progress=False)
 
 
 def with_store_lookup(act, policy: TensorDictModuleBase, store: DemoStore | None):
@@ -245,14 +234,14 @@ def evaluate_policy(policy: TensorDictModuleBase, config: EvalConfig, progress: 
     was_training = policy.training
     policy.eval()
     try:
-        with episode_store(config) as store:
-            env = make_eval_env(config, policy, store)
-            act = with_store_lookup(greedy_on_device(policy), policy, store)
-            try:
-                with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-                    records = run_episodes(env, act, config.num_episodes, progress=progress)
-            finally:
-                env.close()
+        store = episode_store(config)
+        env = make_eval_env(config, policy, store)
+        act = with_store_lookup(greedy_on_device(policy), policy, store)
+        try:
+            with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+                records = run_episodes(env, act, config.num_episodes, progress=progress)
+        finally:
+            env.close()
     finally:
         policy.train(was_training)
     summary = summarize(records)
