@@ -303,6 +303,11 @@ def make_collector(
     return collector
 
 
+#: Keys of a collected batch that hold the same value at every step of an episode.
+_PER_EPISODE_KEYS = ("demo_frames", "demo_actions", "episode_seed")
+_STEP_INDEX_KEY = "_step_index"
+
+
 def batch_to_episodes(batch: TensorDictBase, max_steps: int) -> TensorDict:
     """Cut a collected ``[..., T]`` batch into episodes in the layout of :mod:`spf_rl.data`.
 
@@ -312,10 +317,19 @@ def batch_to_episodes(batch: TensorDictBase, max_steps: int) -> TensorDict:
     trajectory's last step (false/0 for a trajectory the batch cut short).
     """
     batch = batch.reshape(-1, batch.shape[-1]) if batch.ndim != 2 else batch
-    trajectories = split_trajectories(batch.exclude("collector"), done_key="done")
+    # keys that hold once per episode (30 frames a step) are read at each trajectory's first
+    # step, not split and padded with every step: that copying was most of a DAgger round
+    step_index = torch.arange(batch.numel(), device=batch.device).reshape(batch.shape)
+    stepwise = batch.exclude("collector", *_PER_EPISODE_KEYS).set(_STEP_INDEX_KEY, step_index)
+    trajectories = split_trajectories(stepwise, done_key="done")
     mask = trajectories.get("mask")
     keep = mask[:, 0]
-    trajectories, mask = trajectories[keep], mask[keep]
+    if not keep.all():
+        trajectories, mask = trajectories[keep], mask[keep]
+    first = trajectories.get(_STEP_INDEX_KEY)[:, 0]
+    first_steps = TensorDict(
+        {key: batch.get(key).flatten(0, 1)[first] for key in _PER_EPISODE_KEYS}, batch_size=first.shape
+    )
     count, length = trajectories.shape
     if length > max_steps:
         raise ValueError(f"collected trajectories of {length} steps exceed max_steps={max_steps}.")
@@ -344,9 +358,9 @@ def batch_to_episodes(batch: TensorDictBase, max_steps: int) -> TensorDict:
     return TensorDict(
         {
             "steps": steps,
-            "demo_frames": trajectories.get("demo_frames")[:, 0],
-            "demo_actions": trajectories.get("demo_actions")[:, 0],
-            "episode_seed": trajectories.get("episode_seed")[:, 0].reshape(count),
+            "demo_frames": first_steps.get("demo_frames"),
+            "demo_actions": first_steps.get("demo_actions"),
+            "episode_seed": first_steps.get("episode_seed").reshape(count),
             "length": lengths,
             "success": final.get("success").reshape(count) & done,
             "spl": torch.where(done, final.get("spl").reshape(count), torch.zeros(count)),
