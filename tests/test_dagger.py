@@ -118,7 +118,10 @@ def test_rounds_aggregate_retrain_and_report(tmp_path, bc_checkpoint):
     assert [r["training_episodes"] for r in history] == [0, 4, 8]
     assert [r.get("gradient_steps") for r in history] == [None, 1, 1]  # one pass of batch 16
     assert all("test_success" in r and 0.0 <= r["val_spl"] <= r["val_success"] + 1e-6 for r in history)
-    assert json.loads((output / "results.json").read_text())["best_round_by_val"] == results["best_round_by_val"]
+    written = json.loads((output / "results.json").read_text())
+    assert written["best_round_by_val"] == results["best_round_by_val"] == results["best"]["round"]
+    best_record = history[results["best"]["round"]]
+    assert results["best"]["val_success"] == best_record["val_success"] and "test_success" in results["best"]
     assert (output / "dagger.png").stat().st_size > 0
     episodes = TensorDict.load_memmap(output / "rounds" / "round-01")
     assert episodes.batch_size == torch.Size([4])
@@ -222,3 +225,18 @@ def test_resuming_without_the_round_data_names_what_is_missing(tmp_path):
     (tmp_path / "rounds" / "round-01").mkdir(parents=True)
     with pytest.raises(FileNotFoundError, match="round-02 is missing"):
         training_sources(None, tmp_path, round_index=3, window=4)
+
+
+def test_the_best_round_is_tested_from_best_pt(tmp_path, bc_checkpoint):
+    """Without a test after every round, the run still tests the checkpoint it ships (best.pt)."""
+    from spf_rl.train.evaluation import evaluate_policy
+
+    config = tiny_config(tmp_path, bc_checkpoint, rounds=3, test_every_round=False)
+    results = train_dagger(config)
+    assert [("test_success" in r) for r in results["history"]] == [True, False, False, True]
+    best = load_checkpoint(tmp_path / "dagger" / "best.pt", expected_model_type="spf")
+    assert best["round"] == results["best"]["round"]
+    policy = build_policy("spf", best["model_config"])
+    policy.load_state_dict(best["model"])
+    summary, _ = evaluate_policy(policy, config.test)
+    assert results["best"]["test_success"] == summary["success"] and results["best"]["test_spl"] == summary["spl"]

@@ -324,11 +324,17 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
         save(round_index)
 
     best = max(history, key=lambda r: (r["val_success"], r["val_spl"]))
+    if "test_success" not in best:  # the shipped checkpoint (best.pt) gets its own test
+        policy.load_state_dict(load_checkpoint(best_path, expected_model_type=model_type)["model"])
+        test, _ = evaluate_policy(policy, test_config, progress=config.progress)
+        best = {**best, "test_success": test["success"], "test_spl": test["spl"], "test_success_ci": test["success_ci"], "test_spl_ci": test["spl_ci"]}
+        logger.info("best round %d (best.pt): %s", best["round"], best)
     results = {
         "model": model_type,
         "start_checkpoint": config.checkpoint,
         "start": history[0],
         "final": history[-1],
+        "best": best,
         "best_round_by_val": best["round"],
         "history": history,
         "wall_seconds_this_run": time.time() - start_time,
