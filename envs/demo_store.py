@@ -36,7 +36,7 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 
 from envs.demos import Demonstration, default_min_route_length_m, sample_demonstration
-from envs.episode_numbering import episode_seed
+from envs.episode_numbering import episode_seed, seed_entropy
 from envs.follow import episode_for_seed
 from envs.geometry import DistanceField
 from envs.homing import FOLLOW, check_task, task_demonstration
@@ -70,7 +70,8 @@ class DemoStoreConfig:
         image_size: frame side, pixels.
         min_route_length_m: routes must end farther than this (geodesic, metres) from
             their start; ``None`` uses the env's default for ``demo_length``.
-        seed: store seed; demonstration ``k`` depends only on ``(seed, k)``.
+        seed: store seed; demonstration ``k`` depends only on ``(seed, k)`` (unused
+            when ``episodes_seed`` is set).
         task: ``"follow"`` or ``"homing"``: a homing store holds the homing
             demonstrations of its sampled routes (:mod:`envs.homing`), frames rendered
             looking back along the route; envs of the same task only may draw from it.
@@ -81,6 +82,11 @@ class DemoStoreConfig:
             seeded with it plays (:func:`~envs.follow.episode_for_seed`), and an env
             seeded with it plays demonstration ``k`` in episode ``k``: the same
             episodes as without the store, frames rendered once (evaluation sets).
+            Episodes numbered ``K`` and beyond replay demonstration ``number mod K``
+            with their own noise: not the rendering path's episodes, so size the
+            store to the episodes kept (evaluation keeps ``0 .. K - 1`` only). Envs
+            that share a numbering (``episode_offset``/``episode_stride``) must all
+            get the same seed: ``set_seed(seed, static_seed=True)``.
     """
 
     num_demos: int = 1000
@@ -128,7 +134,7 @@ def sample_store_demonstration(config: DemoStoreConfig, index: int) -> Demonstra
     """Demonstration ``index`` of a store, for its task: a pure function of ``(config.seed, index)``,
     or of the seed of episode ``index`` under ``config.episodes_seed`` when that is set."""
     if config.episodes_seed is not None:
-        seed = episode_seed(int(np.random.SeedSequence(config.episodes_seed).entropy), index)
+        seed = episode_seed(seed_entropy(config.episodes_seed), index)
         return episode_for_seed(seed, config.house_seeds, config.demo_length, config.min_route_length_m, config.task)[1]
     rng = np.random.default_rng([config.seed, index])
     house = build_house(int(rng.choice(config.house_seeds)))

@@ -15,7 +15,18 @@ import numpy as np
 
 from envs.follow import MAX_EPISODE_SEED
 
-__all__ = ["EpisodeNumbering", "episode_seed"]
+__all__ = ["EpisodeNumbering", "episode_seed", "seed_entropy"]
+
+
+def seed_entropy(seed: int | None) -> int:
+    """The entropy an env seed gives the episode numbering (``SeedSequence(seed).entropy``;
+    ``None``: fresh entropy).
+
+    Examples:
+        >>> seed_entropy(7)
+        7
+    """
+    return int(np.random.SeedSequence(seed).entropy)
 
 
 def episode_seed(env_seed_entropy: int, number: int) -> int:
@@ -57,7 +68,7 @@ class EpisodeNumbering:
 
     def reset(self, seed: int | None) -> None:
         """Start again from each agent's first episode under env seed ``seed``."""
-        self._entropy = int(np.random.SeedSequence(seed).entropy)
+        self._entropy = seed_entropy(seed)
         self._started = np.zeros(self.num_agents, dtype=np.int64)
 
     def seed_of(self, number: int) -> int:

@@ -141,7 +141,7 @@ class EpisodeSource:
     Examples:
         >>> playlist = DemonstrationPlaylist(None, demo_length=5, num_agents=1)
         >>> source = EpisodeSource([0], 5, 0.6, "homing", playlist)
-        >>> house, demo, demo_id = source.episode(0, episode_seed=7)
+        >>> house, demo, demo_id = source.episode(0, episode_seed=7, number=0)
         >>> demo.task, demo.length, demo_id
         ('homing', 5, 0)
     """
@@ -163,10 +163,11 @@ class EpisodeSource:
         self.demo_store = demo_store
         self._field_cache: OrderedDict[int, DistanceField] = OrderedDict()
 
-    def episode(self, index: int, episode_seed: int, number: int = 0) -> tuple[House, Demonstration, int]:
+    def episode(self, index: int, episode_seed: int, number: int) -> tuple[House, Demonstration, int]:
         """``(house, demonstration, demo_id)`` of agent ``index``'s next episode, episode
         ``number`` (``demo_id`` 0 without a store). An episode store
-        (``episodes_seed`` set) plays demonstration ``number``, wrapping past its end."""
+        (``episodes_seed`` set) plays demonstration ``number``; past its end,
+        ``number mod K`` (see :class:`~envs.demo_store.DemoStoreConfig`)."""
         if (given := self.playlist.next(index)) is not None:
             return build_house(given.house_seed), given, 0
         if self.demo_store is not None:
@@ -193,7 +194,8 @@ class EpisodeSource:
         if int(seed) != store_seed:
             raise ValueError(
                 f"seed must be {store_seed} for the episode store {self.demo_store.root} (it holds the "
-                f"demonstrations of that env seed's episodes), got {seed}."
+                f"demonstrations of that env seed's episodes), got {seed}. Envs sharing the store take "
+                f"set_seed({store_seed}, static_seed=True)."
             )
         return seed
 

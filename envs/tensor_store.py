@@ -223,15 +223,18 @@ class TensorStore:
             num_workers: ``spawn`` worker processes producing chunks (1: in this process).
             progress: show a progress bar.
 
-        Processes building the same ``root`` at once take turns (a lock file
-        ``<root>.lock``, removed once the store is in place): the first builds, the
-        others open what it wrote.
+        A store already in place is opened without locking (read-only directories
+        work). Otherwise processes building the same ``root`` take a lock file
+        ``<root>.lock`` (removed once the store is in place): the first builds, and
+        the others, once it is done, open what it wrote.
 
         Raises:
             StoreError: ``root`` holds a store of another configuration, or is a
                 non-empty directory that is not a store.
         """
         root = Path(root)
+        if (root / "meta.json").exists():
+            return cls._create_locked(root, config, make_chunk, chunk_rows, num_workers, progress)
         root.parent.mkdir(parents=True, exist_ok=True)
         lock = root.with_name(root.name + LOCK_SUFFIX)
         with FileLock(str(lock)):
@@ -249,7 +252,7 @@ class TensorStore:
         chunk_rows: int,
         num_workers: int,
         progress: bool,
-    ):
+    ) -> TensorStore:
         config_dict = cls.config_to_dict(config)
         if (root / "meta.json").exists():
             store = cls(root, verify=False)

@@ -267,7 +267,9 @@ def run_benchmark(args: argparse.Namespace, trees: dict[str, Path], scratch: Pat
         output = run_json_child(
             _worker_argv(args.measures, args.sizes, scratch / side, args.threads), trees[side], timeout=WORKER_TIMEOUT_S
         )
-        imported = Path(output.get("spf_rl_file", "")).resolve()
+        if "spf_rl_file" not in output:
+            raise RuntimeError(f"the {side} worker did not report where it imported spf_rl from.")
+        imported = Path(output["spf_rl_file"]).resolve()
         if not imported.is_relative_to(Path(trees[side]).resolve()):
             raise RuntimeError(f"the {side} worker imported spf_rl from {imported}, not from its tree {trees[side]}.")
         figures = ", ".join(f"{name} {m['value']:.1f} {m['unit']}" for name, m in output["measures"].items())

@@ -80,7 +80,7 @@ def evaluate_path(path: str, args: argparse.Namespace) -> dict:
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
-    from spf_rl.train.evaluation import EPISODE_STORE_ROOT
+    from spf_rl.train.evaluation import episode_store_root
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("paths", nargs="+", help="checkpoint files, directories of *.pt, or 'open_loop'")
@@ -102,7 +102,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--out", default="results/eval", help="output directory for the JSON files")
     parser.add_argument(
         "--store-root",
-        default=EPISODE_STORE_ROOT,
+        default=episode_store_root(),
         help="directory keeping the episode stores (demonstrations rendered once, reused by later evaluations of "
         "the same episodes; the scores do not change); '' renders them at every episode start (default: %(default)s)",
     )

@@ -1,6 +1,8 @@
 """Shared test set-up: headless rendering, a fixed matplotlib back-end, small envs."""
 from __future__ import annotations
 
+import os
+
 import matplotlib
 
 matplotlib.use("Agg")
@@ -8,7 +10,23 @@ matplotlib.use("Agg")
 import envs  # noqa: E402,F401  (selects the GL back-end before mujoco opens a context)
 from torch import nn  # noqa: E402
 
+import pytest  # noqa: E402
+
 from spf_rl.modules.encoder import ImageEncoder  # noqa: E402
+from spf_rl.train.evaluation import EPISODE_STORE_ROOT_ENV  # noqa: E402
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _episode_stores_in_a_temporary_directory(tmp_path_factory):
+    """Evaluation episode stores of the tests (and of the recipes they run) go to a temporary
+    directory, never to the checkout's ``data/episodes``."""
+    previous = os.environ.get(EPISODE_STORE_ROOT_ENV)
+    os.environ[EPISODE_STORE_ROOT_ENV] = str(tmp_path_factory.mktemp("episode_stores"))
+    yield
+    if previous is None:
+        os.environ.pop(EPISODE_STORE_ROOT_ENV, None)
+    else:
+        os.environ[EPISODE_STORE_ROOT_ENV] = previous
 
 
 class CountingEncoder(nn.Module):

@@ -100,13 +100,17 @@ def test_padded_steps_are_not_encoded_and_change_no_valid_output(model, tmp_path
 
     dataset = EpisodeDataset.build(tmp_path / "data", DATA, num_workers=1, progress=False)
     batch = dataset.episodes[:8]
-    mask = batch.get("steps").get("mask")
-    assert not mask.all(), "the test needs padded steps"
+    trimmed = episodes_to_sequence(batch).get("mask")  # the time axis bc_loss sees
+    assert not trimmed.all(), "the test needs padded steps"
     torch.manual_seed(0)
     policy = build_policy(model, spf_config(ModelConfig(name=model, sparsity=0.4, feature_dim=16, hidden_size=16), 5, 32))
+    encoded: list[int] = []
+    hook = policy.encoder.module.register_forward_pre_hook(lambda module, args: encoded.append(args[0].shape[0]))
 
     torch.manual_seed(1)  # spf_random draws its memory masks: the same draws for both passes
     loss, _ = bc_loss(policy, batch)
+    hook.remove()
+    assert encoded[0] == int(trimmed.sum())  # the agent's frames: the valid ones only (then the memory's, if any)
     loss.backward()
     masked_grads = [p.grad.clone() for p in policy.parameters() if p.grad is not None]
     policy.zero_grad()
@@ -131,3 +135,14 @@ def test_valid_steps_are_for_sequence_mode_only():
     td = TensorDict({"pixels": torch.zeros(2, 32, 32, 3, dtype=torch.uint8)}, [2])
     with pytest.raises(ValueError, match="valid applies to recurrent"):
         policy(td, valid=torch.ones(2, dtype=torch.bool))
+
+
+def test_valid_steps_must_be_a_prefix_along_time():
+    from tensordict import TensorDict
+
+    policy = build_policy("spf", spf_config(ModelConfig(sparsity=0.4, feature_dim=16, hidden_size=16), 5, 32))
+    td = TensorDict({"pixels": torch.zeros(1, 3, 32, 32, 3, dtype=torch.uint8)}, [1, 3])
+    with pytest.raises(ValueError, match="valid must be a prefix along time"):
+        policy.encode_pixels(td, valid=torch.tensor([[True, False, True]]))
+    with pytest.raises(ValueError, match="valid must have the batch shape"):
+        policy.encode_pixels(td, valid=torch.ones(3, dtype=torch.bool))

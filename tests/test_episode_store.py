@@ -168,3 +168,36 @@ def test_episode_identity_ignores_how_episodes_are_played():
     config = _eval_config()
     assert episode_identity(dataclasses.replace(config, store_root="elsewhere")) == episode_identity(config)
     assert episode_identity(dataclasses.replace(config, seed=SEED + 1)) != episode_identity(config)
+
+
+def test_homing_episode_store_plays_the_homing_episodes(tmp_path):
+    store = _store(tmp_path / "homing", task="homing")
+    def env(store=None):
+        env = TransformedEnv(
+            PathFollowEnv("val", num_houses=2, num_agents=AGENTS, with_expert=True, task="homing", demo_store=store,
+                          emit_demo_frames=store is None, **SIZES),
+            Compose(ActuationNoise("paper"), InitTracker()),
+        )
+        env.set_seed(SEED)
+        return env
+    assert run_episodes(env(store), ExpertPolicy(), EPISODES) == run_episodes(env(), ExpertPolicy(), EPISODES)
+
+
+def test_a_store_of_another_env_version_is_never_reopened(monkeypatch):
+    import spf_rl.train.evaluation as evaluation
+
+    name = episode_store_name(_eval_config())
+    monkeypatch.setattr(evaluation, "ENV_VERSION", evaluation.ENV_VERSION + 1)
+    assert episode_store_name(_eval_config()) != name
+
+
+def test_an_existing_store_opens_without_a_lock(tmp_path, monkeypatch):
+    import envs.tensor_store as tensor_store
+
+    store = _store(tmp_path / "episodes", episodes=2)
+    tmp_path.chmod(0o555)  # read-only parent: no lock file can be made
+    try:
+        monkeypatch.setattr(tensor_store, "FileLock", None)  # and no lock is taken
+        assert torch.equal(_store(tmp_path / "episodes", episodes=2).frames, store.frames)
+    finally:
+        tmp_path.chmod(0o755)

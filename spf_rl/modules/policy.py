@@ -359,6 +359,8 @@ class SPFPolicy(TensorDictModuleBase):
         if valid.shape != td.batch_size:
             raise ValueError(f"valid must have the batch shape {tuple(td.batch_size)}, got {tuple(valid.shape)}.")
         valid = valid.to(device=pixels.device, dtype=torch.bool)
+        if td.batch_dims and (valid[..., 1:] & ~valid[..., :-1]).any():
+            raise ValueError("valid must be a prefix along time (padding after each episode's last step only).")
         encoded = self.encoder.module(pixels[valid])
         features = encoded.new_zeros(*valid.shape, encoded.shape[-1])
         features[valid] = encoded

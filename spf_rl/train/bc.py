@@ -39,7 +39,7 @@ from spf_rl.data import DatasetConfig, EpisodeDataset
 from spf_rl.device import DEFAULT_DEVICE, autocast, check_device, exact_float32, module_device, resolve_device, to_device
 from spf_rl.modules.memory import memory_bytes
 from spf_rl.modules.policy import SPFPolicy
-from spf_rl.train.evaluation import EPISODE_STORE_ROOT, EvalConfig, evaluate_policy
+from spf_rl.train.evaluation import EvalConfig, episode_store_root, evaluate_policy
 from spf_rl.train.models import ModelConfig, build_policy, spf_config
 
 logger = logging.getLogger(__name__)
@@ -74,12 +74,12 @@ class OptimConfig:
 def default_val_config() -> EvalConfig:
     """Validation that picks the checkpoint: 300 episodes of the ``val`` split, seed 1
     (fewer pick noisily: the standard error of a success rate on 100 episodes is about 0.05)."""
-    return EvalConfig(split="val", num_episodes=300, seed=1, store_root=EPISODE_STORE_ROOT)
+    return EvalConfig(split="val", num_episodes=300, seed=1, store_root=episode_store_root())
 
 
 def default_test_config() -> EvalConfig:
     """The final test of the best checkpoint: 500 episodes of the ``test`` split, seed 2."""
-    return EvalConfig(split="test", num_episodes=500, seed=2, store_root=EPISODE_STORE_ROOT)
+    return EvalConfig(split="test", num_episodes=500, seed=2, store_root=episode_store_root())
 
 
 @dataclass

@@ -280,8 +280,7 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
         val, _ = evaluate_policy(policy, val_config)
         record = {"round": round_index, **extra, "val_success": val["success"], "val_spl": val["spl"]}
         if config.test_every_round or round_index in (0, config.rounds):
-            test, _ = evaluate_policy(policy, test_config, progress=config.progress)
-            record.update(test_success=test["success"], test_spl=test["spl"], test_success_ci=test["success_ci"], test_spl_ci=test["spl_ci"])
+            record.update(_test_fields(evaluate_policy(policy, test_config, progress=config.progress)[0]))
         logger.info("round %d: %s", round_index, record)
         if run_logger is not None:
             for key, value in record.items():
@@ -325,9 +324,14 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
 
     best = max(history, key=lambda r: (r["val_success"], r["val_spl"]))
     if "test_success" not in best:  # the shipped checkpoint (best.pt) gets its own test
-        policy.load_state_dict(load_checkpoint(best_path, expected_model_type=model_type)["model"])
-        test, _ = evaluate_policy(policy, test_config, progress=config.progress)
-        best = {**best, "test_success": test["success"], "test_spl": test["spl"], "test_success_ci": test["success_ci"], "test_spl_ci": test["spl_ci"]}
+        shipped = load_checkpoint(best_path, expected_model_type=model_type)
+        if shipped["round"] != best["round"]:
+            raise RuntimeError(
+                f"{best_path} holds round {shipped['round']}, but the history's best round is {best['round']} "
+                "(a run interrupted between its checkpoints); rerun that round or delete the run."
+            )
+        policy.load_state_dict(shipped["model"])
+        best = {**best, **_test_fields(evaluate_policy(policy, test_config, progress=config.progress)[0])}
         logger.info("best round %d (best.pt): %s", best["round"], best)
     results = {
         "model": model_type,
@@ -343,6 +347,11 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
     atomic_json(output / "results.json", results)
     plot_if_available(plot_rounds, history, output / "dagger.png", title=f"DAgger from {Path(config.checkpoint).name}")
     return results
+
+
+def _test_fields(summary: dict) -> dict:
+    """The test fields of a round's record, from an evaluation summary."""
+    return {f"test_{key}": summary[key] for key in ("success", "spl", "success_ci", "spl_ci")}
 
 
 def _collect_round(policy: TensorDictModuleBase, config: DAggerConfig, beta: float, seed: int) -> TensorDict:

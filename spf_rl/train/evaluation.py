@@ -22,6 +22,8 @@ trained with mixed precision.
 from __future__ import annotations
 
 import dataclasses
+import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,6 +35,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from envs.demo_store import DemoStore, DemoStoreConfig
 from envs.nav_env import PathFollowEnv
+from envs.version import ENV_VERSION
 from envs.scripted import run_episodes
 from envs.checks import check_episode_source, check_positive_ints
 from envs.homing import FOLLOW, check_task
@@ -59,7 +62,7 @@ class EvalConfig:
             replay, can skip it; the episodes are the same).
         task: ``"follow"`` or ``"homing"`` (:mod:`envs.homing`).
         store_root: directory of episode stores, kept by configuration and reused
-            by later evaluations (the training recipes use ``EPISODE_STORE_ROOT``);
+            by later evaluations (the training recipes use :func:`episode_store_root`);
             the same episodes and scores as without. ``None``: every episode samples
             and renders its demonstration (as fast for an evaluation run once).
             Used only where ``render`` is true.
@@ -90,7 +93,12 @@ HOW_FIELDS = ("store_root",)
 
 def episode_identity(config: EvalConfig) -> dict:
     """The fields of ``config`` that fix its episodes and scores (all but :data:`HOW_FIELDS`):
-    the key of cached per-episode records."""
+    the key of cached per-episode records.
+
+    Examples:
+        >>> episode_identity(EvalConfig(store_root="a")) == episode_identity(EvalConfig())
+        True
+    """
     return {key: value for key, value in dataclasses.asdict(config).items() if key not in HOW_FIELDS}
 
 
@@ -136,8 +144,21 @@ def greedy_on_device(policy: TensorDictModuleBase):
     return act_on_device(greedy(policy), device, in_keys=policy.in_keys, out_keys=out_keys)
 
 
-#: Where the training recipes keep their evaluation episode stores.
+#: Where the training recipes keep their evaluation episode stores, unless the
+#: environment variable :data:`EPISODE_STORE_ROOT_ENV` names another directory.
 EPISODE_STORE_ROOT = "data/episodes"
+EPISODE_STORE_ROOT_ENV = "SPF_RL_EPISODE_STORES"
+
+
+def episode_store_root() -> str:
+    """The training recipes' ``store_root``: ``$SPF_RL_EPISODE_STORES``, else ``data/episodes``.
+
+    Examples:
+        >>> import os
+        >>> os.environ.get(EPISODE_STORE_ROOT_ENV, EPISODE_STORE_ROOT) == episode_store_root()
+        True
+    """
+    return os.environ.get(EPISODE_STORE_ROOT_ENV) or EPISODE_STORE_ROOT
 
 
 def make_eval_env(
@@ -184,11 +205,17 @@ def episode_store_config(config: EvalConfig) -> DemoStoreConfig:
 
 
 def episode_store_name(config: EvalConfig) -> str:
-    """The directory name of ``config``'s episode store under ``store_root``."""
+    """The directory name of ``config``'s episode store under ``store_root`` (with the env
+    version, so that a store of an older environment is never reopened).
+
+    Examples:
+        >>> episode_store_name(EvalConfig(split="val", num_episodes=300, seed=1)).startswith("val-follow-n30-64px-seed1-300ep-env")
+        True
+    """
     houses = "" if config.num_houses is None else f"-{config.num_houses}houses"
     return (
         f"{config.split}{houses}-{config.task}-n{config.demo_length}-{config.image_size}px"
-        f"-seed{config.seed}-{config.num_episodes}ep"
+        f"-seed{config.seed}-{config.num_episodes}ep-env{ENV_VERSION}"
     )
 
 
@@ -200,7 +227,9 @@ def episode_store(config: EvalConfig) -> DemoStore | None:
     return DemoStore.build(Path(config.store_root) / episode_store_name(config), episode_store_config(config), progress=False)
 
 
-def with_store_lookup(act, policy: TensorDictModuleBase, store: DemoStore | None):
+def with_store_lookup(
+    act: Callable[[TensorDictBase], TensorDictBase], policy: TensorDictModuleBase, store: DemoStore | None
+) -> Callable[[TensorDictBase], TensorDictBase]:
     """``act`` (a callable running ``policy``) fed ``demo_frames`` looked up from
     ``demo_id`` in ``store`` (on the CPU, before it runs), the frames dropped after it.
 

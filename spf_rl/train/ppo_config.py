@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 from spf_rl.device import DEFAULT_DEVICE, check_device
 from spf_rl.modules import SPFConfig
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig
-from spf_rl.train.evaluation import EPISODE_STORE_ROOT, EvalConfig
+from spf_rl.train.evaluation import EvalConfig, episode_store_root
 
 logger = logging.getLogger(__name__)
 
@@ -110,8 +110,12 @@ class PPOConfig:
     env: CollectionEnvConfig = field(
         default_factory=lambda: CollectionEnvConfig(split="train", noise="paper", with_expert=False)
     )
-    val: EvalConfig = field(default_factory=lambda: EvalConfig(split="val", num_episodes=100, seed=1, noise="paper", store_root=EPISODE_STORE_ROOT))
-    test: EvalConfig = field(default_factory=lambda: EvalConfig(split="test", num_episodes=500, seed=2, noise="paper", store_root=EPISODE_STORE_ROOT))
+    val: EvalConfig = field(
+        default_factory=lambda: EvalConfig(split="val", num_episodes=100, seed=1, noise="paper", store_root=episode_store_root())
+    )
+    test: EvalConfig = field(
+        default_factory=lambda: EvalConfig(split="test", num_episodes=500, seed=2, noise="paper", store_root=episode_store_root())
+    )
 
     def __post_init__(self) -> None:
         check_device(self.device)
