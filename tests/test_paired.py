@@ -1,0 +1,62 @@
+"""recipes/paired.py: paired comparisons of two evaluations of the same episodes."""
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+RECIPE = Path(__file__).resolve().parents[1] / "recipes" / "paired.py"
+
+
+def _module():
+    spec = importlib.util.spec_from_file_location("paired_recipe", RECIPE)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _evaluation(path: Path, successes: list[bool], seeds: list[int] | None = None) -> Path:
+    seeds = seeds or list(range(len(successes)))
+    records = [
+        {"episode_seed": seed, "house_seed": seed % 3, "success": ok, "spl": 0.9 * ok, "success_lab": ok}
+        for seed, ok in zip(seeds, successes)
+    ]
+    path.write_text(json.dumps({"checkpoint": path.stem, "episodes_records": records}))
+    return path
+
+
+def test_a_clearly_better_model_is_significantly_ahead(tmp_path):
+    better = _evaluation(tmp_path / "a.json", [True] * 90 + [False] * 10)
+    worse = _evaluation(tmp_path / "b.json", [True] * 30 + [False] * 70)
+    result = _module().main([str(better), str(worse), "--out", str(tmp_path / "out" / "paired.json"), "--resamples", "500"])
+    written = json.loads((tmp_path / "out" / "paired.json").read_text())
+    assert written == json.loads(json.dumps(result))
+    success = written["metrics"]["success"]
+    assert (success["a"], success["b"]) == (0.9, 0.3)
+    assert success["difference"] == pytest.approx(0.6)
+    assert success["ci95"][0] > 0 and success["p_two_sided"] < 0.05
+    assert written["episodes"] == 100 and written["houses"] == 3
+    assert set(written["metrics"]) == {"success", "spl", "success_lab"}
+
+
+def test_the_same_model_shows_no_difference(tmp_path):
+    a = _evaluation(tmp_path / "a.json", [True, False] * 50)
+    result = _module().compare(a, a, num_resamples=200, seed=0)
+    assert result["metrics"]["success"]["difference"] == 0.0
+    assert result["metrics"]["success"]["p_two_sided"] == 1.0
+
+
+def test_different_episodes_are_refused(tmp_path):
+    a = _evaluation(tmp_path / "a.json", [True] * 10)
+    b = _evaluation(tmp_path / "b.json", [True] * 10, seeds=list(range(1, 11)))
+    with pytest.raises(ValueError, match="hold different episodes"):
+        _module().compare(a, b, num_resamples=10, seed=0)
+
+
+def test_a_file_without_records_is_refused(tmp_path):
+    empty = tmp_path / "empty.json"
+    empty.write_text(json.dumps({"success": 0.5}))
+    with pytest.raises(ValueError, match="no per-episode records"):
+        _module().compare(empty, empty, num_resamples=10, seed=0)
