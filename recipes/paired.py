@@ -1,6 +1,8 @@
 """Paired comparison of two evaluations of the same episodes (``recipes/evaluate.py`` JSONs).
 
-Both files must hold per-episode records of the same episodes in the same order
+Each side is one JSON, or several joined by commas (one per training seed: the
+statistic is then pooled over seeds). Every file must hold per-episode records of
+the same episodes in the same order
 (the same split, seed and episode count: ``evaluate.py`` plays the same episodes for
 every policy). For success, SPL and the lab code's success it writes the mean
 difference A - B with a 95% interval and p-values from
@@ -36,26 +38,41 @@ def load_records(path: Path) -> tuple[dict, list[dict]]:
     return payload, records
 
 
-def compare(path_a: Path, path_b: Path, num_resamples: int, seed: int) -> dict:
-    """The paired comparison of two evaluation JSONs (A - B), as written to ``--out``."""
+def _paths(paths: Path | str | list) -> list[Path]:
+    """One path, a comma-joined string of paths, or a list of paths -> a list of paths."""
+    if isinstance(paths, (list, tuple)):
+        return [Path(path) for path in paths]
+    return [Path(part) for part in str(paths).split(",") if part]
+
+
+def compare(path_a: Path | str | list, path_b: Path | str | list, num_resamples: int, seed: int) -> dict:
+    """The paired comparison of two sides' evaluation JSONs (A - B, pooled over each
+    side's files), as written to ``--out``."""
     from spf_rl.stats import paired_bootstrap
 
-    (a, records_a), (b, records_b) = load_records(path_a), load_records(path_b)
-    episodes_a = [(r["episode_seed"], r["house_seed"]) for r in records_a]
-    episodes_b = [(r["episode_seed"], r["house_seed"]) for r in records_b]
-    if episodes_a != episodes_b:
-        raise ValueError(
-            f"{path_a} and {path_b} hold different episodes ({len(episodes_a)} and {len(episodes_b)} records; "
-            "evaluate both with the same --split, --seed and --episodes)."
-        )
-    houses = [house for _, house in episodes_a]
+    files = {"a": _paths(path_a), "b": _paths(path_b)}
+    loaded = {side: [load_records(path) for path in paths] for side, paths in files.items()}
+    reference = [(r["episode_seed"], r["house_seed"]) for r in loaded["a"][0][1]]
+    for side, paths in files.items():
+        for path, (_, records) in zip(paths, loaded[side]):
+            if [(r["episode_seed"], r["house_seed"]) for r in records] != reference:
+                raise ValueError(
+                    f"{files['a'][0]} and {path} hold different episodes ({len(reference)} and {len(records)} records; "
+                    "evaluate both with the same --split, --seed and --episodes)."
+                )
+    houses = [house for _, house in reference]
+    records_a = [r for _, records in loaded["a"] for r in records]
+    records_b = [r for _, records in loaded["b"] for r in records]
     metrics = {}
     for name in METRICS:
         if not all(name in r for r in records_a + records_b):
             continue
         result = paired_bootstrap(
-            [float(r[name]) for r in records_a], [float(r[name]) for r in records_b], houses,
-            num_resamples=num_resamples, seed=seed,
+            [[float(r[name]) for r in records] for _, records in loaded["a"]],
+            [[float(r[name]) for r in records] for _, records in loaded["b"]],
+            houses,
+            num_resamples=num_resamples,
+            seed=seed,
         )
         metrics[name] = {
             "a": sum(float(r[name]) for r in records_a) / len(records_a),
@@ -66,11 +83,11 @@ def compare(path_a: Path, path_b: Path, num_resamples: int, seed: int) -> dict:
             "p_two_sided": result.p_two_sided,
         }
     return {
-        "a": str(path_a),
-        "b": str(path_b),
-        "a_checkpoint": a.get("checkpoint"),
-        "b_checkpoint": b.get("checkpoint"),
-        "episodes": len(records_a),
+        "a": [str(path) for path in files["a"]],
+        "b": [str(path) for path in files["b"]],
+        "a_checkpoints": [payload.get("checkpoint") for payload, _ in loaded["a"]],
+        "b_checkpoints": [payload.get("checkpoint") for payload, _ in loaded["b"]],
+        "episodes": len(reference),
         "houses": len(set(houses)),
         "num_resamples": num_resamples,
         "seed": seed,
@@ -81,8 +98,8 @@ def compare(path_a: Path, path_b: Path, num_resamples: int, seed: int) -> dict:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("a", type=Path, help="evaluation JSON of model A")
-    parser.add_argument("b", type=Path, help="evaluation JSON of model B (same episodes)")
+    parser.add_argument("a", help="evaluation JSON(s) of model A (comma-separated: one per training seed)")
+    parser.add_argument("b", help="evaluation JSON(s) of model B (same episodes)")
     parser.add_argument("--out", type=Path, required=True, help="output JSON")
     parser.add_argument("--resamples", type=int, default=10_000, help="bootstrap resamples (default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the resampling (default: %(default)s)")
@@ -90,7 +107,7 @@ def main(argv: list[str] | None = None) -> dict:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if args.resamples < 1:
         parser.error(f"--resamples must be >= 1, got {args.resamples}")
-    for path in (args.a, args.b):
+    for path in _paths(args.a) + _paths(args.b):
         if not path.is_file():
             parser.error(f"no evaluation JSON at {path}")
     result = compare(args.a, args.b, args.resamples, args.seed)

@@ -60,3 +60,13 @@ def test_a_file_without_records_is_refused(tmp_path):
     empty.write_text(json.dumps({"success": 0.5}))
     with pytest.raises(ValueError, match="no per-episode records"):
         _module().compare(empty, empty, num_resamples=10, seed=0)
+
+
+def test_seeds_are_pooled_when_a_side_names_several_files(tmp_path):
+    a0 = _evaluation(tmp_path / "a0.json", [True] * 80 + [False] * 20)
+    a1 = _evaluation(tmp_path / "a1.json", [True] * 60 + [False] * 40)
+    b = _evaluation(tmp_path / "b.json", [True] * 50 + [False] * 50)
+    result = _module().compare(f"{a0},{a1}", b, num_resamples=200, seed=0)
+    assert result["metrics"]["success"]["a"] == pytest.approx(0.7)
+    assert result["metrics"]["success"]["difference"] == pytest.approx(0.2)
+    assert result["a"] == [str(a0), str(a1)]
