@@ -166,7 +166,7 @@ def test_no_gl_backend_is_needed_without_rendering() -> None:
         "envs.render._can_load = lambda library: False  # no libEGL, no libOSMesa\n"
         "from envs import PathFollowEnv\n"
         "env = PathFollowEnv(num_houses=1, demo_length=5, render=False)\n"
-        "print(env.rollout(3)['next', 'pose'].shape)\n"
+        "print(env.rollout(3, break_when_any_done=False)['next', 'pose'].shape)\n"
         "try:\n"
         "    PathFollowEnv(num_houses=1, demo_length=5).reset()\n"
         "except Exception as err:\n"
