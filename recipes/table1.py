@@ -16,9 +16,9 @@ steps), every other row with ``--preset bc_row`` (5,000 steps); run directories
 ``output_dir``; an interrupted run resumes). A finished run's ``best.pt`` (best by
 validation) is copied to ``checkpoints/table1/<row>-seed<S>.pt``, and the seed with
 the best validation success of each row to the row's shipped name
-``checkpoints/<row>.pt``. DAgger checkpoints (a DAgger column for ``spf-s0.8`` and
-``rpf-s1``) are never trained here: a finished run of the row's DAgger preset
-(``python recipes/dagger.py --preset dagger_long|dagger_rpf seed=S``) is copied
+``checkpoints/<row>.pt``. DAgger checkpoints (a DAgger column for ``spf-s0.8``, ``rpf-s1`` and
+``rpf_original-s1``) are never trained here: a finished run of the row's DAgger preset
+(``python recipes/dagger.py --preset dagger_long|dagger_rpf|dagger_rpf_original seed=S``) is copied
 to ``checkpoints/table1/dagger-<row>-seed<S>.pt``, or put one there yourself.
 
 Every checkpoint is scored on the same episodes: the ``test`` set (``bc_long``'s test
@@ -87,7 +87,7 @@ ROWS = (
     RowSpec("rpf-s1", "SPF at sparsity 1 (RPF as SPF)", "rpf", 1.0, "bc_row", ("model=rpf", "sparsity=1"),
             dagger_preset="dagger_rpf"),
     RowSpec("rpf_original-s1", "RPF (original)", "rpf_original", 1.0, "bc_row", ("model=rpf_original", "sparsity=1"),
-            (0.833, 0.752)),
+            (0.833, 0.752), dagger_preset="dagger_rpf_original"),
     RowSpec("action_only-s0", "RPF action only", "action_only", 0.0, "bc_row", ("model=action_only",), (0.782, 0.648)),
     RowSpec("open_loop", "open-loop replay", "open_loop", 0.0, None),
     RowSpec("spf_random-s0.2-1", "SPF random sparsity 0.2-1", RANDOM_MODEL, 0.8, "bc_row", ("model=spf_random",),
@@ -105,6 +105,7 @@ CLAIMS = (
     ("action_only-s0", "open_loop", "action-only beats open-loop replay"),
     ("dagger-spf-s0.8", "spf-s0.8", "DAgger improves SPF 0.8"),
     ("dagger-rpf-s1", "rpf-s1", "DAgger improves SPF at sparsity 1"),
+    ("dagger-rpf_original-s1", "rpf_original-s1", "DAgger improves the original RPF"),
 )
 SETS = ("test", "extended")
 #: Houses of the extended test set.

@@ -19,6 +19,7 @@ SHIPPED = [
     "lengths-spf-s0.8",
     "ppo-spf-s0.8",
     "rpf-s1",
+    "rpf_original-s1",
     "spf-s0.4",
     "spf-s0.6",
     "spf-s0.8",
@@ -41,6 +42,8 @@ def test_every_shipped_name_loads_a_ready_policy(name):
 
 def test_config_has_the_memory_of_the_model_type():
     assert spf_rl.load_policy("rpf-s1").config.memory_mode == "full"
+    original = spf_rl.load_policy("rpf_original-s1").config
+    assert original.memory_mode == "full" and original.pointer_update == "rpf"
     assert spf_rl.load_policy("action_only-s0").config.memory_length == 0
     assert spf_rl.load_policy("spf-s0.4").config.memory_length == 12
     assert spf_rl.load_policy("spf_random-s0.2-1").config.sparsity_range == (0.2, 1.0)
