@@ -70,7 +70,8 @@ def resolve_houses(
 
     Raises:
         ValueError: for a wrong ``demo_store`` type, a store that disagrees with the
-            env's arguments, ``emit_demo_frames=False`` without a store, bad
+            env's arguments, ``emit_demo_frames=False`` without a store (pass ``True``
+            where frames are not rendered), bad
             ``house_seeds``, ``house_seeds`` with ``grid_size_cells`` (house seeds name
             their grid), or a bad ``grid_size_cells``.
     """
@@ -93,8 +94,9 @@ def resolve_houses(
         return demo_store, demo_store.config.house_seeds
     if not emit_demo_frames:
         raise ValueError(
-            "emit_demo_frames=False needs a demo_store (the frames must be retrievable from demo_id); "
-            "pass demo_store=<DemoStore or its directory> or keep emit_demo_frames=True."
+            "emit_demo_frames=False needs a demo_store (the frames must be retrievable from demo_id) "
+            "or render=False (blank frames); pass demo_store=<DemoStore or its directory>, render=False, "
+            "or keep emit_demo_frames=True."
         )
     if house_seeds is not None:
         seeds = [int(s) for s in house_seeds]

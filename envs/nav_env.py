@@ -108,9 +108,8 @@ class PathFollowEnv(EnvBase):
             each episode's demonstration from instead of sampling and rendering one;
             its split, house count, grid, ``demo_length``, ``image_size`` and ``task`` must
             match the env's. Adds the ``demo_id`` observation.
-        emit_demo_frames: emit ``demo_frames`` at every step (default). ``False``
-            (only with ``demo_store``) leaves them out: policies look them up from
-            ``demo_id``.
+        emit_demo_frames: emit ``demo_frames`` at every step (default). ``False`` leaves them
+            out; it needs ``demo_store`` (policies look them up by ``demo_id``) or ``render=False``.
         demonstrations: routes of ``demo_length`` steps to play instead of sampled ones
             (:class:`~envs.playlist.DemonstrationPlaylist`; ``reset(demonstration=demo)``);
             a homing env plays their homing demonstrations.
@@ -168,7 +167,7 @@ class PathFollowEnv(EnvBase):
                 f"success_radius_m must be > 0 metres and success_fraction >= 0, got {success_radius_m}, {success_fraction}."
             )
         demo_store, house_seeds = resolve_houses(
-            split, num_houses, house_seeds, demo_store, emit_demo_frames, demo_length, image_size, success_radius_m,
+            split, num_houses, house_seeds, demo_store, emit_demo_frames or not render, demo_length, image_size, success_radius_m,
             self.task, grid_size_cells,
         )
         batch_size = torch.Size([] if num_agents is None else [num_agents])
@@ -280,11 +279,8 @@ class PathFollowEnv(EnvBase):
 
     # ------------------------------------------------------------------ reset
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
-        if tensordict is not None and "_reset" in tensordict.keys():
-            mask = tensordict.get("_reset").reshape(self._count).cpu().numpy()
-        else:
-            mask = np.ones(self._count, dtype=bool)
-        indices = np.flatnonzero(mask)
+        partial = tensordict is not None and "_reset" in tensordict.keys()
+        indices = np.flatnonzero(tensordict.get("_reset").reshape(self._count).cpu().numpy() if partial else np.ones(self._count))
         self._playlist.begin_reset(kwargs.get("demonstration"))
         if len(indices):
             # returned tensors are never mutated later: new ones, holding the other agents' data
@@ -326,6 +322,9 @@ class PathFollowEnv(EnvBase):
             if self.emit_demo_frames:
                 demo_frames[index] = stored
             pixels[index] = stored[0] if self.render_frames else 0  # the agent starts on the demo's first pose
+            return
+        if not self.emit_demo_frames:  # unrendered (checked): blank frames, none emitted
+            pixels[index] = 0
             return
         # rendered straight into the (n, H, W, 3) tensor
         self._render([index] * self.demo_length, demo.poses[: self.demo_length], out=demo_frames[index].numpy())

@@ -3,7 +3,7 @@
 :class:`ExpertPolicy` and :class:`OpenLoopReplay` are TensorDict policies: they
 can drive :class:`~envs.nav_env.PathFollowEnv` in ``env.rollout`` or a TorchRL
 collector. :func:`run_episodes` plays a fixed, seed-determined set of episodes
-through a TorchRL collector and returns one record per episode (success, SPL,
+through a TorchRL :class:`~torchrl.collectors.Collector` and returns one record per episode (success, SPL,
 distances); the evaluation of trained policies and the expert and open-loop
 figures (``recipes/expert_stats.py``) use it.
 """
@@ -12,6 +12,8 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+from torchrl.collectors import Collector
+from torchrl.envs.utils import ExplorationType
 from tqdm.auto import tqdm
 
 from envs.expert import TURN_LEFT
@@ -95,21 +97,27 @@ def episode_record(final: TensorDictBase) -> dict:
     }
 
 
+#: Steps each agent takes per collector batch in :func:`run_episodes` (at most this many
+#: minus one steps are taken past an agent's last recorded episode).
+STEPS_PER_BATCH = 5
+
+
 def run_episodes(env, policy, num_episodes: int, progress: bool = False) -> list[dict]:
-    """Play episodes ``0 .. num_episodes - 1`` of a seeded batched env with ``policy``.
+    """Play episodes ``0 .. num_episodes - 1`` of a seeded batched env with ``policy``, through a TorchRL collector.
 
     The env numbers its episodes (:mod:`envs.episode_numbering`): agent ``i`` of ``N``
     plays episodes ``i, i + N, i + 2N, ...``, and episode ``j`` depends only on the env
-    seed and ``j``. Each agent is stepped (with auto-reset) until its episodes below
-    ``num_episodes`` have ended; each is recorded once, by its number. So every policy
-    is scored on the same episodes, whatever ``N``, and short episodes are not
-    over-represented. (A TorchRL collector does the same stepping, but it stores every
-    frame, ``demo_frames`` included; over envs that emit the frames at every step that
-    halves the speed, so this loop keeps only the final step of each episode.)
+    seed and ``j``. A :class:`~torchrl.collectors.Collector` steps the env (auto-reset,
+    preallocated buffers, deterministic exploration) in batches of
+    :data:`STEPS_PER_BATCH` steps per agent until every episode below ``num_episodes``
+    has ended; each is recorded once, by its number, and later ones are ignored. So
+    every policy is scored on the same episodes, whatever ``N``, and short episodes are
+    not over-represented.
 
     Args:
         env: a seeded batched :class:`~envs.nav_env.PathFollowEnv` (``num_agents`` set),
-            possibly wrapped in transforms (actuation noise, primers, ...).
+            possibly wrapped in transforms (actuation noise, primers, ...). The
+            collector resets it first; it is left open.
         policy: a TensorDict policy (or callable) writing ``"action"``.
         num_episodes: number of episodes (> 0).
         progress: show a progress bar.
@@ -118,25 +126,34 @@ def run_episodes(env, policy, num_episodes: int, progress: bool = False) -> list
         one dict per episode, ordered by episode number: ``episode_index``, success,
         spl, goal_distance, path_length, shortest_path_length, steps, episode_seed, house_seed.
     """
-    if num_episodes <= 0:
-        raise ValueError(f"num_episodes must be > 0, got {num_episodes}.")
+    if isinstance(num_episodes, bool) or not isinstance(num_episodes, int) or num_episodes <= 0:
+        raise ValueError(f"num_episodes must be an int > 0, got {num_episodes!r}.")
     if len(env.batch_size) != 1:
         raise ValueError(f"run_episodes needs a batched env (batch_size [N]), got {list(env.batch_size)}.")
+    collector = Collector(
+        env,
+        policy,
+        frames_per_batch=env.batch_size[0] * STEPS_PER_BATCH,
+        total_frames=-1,
+        exploration_type=ExplorationType.DETERMINISTIC,
+        use_buffers=True,
+        auto_register_policy_transforms=False,
+    )
     records: dict[int, dict] = {}
     bar = tqdm(total=num_episodes, disable=not progress, desc="episodes")
-    tensordict = env.reset()
-    with torch.no_grad():
-        while len(records) < num_episodes:
-            tensordict, next_tensordict = env.step_and_maybe_reset(policy(tensordict))
-            finished = tensordict.get(("next", "done")).reshape(-1)
-            for row in torch.nonzero(finished).reshape(-1).tolist():
-                final = tensordict.get("next")[row]
+    try:
+        for batch in collector:
+            final_steps = batch.get("next")[batch.get(("next", "done")).squeeze(-1)]
+            for final in final_steps.unbind(0):
                 number = int(final["episode_index"].item())
                 if number < num_episodes and number not in records:
                     records[number] = {"episode_index": number, **episode_record(final)}
                     bar.update(1)
-            tensordict = next_tensordict
-    bar.close()
+            if len(records) == num_episodes:
+                break
+    finally:
+        collector.shutdown(close_env=False)
+        bar.close()
     return [records[number] for number in range(num_episodes)]
 
 

@@ -146,7 +146,7 @@ def main() -> None:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     torch.set_num_threads(1)
 
-    env_kwargs: dict = {"num_agents": args.num_agents, "render": False, "with_expert": True, "task": args.task}
+    env_kwargs: dict = {"num_agents": args.num_agents, "render": False, "emit_demo_frames": False, "with_expert": True, "task": args.task}
     if args.demo_length is not None:
         env_kwargs["demo_length"] = args.demo_length
     results: list[dict] = []

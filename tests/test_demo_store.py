@@ -421,7 +421,7 @@ def test_env_refuses_a_mismatching_store(store, kwargs, match):
 
 
 def test_env_refuses_emit_false_without_store_and_a_missing_store(tmp_path):
-    with pytest.raises(ValueError, match="emit_demo_frames"):
+    with pytest.raises(ValueError, match="emit_demo_frames=False needs a demo_store .*or render=False"):
         PathFollowEnv(emit_demo_frames=False, **ENV_KWARGS)
     with pytest.raises(DemoStoreError):
         PathFollowEnv(demo_store=tmp_path / "nowhere", **ENV_KWARGS)
@@ -546,3 +546,20 @@ def test_spf_collection_with_init_only_lookup_matches_full_lookup(store, store_r
     torch.testing.assert_close(init_only["logits"], full["logits"])
     torch.testing.assert_close(init_only["next", "memory_features"], full["next", "memory_features"])
     assert torch.equal(init_only["demo_id"], full["demo_id"])
+
+
+def test_unrendered_env_may_leave_out_the_blank_frames():
+    """Without rendering, the frames are blank: ``emit_demo_frames=False`` needs no store and
+    plays the same episodes, rewards and expert labels."""
+    from envs.scripted import ExpertPolicy
+
+    def rollout(emit: bool):
+        env = make_path_follow_env(render=False, emit_demo_frames=emit, with_expert=True, num_agents=2, **ENV_KWARGS)
+        env.set_seed(3)
+        return env, env.rollout(6, ExpertPolicy(), break_when_any_done=False)
+
+    lean_env, lean = rollout(False)
+    full_env, full = rollout(True)
+    assert "demo_frames" not in lean.keys() and "demo_frames" not in lean_env.observation_spec.keys()
+    assert not full["demo_frames"].any()
+    assert (lean == full.exclude("demo_frames", ("next", "demo_frames"))).all()

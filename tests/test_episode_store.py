@@ -1,12 +1,13 @@
 """Episode stores: the demonstrations of a seed's episodes rendered once, played as the same episodes.
 
 Evaluation (:func:`spf_rl.train.evaluation.evaluate_policy`) plays its episodes
-from such a store when given a ``store_root``; every record must be what the
-rendering path gives.
+from such a store, kept under ``store_root`` or temporary; every record must be what
+the rendering path gives.
 """
 from __future__ import annotations
 
 import dataclasses
+import tempfile
 import threading
 
 import pytest
@@ -20,7 +21,7 @@ from envs.nav_env import PathFollowEnv
 from envs.scripted import ExpertPolicy, run_episodes
 from envs.transforms import ActuationNoise
 from spf_rl.modules.policy import SPFConfig
-from spf_rl.train.evaluation import EvalConfig, episode_store_name, evaluate_policy
+from spf_rl.train.evaluation import EvalConfig, episode_store_name, evaluate_policy, greedy, make_eval_env
 from spf_rl.train.models import build_policy
 
 SIZES = dict(demo_length=6, image_size=32)
@@ -108,17 +109,28 @@ class FramesEveryStep(torch.nn.Module):
 
 
 @pytest.mark.parametrize("kind", ["spf", "frames_every_step"])
-def test_evaluation_scores_the_same_with_and_without_the_store(kind, tmp_path):
+def test_evaluation_scores_the_same_with_and_without_the_store(kind, tmp_path, monkeypatch):
+    """A kept store, a temporary one (``store_root=None``) and the env that renders every
+    demonstration give the same records."""
     if kind == "spf":
         torch.manual_seed(0)
         policy = build_policy("spf", SPFConfig(sparsity=0.5, feature_dim=8, hidden_size=8, demo_length=6, image_size=(32, 32)))
     else:
         policy = TensorDictModule(FramesEveryStep(), in_keys=["demo_frames"], out_keys=["logits"])
-    summary_rendered, rendered = evaluate_policy(policy, _eval_config())
-    summary_stored, stored = evaluate_policy(policy, _eval_config(store_root=str(tmp_path)))
-    assert stored == rendered
-    assert summary_stored == summary_rendered
-    assert (tmp_path / episode_store_name(_eval_config()) / "meta.json").exists()
+    config = _eval_config()
+    policy.eval()
+    env = make_eval_env(config, policy)  # no store: samples and renders each demonstration
+    with torch.no_grad():
+        rendered = run_episodes(env, greedy(policy), EPISODES)
+    temporary = tmp_path / "tmp"
+    temporary.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(temporary))
+    summary_temporary, in_temporary = evaluate_policy(policy, config)
+    assert list(temporary.iterdir()) == []  # the temporary store is gone
+    summary_kept, kept = evaluate_policy(policy, _eval_config(store_root=str(tmp_path / "kept")))
+    assert kept == in_temporary == rendered
+    assert summary_kept == summary_temporary
+    assert (tmp_path / "kept" / episode_store_name(config) / "meta.json").exists()
 
 
 def test_a_kept_episode_store_is_built_once(tmp_path, monkeypatch):

@@ -16,7 +16,7 @@ NUM_EPISODES = 500
 
 
 def _rate(noise: str, policy, seed: int = 0) -> tuple[float, float]:
-    env = TransformedEnv(PathFollowEnv("train", num_agents=50, with_expert=True, render=False), ActuationNoise(noise))
+    env = TransformedEnv(PathFollowEnv("train", num_agents=50, with_expert=True, render=False, emit_demo_frames=False), ActuationNoise(noise))
     env.set_seed(seed)
     records = run_episodes(env, policy, NUM_EPISODES)
     return float(np.mean([r["success"] for r in records])), float(np.mean([r["spl"] for r in records]))
@@ -60,7 +60,7 @@ def test_expert_success_noise_free_and_under_paper_noise():
 def test_run_episodes_plays_the_same_numbered_episodes_whatever_the_number_of_agents():
     def play(num_agents: int) -> list[dict]:
         env = TransformedEnv(
-            PathFollowEnv("train", num_houses=3, num_agents=num_agents, demo_length=6, max_steps=10, with_expert=True, render=False),
+            PathFollowEnv("train", num_houses=3, num_agents=num_agents, demo_length=6, max_steps=10, with_expert=True, render=False, emit_demo_frames=False),
             ActuationNoise("paper"),
         )
         env.set_seed(5)

@@ -21,8 +21,10 @@ trained with mixed precision.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
+import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -61,10 +63,11 @@ class EvalConfig:
         render: render frames (policies that ignore the camera, like open-loop
             replay, can skip it; the episodes are the same).
         task: ``"follow"`` or ``"homing"`` (:mod:`envs.homing`).
-        store_root: directory of episode stores, kept by configuration and reused
-            by later evaluations (the training recipes use :func:`episode_store_root`);
-            the same episodes and scores as without. ``None``: every episode samples
-            and renders its demonstration (as fast for an evaluation run once).
+        store_root: directory of episode stores (the demonstrations of the
+            episodes, rendered once), kept by configuration and reused by later
+            evaluations (the training recipes use :func:`episode_store_root`). ``None``:
+            :func:`evaluate_policy` builds the store in a temporary directory and
+            deletes it afterwards. The episodes and scores are the same either way.
             Used only where ``render`` is true.
     """
 
@@ -167,7 +170,8 @@ def make_eval_env(
     """Batched env with noise, ``is_init`` and the policy's recurrent-state primer.
 
     With ``demo_store`` (an episode store of ``config``, :func:`episode_store`) it
-    emits ``demo_id`` instead of the demonstration frames.
+    emits ``demo_id`` instead of the demonstration frames; with ``render=False``, no
+    frames (they would be blank).
     """
     transforms = [ActuationNoise(config.noise), InitTracker()]
     if policy is not None and hasattr(policy, "make_tensordict_primer"):
@@ -183,7 +187,7 @@ def make_eval_env(
             render=config.render,
             task=config.task,
             demo_store=demo_store,
-            emit_demo_frames=demo_store is None,
+            emit_demo_frames=demo_store is None and config.render,
         ),
         Compose(*transforms),
     )
@@ -219,12 +223,14 @@ def episode_store_name(config: EvalConfig) -> str:
     )
 
 
-def episode_store(config: EvalConfig) -> DemoStore | None:
-    """The episode store of ``config`` under ``store_root`` (built on first use), or ``None``
-    where none is used (no ``store_root``, or ``render=False``: nothing to look up)."""
-    if config.store_root is None or not config.render:
+def episode_store(config: EvalConfig, root: str | os.PathLike | None = None) -> DemoStore | None:
+    """The episode store of ``config`` (built on first use) under ``root``, by default
+    ``config.store_root``; ``None`` where nothing is to be looked up (no root, or
+    ``render=False``)."""
+    root = config.store_root if root is None else root
+    if root is None or not config.render:
         return None
-    return DemoStore.build(Path(config.store_root) / episode_store_name(config), episode_store_config(config), progress=False)
+    return DemoStore.build(Path(root) / episode_store_name(config), episode_store_config(config), progress=False)
 
 
 def with_store_lookup(
@@ -263,14 +269,15 @@ def evaluate_policy(policy: TensorDictModuleBase, config: EvalConfig, progress: 
     was_training = policy.training
     policy.eval()
     try:
-        store = episode_store(config)
-        env = make_eval_env(config, policy, store)
-        act = with_store_lookup(greedy_on_device(policy), policy, store)
-        try:
+        with contextlib.ExitStack() as stack:
+            # without a store_root, the episode store lives as long as this evaluation
+            root = None if config.store_root is not None else stack.enter_context(tempfile.TemporaryDirectory())
+            store = episode_store(config, root)
+            env = make_eval_env(config, policy, store)
+            stack.callback(env.close)
+            act = with_store_lookup(greedy_on_device(policy), policy, store)
             with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
                 records = run_episodes(env, act, config.num_episodes, progress=progress)
-        finally:
-            env.close()
     finally:
         policy.train(was_training)
     summary = summarize(records)
