@@ -13,6 +13,7 @@ from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.modules import SPFConfig
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig
 from spf_rl.train.dagger import DAggerConfig, ExpertMixturePolicy, behaviour_statistics, train_dagger
+from spf_rl.train.dagger_rounds import RoundConfig, RoundError, RoundStore
 from spf_rl.train.evaluation import EvalConfig
 from spf_rl.train.models import build_policy
 
@@ -123,7 +124,9 @@ def test_rounds_aggregate_retrain_and_report(tmp_path, bc_checkpoint):
     best_record = history[results["best"]["round"]]
     assert results["best"]["val_success"] == best_record["val_success"] and "test_success" in results["best"]
     assert (output / "dagger.png").stat().st_size > 0
-    episodes = TensorDict.load_memmap(output / "rounds" / "round-01")
+    stored = RoundStore(output / "rounds" / "round-01")
+    assert (stored.config.round_index, stored.config.beta, stored.config.max_steps) == (1, 0.5, 6)
+    episodes = stored.episodes
     assert episodes.batch_size == torch.Size([4])
     assert episodes["steps", "is_init"][:, 0].all()
     # every stored state carries a valid expert label
@@ -184,6 +187,38 @@ def test_interrupted_run_resumes_to_the_same_result(tmp_path, bc_checkpoint):
     assert straight["history"][2]["val_success"] == resumed["history"][2]["val_success"]
 
 
+def test_a_stored_round_of_another_run_or_corrupt_is_refused(tmp_path, bc_checkpoint):
+    """Resuming never trains on a round collected by another config, or on damaged bytes."""
+    train_dagger(tiny_config(tmp_path / "a", bc_checkpoint, rounds=1))
+    other = tiny_config(tmp_path / "b", bc_checkpoint, rounds=1, seed=1)
+    (tmp_path / "b" / "dagger" / "rounds").mkdir(parents=True)
+    shutil.copytree(tmp_path / "a" / "dagger" / "rounds" / "round-01", tmp_path / "b" / "dagger" / "rounds" / "round-01")
+    with pytest.raises(RoundError, match="belongs to another run"):
+        train_dagger(other)
+
+    (tmp_path / "a" / "dagger" / "last.pt").unlink()  # as if interrupted after storing round 1
+    pixels = tmp_path / "a" / "dagger" / "rounds" / "round-01" / "data" / "steps" / "pixels.memmap"
+    damaged = bytearray(pixels.read_bytes())
+    damaged[0] ^= 0xFF
+    pixels.write_bytes(bytes(damaged))
+    with pytest.raises(RoundError, match="checksum mismatch"):
+        train_dagger(tiny_config(tmp_path / "a", bc_checkpoint, rounds=1))
+
+
+def test_round_store_refuses_a_wrong_count_and_bad_configs(tmp_path):
+    from spf_rl.data import DatasetConfig, EpisodeDataset
+
+    config = RoundConfig(round_index=1, seed=3, beta=0.0, num_episodes=2, demo_length=4, max_steps=5, image_size=8)
+    three = EpisodeDataset.empty(DatasetConfig(num_episodes=3, demo_length=4, max_steps=5, image_size=8))
+    with pytest.raises(ValueError, match=r"batch size \[2\]"):
+        RoundStore.write(tmp_path / "round-01", config, three)
+    assert not (tmp_path / "round-01").exists()
+    with pytest.raises(ValueError, match="beta must be in"):
+        RoundConfig(round_index=1, seed=3, beta=1.5, num_episodes=2, demo_length=4, max_steps=5, image_size=8)
+    with pytest.raises(ValueError, match="round_index"):
+        RoundConfig(round_index=0, seed=3, beta=0.0, num_episodes=2, demo_length=4, max_steps=5, image_size=8)
+
+
 def test_checkpoint_of_other_sizes_is_refused(tmp_path, bc_checkpoint):
     config = tiny_config(tmp_path, bc_checkpoint, env=CollectionEnvConfig(num_houses=1, demo_length=6, max_steps=6, image_size=32))
     with pytest.raises(ValueError, match="demo_length"):
@@ -220,11 +255,16 @@ def test_learner_driven_rounds_train_fixed_steps_on_a_sliding_window(tmp_path, b
 
 
 def test_resuming_without_the_round_data_names_what_is_missing(tmp_path):
+    from spf_rl.data import DatasetConfig, EpisodeDataset
     from spf_rl.train.dagger_rounds import training_sources
 
-    (tmp_path / "rounds" / "round-01").mkdir(parents=True)
-    with pytest.raises(FileNotFoundError, match="round-02 is missing"):
+    config = RoundConfig(round_index=1, seed=3, beta=0.0, num_episodes=2, demo_length=4, max_steps=5, image_size=8)
+    episodes = EpisodeDataset.empty(DatasetConfig(num_episodes=2, demo_length=4, max_steps=5, image_size=8))
+    RoundStore.write(tmp_path / "rounds" / "round-01", config, episodes)
+    (tmp_path / "rounds" / "round-03").mkdir()  # a round directory without meta.json is incomplete
+    with pytest.raises(FileNotFoundError, match="round-02 is missing or incomplete"):
         training_sources(None, tmp_path, round_index=3, window=4)
+    assert len(training_sources(None, tmp_path, round_index=1, window=4)) == 1
 
 
 def test_the_best_round_is_tested_from_best_pt(tmp_path, bc_checkpoint):

@@ -16,8 +16,8 @@ tells what the learner's own states add (``recipes/configs/dagger_control.yaml``
 Every round is scored on the ``val`` split (and on ``test`` when
 ``test_every_round``); the results go to ``results.json`` and ``dagger.png``.
 
-Resuming: the round's episodes (``rounds/round-XX``, written to a temporary
-directory and renamed) and ``last.pt`` (atomic) are the durable state; an
+Resuming: the round's episodes (``rounds/round-XX``, a
+:class:`~spf_rl.train.dagger_rounds.RoundStore`) and ``last.pt`` (atomic) are the durable state; an
 interrupted run started again with the same config reads the stored rounds
 and continues with the next round. Collection is deterministic: the env's
 per-agent episode streams, the mixing coin (a Philox draw of the episode seed
@@ -57,7 +57,7 @@ from spf_rl.train.collection import (
     collection_device,
     make_collector,
 )
-from spf_rl.train.dagger_rounds import store_round, training_sources
+from spf_rl.train.dagger_rounds import RoundConfig, RoundStore, round_directory, training_sources
 from spf_rl.train.evaluation import EvalConfig, evaluate_policy, with_episode_sizes
 from spf_rl.train.models import build_policy
 from spf_rl.viz import plot_if_available, pyplot
@@ -305,13 +305,15 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
     for round_index in range(done_rounds + 1, config.rounds + 1):
         round_seed = int(np.random.SeedSequence([config.seed, round_index]).generate_state(1)[0] % (2**31))
         beta = config.beta(round_index)
-        round_dir = output / "rounds" / f"round-{round_index:02d}"
-        if round_dir.exists():  # stored before an interruption (collection is deterministic): reuse it
-            episodes = TensorDict.load_memmap(round_dir).to_tensordict()
+        round_dir = round_directory(output, round_index)
+        collection = dict(round_index=round_index, seed=round_seed, beta=beta, demo_length=env.demo_length,
+                          max_steps=env.max_steps, image_size=env.image_size)
+        if (round_dir / "meta.json").exists():  # stored before an interruption (collection is deterministic): reuse it
+            episodes = RoundStore.read(round_dir, collection).episodes.to_tensordict()
             logger.info("round %d: reusing the episodes stored in %s", round_index, round_dir)
         else:
             episodes = _collect_round(policy, config, beta, round_seed)
-            store_round(round_dir, episodes)
+            RoundStore.write(round_dir, RoundConfig(**collection, num_episodes=episodes.shape[0]), episodes)
         collected = {"beta": beta, **behaviour_statistics(episodes, env.max_steps)}
         sources = training_sources(bc_episodes, output, round_index, config.window_rounds)
         collected["training_episodes"] = sum(source.shape[0] for source in sources)

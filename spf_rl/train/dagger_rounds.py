@@ -1,24 +1,135 @@
 """DAgger's rounds on disk: each round's episodes, and the window of rounds retraining sees.
 
-``<run>/rounds/round-XX`` holds one round's episodes as a memory-mapped TensorDict,
-written to a temporary directory and renamed, so a round on disk is complete.
+``<run>/rounds/round-XX`` is a :class:`RoundStore`, a
+:class:`~envs.tensor_store.TensorStore` like the demo store and the BC datasets:
+``meta.json`` (round, collection seed, beta, sizes, env version, SHA-256 of every
+tensor) beside the memory-mapped episodes in the layout of :mod:`spf_rl.data`, built
+in ``round-XX.partial`` and renamed into place, so a round on disk is complete.
+A stored round of another collection (another seed, beta or size), a corrupt
+one, or one made by another env version is refused with a :class:`RoundError`.
 """
 from __future__ import annotations
 
-import os
-import shutil
+import logging
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from tensordict import TensorDict, TensorDictBase
 
+from envs.checks import check_positive_ints
+from envs.tensor_store import StoreError, TensorStore
+from spf_rl.data import DatasetConfig, EpisodeDataset
 
-def store_round(directory: Path, episodes: TensorDict) -> None:
-    """Write one round's episodes as a memory-mapped TensorDict, atomically (temp dir + rename)."""
-    tmp = directory.with_name(f".{directory.name}.tmp")
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    episodes.memmap(tmp)
-    os.replace(tmp, directory)
+logger = logging.getLogger(__name__)
+
+#: Rows written per chunk of a round.
+ROUND_CHUNK_ROWS = 64
+
+
+class RoundError(StoreError):
+    """A stored DAgger round is missing, corrupt, stale, or of another collection."""
+
+
+@dataclass(frozen=True)
+class RoundConfig:
+    """What one stored round holds.
+
+    Args:
+        round_index: the round (1-based).
+        seed: the round's collection seed.
+        beta: the expert's probability in the round's behaviour policy.
+        num_episodes: episodes stored.
+        demo_length: demonstration length n.
+        max_steps: episode limit (steps are padded to it).
+        image_size: frame side, pixels.
+    """
+
+    round_index: int
+    seed: int
+    beta: float
+    num_episodes: int
+    demo_length: int
+    max_steps: int
+    image_size: int
+
+    def __post_init__(self) -> None:
+        check_positive_ints(self, ("round_index", "num_episodes", "demo_length", "max_steps", "image_size"))
+        if not 0.0 <= self.beta <= 1.0:
+            raise ValueError(f"beta must be in [0, 1], got {self.beta!r}.")
+
+    def collection(self) -> dict:
+        """The fields that fix the round's episodes (all but their count, known only once collected)."""
+        return {key: value for key, value in asdict(self).items() if key != "num_episodes"}
+
+
+class RoundStore(TensorStore):
+    """One DAgger round's episodes on disk (a :class:`~envs.tensor_store.TensorStore`).
+
+    Args:
+        root: the round directory.
+        verify: recompute the SHA-256 of every tensor and compare with ``meta.json``.
+
+    Examples:
+        >>> import tempfile
+        >>> from spf_rl.data import DatasetConfig, EpisodeDataset
+        >>> config = RoundConfig(round_index=1, seed=7, beta=0.0, num_episodes=3, demo_length=4, max_steps=5, image_size=8)
+        >>> root = tempfile.mkdtemp() + "/round-01"
+        >>> episodes = EpisodeDataset.empty(DatasetConfig(num_episodes=3, demo_length=4, max_steps=5, image_size=8))
+        >>> RoundStore.write(root, config, episodes).episodes["steps", "pixels"].shape
+        torch.Size([3, 5, 8, 8, 3])
+        >>> RoundStore(root).config.seed
+        7
+    """
+
+    KIND = "dagger_round"
+    FORMAT_VERSION = 1
+    ERROR = RoundError
+    FORMAT_HISTORY = "(rounds before version 1 were plain memory-mapped TensorDicts)"
+
+    @staticmethod
+    def config_from_dict(config: dict) -> RoundConfig:
+        return RoundConfig(**config)
+
+    @staticmethod
+    def empty(config: RoundConfig) -> TensorDict:
+        sizes = DatasetConfig(
+            num_episodes=config.num_episodes, demo_length=config.demo_length, max_steps=config.max_steps,
+            image_size=config.image_size,
+        )
+        return EpisodeDataset.empty(sizes)
+
+    @property
+    def episodes(self) -> TensorDict:
+        """The round's episodes, ``[E]`` (memory-mapped, read-only)."""
+        return self.data
+
+    @classmethod
+    def write(cls, root: str | Path, config: RoundConfig, episodes: TensorDictBase) -> RoundStore:
+        """Store ``episodes`` (``config.num_episodes`` of them) as the round at ``root`` and open it."""
+        if episodes.batch_size != (config.num_episodes,):
+            raise ValueError(f"episodes must have batch size [{config.num_episodes}], got {list(episodes.batch_size)}.")
+
+        def chunk(_config: RoundConfig, index: int) -> TensorDictBase:
+            return episodes[index * ROUND_CHUNK_ROWS : (index + 1) * ROUND_CHUNK_ROWS]
+
+        return cls.create(root, config, chunk, ROUND_CHUNK_ROWS, num_workers=1, progress=False)
+
+    @classmethod
+    def read(cls, root: str | Path, collection: dict) -> RoundStore:
+        """Open the round at ``root``; raise :class:`RoundError` unless it was collected as
+        ``collection`` says (:meth:`RoundConfig.collection`'s fields)."""
+        store = cls(root)
+        if store.config.collection() != collection:
+            raise RoundError(
+                f"dagger_round store {root} holds round {store.config.collection()}, but this run's round is "
+                f"{collection}: it belongs to another run. Use another output_dir, or delete the run to start over."
+            )
+        return store
+
+
+def round_directory(output: Path, round_index: int) -> Path:
+    """``<output>/rounds/round-XX``."""
+    return output / "rounds" / f"round-{round_index:02d}"
 
 
 def training_sources(
@@ -26,7 +137,12 @@ def training_sources(
 ) -> list[TensorDictBase]:
     """The episodes retraining sees after round ``round_index``: the BC data and the window of rounds."""
     first = 1 if window is None else max(1, round_index - window + 1)
-    paths = [output / "rounds" / f"round-{r:02d}" for r in range(first, round_index + 1)]
-    if missing := [path for path in paths if not path.is_dir()]:  # e.g. last.pt copied without the rounds
-        raise FileNotFoundError(f"DAgger round data {missing[0]} is missing, so {output} cannot resume; delete it to start over.")
-    return ([bc_episodes] if bc_episodes is not None else []) + [TensorDict.load_memmap(path) for path in paths]
+    paths = [round_directory(output, r) for r in range(first, round_index + 1)]
+    if missing := [path for path in paths if not (path / "meta.json").exists()]:  # e.g. last.pt copied without the rounds
+        raise FileNotFoundError(
+            f"DAgger round data {missing[0]} is missing or incomplete, so {output} cannot resume; delete it to start over."
+        )
+    return ([bc_episodes] if bc_episodes is not None else []) + [RoundStore(path).episodes for path in paths]
+
+
+__all__ = ["RoundConfig", "RoundError", "RoundStore", "round_directory", "training_sources"]
