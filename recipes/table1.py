@@ -19,7 +19,9 @@ the best validation success of each row to the row's shipped name
 ``checkpoints/<row>.pt``. DAgger checkpoints (a DAgger column for ``spf-s0.8``, ``rpf-s1`` and
 ``rpf_original-s1``) are never trained here: a finished run of the row's DAgger preset
 (``python recipes/dagger.py --preset dagger_long|dagger_rpf|dagger_rpf_original seed=S``) is copied
-to ``checkpoints/table1/dagger-<row>-seed<S>.pt``, or put one there yourself.
+to ``checkpoints/table1/dagger-<row>-seed<S>.pt`` (or put one there yourself), and its best
+seed by validation to ``checkpoints/dagger-<row>.pt``. ``--from-checkpoints`` trains
+nothing, but still copies and ships what finished runs left.
 
 Every checkpoint is scored on the same episodes: the ``test`` set (``bc_long``'s test
 config: 1,000 episodes of the 18 test houses, seed 2, ``paper`` noise) and the
@@ -34,7 +36,7 @@ bootstrap tests of the ordering claims (:data:`CLAIMS`), both success criteria.
 
 Usage::
 
-    python recipes/table1.py --from-checkpoints          # score checkpoints/table1/ (no training)
+    python recipes/table1.py --from-checkpoints          # score checkpoints/table1/ and finished runs (no training)
     python recipes/table1.py                             # train what is missing, then score
     python recipes/table1.py --rows spf-s0.8,action_only-s0 --seeds 0,1 --sets test
     python recipes/table1.py --quick --from-checkpoints --rows open_loop   # smoke run under runs/table1_quick/
@@ -176,7 +178,10 @@ def seed_list(text: str) -> list[int]:
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     """The options, all checked before any work (a bad one exits with a message naming it)."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--from-checkpoints", action="store_true", help="only score existing checkpoints (no training)")
+    parser.add_argument(
+        "--from-checkpoints", action="store_true",
+        help="train nothing: score the checkpoints there are (finished runs are still copied and shipped)",
+    )
     parser.add_argument("--rows", type=comma_list(tuple(ROW_BY_NAME), "row"), default=list(ROW_BY_NAME))
     parser.add_argument("--seeds", type=seed_list, default=[0, 1, 2])
     parser.add_argument("--sets", type=comma_list(SETS, "set"), default=list(SETS))
@@ -252,34 +257,48 @@ def dagger_run_dir(row: RowSpec, seed: int) -> Path | None:
     return Path(load_config(DAggerConfig, "dagger", [f"seed={seed}"], preset=row.dagger_preset).output_dir)
 
 
-def train_missing(rows: list[RowSpec], seeds: list[int], overrides: list[str], checkpoints: Path, quick: bool) -> dict:
-    """Train (or resume) every missing row x seed, copy per-seed and best checkpoints; returns ``{row: shipped}``."""
+def ship_best(checkpoints: Path, line: str, scores: dict) -> dict | None:
+    """Copy the per-seed checkpoint of the seed with the best validation ``(success, spl)`` to ``<line>.pt``."""
+    if not scores:
+        return None
+    seed = max(scores, key=lambda s: (*scores[s], -s))
+    copy_atomic(seed_checkpoint(checkpoints, line, seed), checkpoints / f"{line}.pt")
+    logger.info("%s: seed %d is the best by validation (success %.3f): copied to %s.pt", line, seed, scores[seed][0],
+                checkpoints / line)
+    return {"seed": seed, "val_success": scores[seed][0], "val_spl": scores[seed][1]}
+
+
+def train_missing(
+    rows: list[RowSpec], seeds: list[int], overrides: list[str], checkpoints: Path, quick: bool, train: bool = True
+) -> dict:
+    """Train (or resume) every missing row x seed (with ``train``), copy the best checkpoint of every finished
+    BC and DAgger run to its per-seed name, and ship each line's best seed by validation; returns ``{line: shipped}``."""
     from spf_rl.train.bc import train_bc
 
     shipped = {}
     for row in (row for row in rows if row.preset):
-        scores = {}
+        scores, dagger_scores = {}, {}
         for seed in seeds:
             config = row_config(row, seed, overrides, quick)
             run_dir, target = Path(config.output_dir), seed_checkpoint(checkpoints, row.name, seed)
-            if not (run_dir / "results.json").exists() and not target.exists():
+            if train and not (run_dir / "results.json").exists() and not target.exists():
                 logger.info("training %s seed %d in %s (preset %s)", row.name, seed, run_dir, preset_of(row, quick))
                 train_bc(config)
             if (run_dir / "results.json").exists():
                 if not target.exists():
                     copy_atomic(run_dir / "best.pt", target)
                 best = json.loads((run_dir / "results.json").read_text())["val_best"]
-                scores[seed] = (best["success"], best["spl"], -seed)
-            dagger_dir = dagger_run_dir(row, seed)
-            dagger_target = seed_checkpoint(checkpoints, f"dagger-{row.name}", seed)
-            if dagger_dir and (dagger_dir / "results.json").exists() and not dagger_target.exists():
-                copy_atomic(dagger_dir / "best.pt", dagger_target)
-        if scores:
-            seed = max(scores, key=scores.get)
-            copy_atomic(seed_checkpoint(checkpoints, row.name, seed), checkpoints / f"{row.name}.pt")
-            shipped[row.name] = {"seed": seed, "val_success": scores[seed][0], "val_spl": scores[seed][1]}
-            logger.info("%s: seed %d is the best by validation (success %.3f): copied to %s.pt", row.name, seed,
-                        scores[seed][0], checkpoints / row.name)
+                scores[seed] = (best["success"], best["spl"])
+            dagger_dir = None if quick else dagger_run_dir(row, seed)  # --quick trains no DAgger
+            if dagger_dir and (dagger_dir / "results.json").exists():
+                dagger_target = seed_checkpoint(checkpoints, f"dagger-{row.name}", seed)
+                if not dagger_target.exists():
+                    copy_atomic(dagger_dir / "best.pt", dagger_target)
+                best = json.loads((dagger_dir / "results.json").read_text())["best"]
+                dagger_scores[seed] = (best["val_success"], best["val_spl"])
+        for line, line_scores in ((row.name, scores), (f"dagger-{row.name}", dagger_scores)):
+            if (picked := ship_best(checkpoints, line, line_scores)) is not None:
+                shipped[line] = picked
     return shipped
 
 
@@ -358,7 +377,7 @@ def main(argv: list[str] | None = None) -> dict:
     base = load_config(BCConfig, "bc", args.overrides, preset="bc_long")
     device = str(resolve_device(base.device))
     rows = [ROW_BY_NAME[name] for name in args.rows]
-    shipped = {} if args.from_checkpoints else train_missing(rows, args.seeds, args.overrides, args.checkpoints, args.quick)
+    shipped = train_missing(rows, args.seeds, args.overrides, args.checkpoints, args.quick, train=not args.from_checkpoints)
     sets = {name: args.eval_sets[name] for name in args.sets}
     lines = table_lines(rows, base.data.demo_length, base.data.image_size)
     evaluations, missing = evaluate_all(lines, args.seeds, sets, args, device)

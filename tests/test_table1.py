@@ -177,6 +177,27 @@ def test_training_copies_each_finished_seed_and_ships_the_best_by_validation(tmp
     assert trained == []  # finished runs are not trained again
 
 
+def test_from_checkpoints_trains_nothing_but_ships_finished_bc_and_dagger_runs(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("spf_rl.train.bc.train_bc", lambda config: pytest.fail("--from-checkpoints must not train"))
+    for seed, val in ((0, 0.81), (2, 0.84)):  # seed 1 has no finished run
+        run = Path(f"runs/bc_long/spf-s0.8-seed{seed}")
+        run.mkdir(parents=True)
+        (run / "best.pt").write_text(f"bc seed {seed}")
+        (run / "results.json").write_text(json.dumps({"val_best": {"success": val, "spl": val, "epoch": 3}}))
+        dagger = Path(f"runs/dagger_long/spf-s0.8-seed{seed}")
+        dagger.mkdir(parents=True)
+        (dagger / "best.pt").write_text(f"dagger seed {seed}")
+        dagger_val = 0.9 - val / 10  # seed 0 is DAgger's best
+        (dagger / "results.json").write_text(json.dumps({"best": {"round": 2, "val_success": dagger_val, "val_spl": 0.5}}))
+    checkpoints = tmp_path / "checkpoints"
+    shipped = table1.train_missing([table1.ROW_BY_NAME["spf-s0.8"]], [0, 1, 2], [], checkpoints, False, train=False)
+    assert shipped["spf-s0.8"]["seed"] == 2 and (checkpoints / "spf-s0.8.pt").read_text() == "bc seed 2"
+    assert shipped["dagger-spf-s0.8"]["seed"] == 0 and (checkpoints / "dagger-spf-s0.8.pt").read_text() == "dagger seed 0"
+    assert (checkpoints / "table1" / "dagger-spf-s0.8-seed2.pt").read_text() == "dagger seed 2"
+    assert not (checkpoints / "table1" / "spf-s0.8-seed1.pt").exists()
+
+
 def test_dagger_column_reads_the_dagger_presets_run_directories():
     assert table1.dagger_run_dir(table1.ROW_BY_NAME["spf-s0.8"], 2) == Path("runs/dagger_long/spf-s0.8-seed2")
     assert table1.dagger_run_dir(table1.ROW_BY_NAME["rpf-s1"], 0) == Path("runs/dagger_rpf/rpf-s1.0-seed0")
