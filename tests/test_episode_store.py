@@ -133,6 +133,28 @@ def test_evaluation_scores_the_same_with_and_without_the_store(kind, tmp_path, m
     assert (tmp_path / "kept" / episode_store_name(config) / "meta.json").exists()
 
 
+@pytest.mark.parametrize("kind", ["spf", "frames_every_step"])
+def test_unrendered_evaluation_feeds_frame_readers_blank_frames(kind):
+    """With ``render=False`` there is no store; a policy that reads ``demo_frames`` gets
+    the env's blank frames (zeros), the same episodes as the expert plays."""
+    seen = []
+
+    class Recording(FramesEveryStep):
+        def forward(self, frames):
+            seen.append(frames)
+            return super().forward(frames)
+
+    if kind == "spf":
+        torch.manual_seed(0)
+        policy = build_policy("spf", SPFConfig(sparsity=0.5, feature_dim=8, hidden_size=8, demo_length=6, image_size=(32, 32)))
+    else:
+        policy = TensorDictModule(Recording(), in_keys=["demo_frames"], out_keys=["logits"])
+    summary, records = evaluate_policy(policy, _eval_config(render=False))
+    assert len(records) == EPISODES and 0.0 <= summary["success"] <= 1.0
+    if kind != "spf":
+        assert seen and all(int(frames.count_nonzero()) == 0 for frames in seen)
+
+
 def test_a_kept_episode_store_is_built_once(tmp_path, monkeypatch):
     policy = TensorDictModule(FramesEveryStep(), in_keys=["demo_frames"], out_keys=["logits"])
     config = _eval_config(store_root=str(tmp_path), num_episodes=3)

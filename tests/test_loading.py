@@ -14,6 +14,7 @@ from spf_rl.train.models import build_policy
 
 SHIPPED = [
     "action_only-s0",
+    "dagger-rpf_original-s1",
     "dagger-spf-s0.8",
     "homing-spf-s0.8",
     "lengths-spf-s0.8",
@@ -44,6 +45,7 @@ def test_config_has_the_memory_of_the_model_type():
     assert spf_rl.load_policy("rpf-s1").config.memory_mode == "full"
     original = spf_rl.load_policy("rpf_original-s1").config
     assert original.memory_mode == "full" and original.pointer_update == "rpf"
+    assert spf_rl.load_policy("dagger-rpf_original-s1")[1] == original
     assert spf_rl.load_policy("action_only-s0").config.memory_length == 0
     assert spf_rl.load_policy("spf-s0.4").config.memory_length == 12
     assert spf_rl.load_policy("spf_random-s0.2-1").config.sparsity_range == (0.2, 1.0)

@@ -171,8 +171,9 @@ def make_eval_env(
 
     With ``demo_store`` (an episode store of ``config``, :func:`episode_store`) it
     emits ``demo_id`` instead of the demonstration frames; with ``render=False``, no
-    frames (they would be blank).
+    frames (they would be blank) unless ``policy`` reads ``demo_frames``.
     """
+    reads_frames = policy is not None and "demo_frames" in policy.in_keys
     transforms = [ActuationNoise(config.noise), InitTracker()]
     if policy is not None and hasattr(policy, "make_tensordict_primer"):
         transforms.append(policy.make_tensordict_primer())
@@ -187,7 +188,7 @@ def make_eval_env(
             render=config.render,
             task=config.task,
             demo_store=demo_store,
-            emit_demo_frames=demo_store is None and config.render,
+            emit_demo_frames=demo_store is None and (config.render or reads_frames),
         ),
         Compose(*transforms),
     )
