@@ -267,6 +267,57 @@ def markdown(table: dict) -> str:
     return "\n".join(out) + "\n"
 
 
+def short_cell(stats: dict | None, metric: str) -> str:
+    """``mean ± sd`` (no sd for one seed), or ``-``: the README's cell."""
+    if not stats:
+        return "-"
+    value = stats[metric]
+    return f"{value['mean']:.3f}" + ("" if value["sd"] is None else f" ± {value['sd']:.3f}")
+
+
+def summary_markdown(table: dict) -> str:
+    """The README's results: test-set success and SPL per row (mean ± sd over seeds), the
+    DAgger column, the paper's numbers, then the ordering claims on test-set success.
+
+    Examples:
+        >>> stats = {"success": {"mean": 0.8, "sd": None}, "spl": {"mean": 0.75, "sd": None}}
+        >>> row = {"name": "spf-s0.8", "checkpoint_stem": "spf-s0.8", "label": "SPF 0.8", "model": "spf", "dagger_of": None, "seeds": [0],
+        ...        "seeds_expected": [0, 1], "missing_seeds": [1], "sets": {"test": stats},
+        ...        "paper_success": 0.819, "paper_spl": 0.737}
+        >>> print(summary_markdown({"rows": [row], "claims": []}).splitlines()[2])
+        | SPF 0.8 | `spf-s0.8` | 1 of 2 | 0.800 | 0.750 | - | 0.819 / 0.737 |
+    """
+    dagger = {row["dagger_of"]: row for row in table["rows"] if row["dagger_of"]}
+    out = [
+        "| model | checkpoint | seeds | success | SPL | + DAgger: success | paper: success / SPL |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for row in (r for r in table["rows"] if not r["dagger_of"]):
+        test = row["sets"].get("test")
+        seeds = "-" if row["model"] == "open_loop" else f"{len(row['seeds'])} of {len(row['seeds_expected'])}"
+        dagger_row = dagger.get(row["name"])
+        dagger_text = "-"
+        if dagger_row and dagger_row["sets"].get("test"):
+            dagger_text = f"{short_cell(dagger_row['sets']['test'], 'success')} ({len(dagger_row['seeds'])} of {len(dagger_row['seeds_expected'])})"
+        paper = "-" if row["paper_success"] is None else f"{row['paper_success']:.3f} / {row['paper_spl']:.3f}"
+        checkpoint = "-" if row["model"] == "open_loop" else f"`{row['checkpoint_stem']}`"
+        out.append(
+            f"| {row['label']} | {checkpoint} | {seeds} | {short_cell(test, 'success')} | {short_cell(test, 'spl')} "
+            f"| {dagger_text} | {paper} |"
+        )
+    claims = [c for c in table["claims"] if "skipped" not in c and c["set"] == "test" and c["metric"] == "success"]
+    if claims:
+        out += ["", "| claim (test success, paired) | a - b [95% CI] | p (a > b) | holds |", "|---|---|---|---|"]
+        for claim in claims:
+            low, high = claim["ci"]
+            p = claim["p_greater"]
+            out.append(
+                f"| {claim['claim']} | {claim['difference']:+.3f} [{low:+.3f}, {high:+.3f}] "
+                f"| {'< 1e-4' if p < 1e-4 else f'{p:.3f}'} | {'yes' if claim['holds'] else 'no'} |"
+            )
+    return "\n".join(out) + "\n"
+
+
 def plot(table: dict, path: Path) -> None:
     """Success and SPL per line: ours on both sets and DAgger with house-level intervals, the seeds'
     means as small dots, the paper's numbers as stars; the series are side by side within each line."""
@@ -316,10 +367,12 @@ def plot(table: dict, path: Path) -> None:
 
 
 def write_reports(table: dict, out: Path) -> None:
-    """``table1.json``, ``table1.md`` and ``table1.png`` in ``out``, each written atomically."""
+    """``table1.json``, ``table1.md``, ``table1_summary.md`` (the README's table) and
+    ``table1.png`` in ``out``, each written atomically."""
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out / "table1.json", table)
     text = markdown(table)
     atomic_write_text(out / "table1.md", text)
+    atomic_write_text(out / "table1_summary.md", summary_markdown(table))
     plot(table, out / "table1.png")
     logger.info("wrote %s/table1.{json,md,png}\n%s", out, text)

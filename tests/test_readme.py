@@ -1,4 +1,4 @@
-"""The README's python code blocks run as written.
+"""The README's python code blocks run as written, and its results are Table 1's JSON.
 
 Each fenced ``python`` block runs in a fresh namespace in a temporary working
 directory. A block whose first line is ``# readme-test: skip`` is not run (none of
@@ -6,12 +6,18 @@ the README's examples is marked so).
 """
 from __future__ import annotations
 
+import json
 import re
+import sys
 from pathlib import Path
 
 import pytest
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
+from table1_report import summary_markdown  # noqa: E402
+
 README = Path(__file__).resolve().parents[1] / "README.md"
+TABLE1 = README.parent / "results" / "table1.json"
 SKIP_MARKER = "# readme-test: skip"
 BLOCK = re.compile(r"^```python\n(.*?)^```", re.DOTALL | re.MULTILINE)
 
@@ -43,3 +49,10 @@ def test_readme_block_runs(line, code, tmp_path, monkeypatch):
         pytest.skip(f"README.md:{line} is marked {SKIP_MARKER!r}")
     monkeypatch.chdir(tmp_path)
     exec(compile(code, f"README.md:{line}", "exec"), {"__name__": "__main__"})
+
+
+def test_readme_results_are_the_committed_table1():
+    """The README's results table is ``summary_markdown`` of ``results/table1.json``,
+    so a rerun of ``recipes/table1.py`` that changes a number fails here until the README follows."""
+    expected = summary_markdown(json.loads(TABLE1.read_text()))
+    assert expected in README.read_text()
