@@ -281,7 +281,7 @@ def summary_markdown(table: dict) -> str:
 
     Examples:
         >>> stats = {"success": {"mean": 0.8, "sd": None}, "spl": {"mean": 0.75, "sd": None}}
-        >>> row = {"name": "spf-s0.8", "checkpoint_stem": "spf-s0.8", "label": "SPF 0.8", "model": "spf", "dagger_of": None, "seeds": [0],
+        >>> row = {"name": "spf-s0.8", "row": "spf-s0.8", "checkpoint_stem": "spf-s0.8", "label": "SPF 0.8", "model": "spf", "dagger_of": None, "seeds": [0],
         ...        "seeds_expected": [0, 1], "missing_seeds": [1], "sets": {"test": stats},
         ...        "paper_success": 0.819, "paper_spl": 0.737}
         >>> print(summary_markdown({"rows": [row], "claims": []}).splitlines()[2])
@@ -292,8 +292,12 @@ def summary_markdown(table: dict) -> str:
         "| model | checkpoint | seeds | success | SPL | + DAgger: success | paper: success / SPL |",
         "|---|---|---|---|---|---|---|",
     ]
+    untrained: dict[str, str] = {}
     for row in (r for r in table["rows"] if not r["dagger_of"]):
         test = row["sets"].get("test")
+        if not test:  # no seed scored yet: named below the table, once per row
+            untrained.setdefault(row["row"], row["label"].split(",")[0])
+            continue
         seeds = "-" if row["model"] == "open_loop" else f"{len(row['seeds'])} of {len(row['seeds_expected'])}"
         dagger_row = dagger.get(row["name"])
         dagger_text = "-"
@@ -305,6 +309,8 @@ def summary_markdown(table: dict) -> str:
             f"| {row['label']} | {checkpoint} | {seeds} | {short_cell(test, 'success')} | {short_cell(test, 'spl')} "
             f"| {dagger_text} | {paper} |"
         )
+    if untrained:
+        out += ["", f"Not scored yet (no checkpoint of this noise model): {', '.join(untrained.values())}."]
     claims = [c for c in table["claims"] if "skipped" not in c and c["set"] == "test" and c["metric"] == "success"]
     if claims:
         out += ["", "| claim (test success, paired) | a - b [95% CI] | p (a > b) | holds |", "|---|---|---|---|"]

@@ -210,3 +210,24 @@ def test_dagger_column_reads_the_dagger_presets_run_directories():
         dagger = load_config(DAggerConfig, "dagger", ["seed=1"], preset=row.dagger_preset)
         bc = table1.row_config(row, 1, [], quick=False)
         assert Path(dagger.checkpoint) == Path(bc.output_dir) / "best.pt" and dagger.bc_data == bc.data
+
+
+def test_summary_names_unscored_rows_once_and_keeps_test_success_claims():
+    from table1_report import summary_markdown
+
+    stats = {"success": {"mean": 0.8, "sd": 0.01}, "spl": {"mean": 0.7, "sd": 0.02}}
+    base = {"model": "spf", "dagger_of": None, "seeds": [0, 1], "seeds_expected": [0, 1, 2], "missing_seeds": [2],
+            "paper_success": None, "paper_spl": None}
+    rows = [
+        {**base, "name": "spf-s0.8", "row": "spf-s0.8", "checkpoint_stem": "spf-s0.8", "label": "SPF 0.8", "sets": {"test": stats}},
+        {**base, "name": "dagger-spf-s0.8", "row": "dagger-spf-s0.8", "checkpoint_stem": "dagger-spf-s0.8",
+         "label": "DAgger", "dagger_of": "spf-s0.8", "seeds": [0], "sets": {"test": stats}},
+        *({**base, "name": f"r@{s}", "row": "r", "checkpoint_stem": "r", "label": f"Random, at {s}", "seeds": [], "sets": {}}
+          for s in (0.4, 0.8)),
+    ]
+    claim = {"claim": "a beats b", "set": "test", "metric": "success", "difference": 0.1, "ci": [0.05, 0.15],
+             "p_greater": 0.0, "holds": True}
+    text = summary_markdown({"rows": rows, "claims": [claim, {**claim, "metric": "spl"}, {**claim, "set": "extended"}]})
+    assert "| SPF 0.8 | `spf-s0.8` | 2 of 3 | 0.800 ± 0.010 | 0.700 ± 0.020 | 0.800 ± 0.010 (1 of 3) | - |" in text
+    assert text.count("Random") == 1 and "Not scored yet (no checkpoint of this noise model): Random." in text
+    assert text.count("a beats b") == 1 and "| a beats b | +0.100 [+0.050, +0.150] | < 1e-4 | yes |" in text
