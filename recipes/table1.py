@@ -90,6 +90,9 @@ ROWS = (
             dagger_preset="dagger_rpf"),
     RowSpec("rpf_original-s1", "RPF (original)", "rpf_original", 1.0, "bc_row", ("model=rpf_original", "sparsity=1"),
             (0.833, 0.752), dagger_preset="dagger_rpf_original"),
+    RowSpec("spf_rpf_pointer-s0.8", "SPF 0.8 with RPF's pointer rule (beyond the paper)", "spf", 0.8, "bc_row",
+            ("model=spf", "sparsity=0.8", "model.pointer_update=rpf",
+             "output_dir=runs/ablation/spf_rpf_pointer-s0.8-seed${seed}"), dagger_preset="dagger_spf_rpf_pointer"),
     RowSpec("action_only-s0", "RPF action only", "action_only", 0.0, "bc_row", ("model=action_only",), (0.782, 0.648)),
     RowSpec("open_loop", "open-loop replay", "open_loop", 0.0, None),
     RowSpec("spf_random-s0.2-1", "SPF random sparsity 0.2-1", RANDOM_MODEL, 0.8, "bc_row", ("model=spf_random",),
@@ -108,6 +111,7 @@ CLAIMS = (
     ("dagger-spf-s0.8", "spf-s0.8", "DAgger improves SPF 0.8"),
     ("dagger-rpf-s1", "rpf-s1", "DAgger improves SPF at sparsity 1"),
     ("dagger-rpf_original-s1", "rpf_original-s1", "DAgger improves the original RPF"),
+    ("dagger-spf_rpf_pointer-s0.8", "spf_rpf_pointer-s0.8", "DAgger improves SPF 0.8 with RPF's pointer rule"),
 )
 SETS = ("test", "extended")
 #: Houses of the extended test set.

@@ -231,3 +231,21 @@ def test_summary_names_unscored_rows_once_and_keeps_test_success_claims():
     assert "| SPF 0.8 | `spf-s0.8` | 2 of 3 | 0.800 ± 0.010 | 0.700 ± 0.020 | 0.800 ± 0.010 (1 of 3) | - |" in text
     assert text.count("Random") == 1 and "Not scored yet (no checkpoint of this noise model): Random." in text
     assert text.count("a beats b") == 1 and "| a beats b | +0.100 [+0.050, +0.150] | < 1e-4 | yes |" in text
+
+
+@pytest.mark.parametrize("row", [row for row in table1.ROWS if row.dagger_preset], ids=lambda row: row.name)
+def test_every_dagger_preset_starts_from_its_rows_run(row):
+    """A row's DAgger preset starts from that row's own BC run (per seed), so the DAgger column is the row's."""
+    from spf_rl.train.dagger import DAggerConfig
+
+    for seed in (0, 2):
+        dagger = load_config(DAggerConfig, "dagger", [f"seed={seed}"], preset=row.dagger_preset)
+        bc = table1.row_config(row, seed, [], quick=False)
+        assert Path(dagger.checkpoint) == Path(bc.output_dir) / "best.pt"
+        assert dagger.bc_data.num_episodes == bc.data.num_episodes
+
+
+def test_the_pointer_row_trains_spf_with_rpfs_pointer_rule():
+    config = table1.row_config(table1.ROW_BY_NAME["spf_rpf_pointer-s0.8"], 1, [], quick=False)
+    assert (config.model.name, config.model.sparsity, config.model.pointer_update) == ("spf", 0.8, "rpf")
+    assert config.output_dir.endswith("spf_rpf_pointer-s0.8-seed1")
