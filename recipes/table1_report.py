@@ -319,7 +319,7 @@ def summary_markdown(table: dict) -> str:
             p = claim["p_greater"]
             out.append(
                 f"| {claim['claim']} | {claim['difference']:+.3f} [{low:+.3f}, {high:+.3f}] "
-                f"| {'< 1e-4' if p < 1e-4 else f'{p:.3f}'} | {'yes' if claim['holds'] else 'no'} |"
+                f"| {'< 1e-4' if p < 1e-4 else f'{p:.4f}'} | {'yes' if claim['holds'] else 'no'} |"
             )
     return "\n".join(out) + "\n"
 
