@@ -276,12 +276,16 @@ def train_missing(
     rows: list[RowSpec], seeds: list[int], overrides: list[str], checkpoints: Path, quick: bool, train: bool = True
 ) -> dict:
     """Train (or resume) every missing row x seed (with ``train``), copy the best checkpoint of every finished
-    BC and DAgger run to its per-seed name, and ship each line's best seed by validation; returns ``{line: shipped}``."""
+    BC and DAgger run to its per-seed name, and ship each line's best seed by validation; returns ``{line: shipped}``.
+
+    A line with a per-seed checkpoint whose run directory has no results (its validation score is unknown, e.g.
+    a run directory that was lost) is not re-shipped: its shipped checkpoint is left as it is."""
     from spf_rl.train.bc import train_bc
 
     shipped = {}
     for row in (row for row in rows if row.preset):
         scores, dagger_scores = {}, {}
+        unscored: dict[str, list[int]] = {row.name: [], f"dagger-{row.name}": []}
         for seed in seeds:
             config = row_config(row, seed, overrides, quick)
             run_dir, target = Path(config.output_dir), seed_checkpoint(checkpoints, row.name, seed)
@@ -293,6 +297,8 @@ def train_missing(
                     copy_atomic(run_dir / "best.pt", target)
                 best = json.loads((run_dir / "results.json").read_text())["val_best"]
                 scores[seed] = (best["success"], best["spl"])
+            elif target.exists():
+                unscored[row.name].append(seed)
             dagger_dir = None if quick else dagger_run_dir(row, seed)  # --quick trains no DAgger
             if dagger_dir and (dagger_dir / "results.json").exists():
                 dagger_target = seed_checkpoint(checkpoints, f"dagger-{row.name}", seed)
@@ -300,7 +306,15 @@ def train_missing(
                     copy_atomic(dagger_dir / "best.pt", dagger_target)
                 best = json.loads((dagger_dir / "results.json").read_text())["best"]
                 dagger_scores[seed] = (best["val_success"], best["val_spl"])
+            elif dagger_dir and seed_checkpoint(checkpoints, f"dagger-{row.name}", seed).exists():
+                unscored[f"dagger-{row.name}"].append(seed)
         for line, line_scores in ((row.name, scores), (f"dagger-{row.name}", dagger_scores)):
+            if unscored[line]:  # a seed's validation score is unknown: it may be the best, so ship nothing new
+                logger.warning(
+                    "%s: seed(s) %s have a checkpoint in %s/table1 but no run results (validation unknown): "
+                    "%s.pt is left as it is", line, unscored[line], checkpoints, line,
+                )
+                continue
             if (picked := ship_best(checkpoints, line, line_scores)) is not None:
                 shipped[line] = picked
     return shipped

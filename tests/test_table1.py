@@ -249,3 +249,26 @@ def test_the_pointer_row_trains_spf_with_rpfs_pointer_rule():
     config = table1.row_config(table1.ROW_BY_NAME["spf_rpf_pointer-s0.8"], 1, [], quick=False)
     assert (config.model.name, config.model.sparsity, config.model.pointer_update) == ("spf", 0.8, "rpf")
     assert config.output_dir.endswith("spf_rpf_pointer-s0.8-seed1")
+
+
+def test_a_seed_without_run_results_blocks_reshipping_its_line(tmp_path, monkeypatch):
+    """A per-seed DAgger checkpoint whose run directory is gone has no validation score: the shipped file stays."""
+    monkeypatch.chdir(tmp_path)
+    checkpoints = tmp_path / "checkpoints"
+    (checkpoints / "table1").mkdir(parents=True)
+    (checkpoints / "table1" / "dagger-rpf_original-s1-seed0.pt").write_text("dagger seed 0, run lost")
+    (checkpoints / "dagger-rpf_original-s1.pt").write_text("dagger seed 0, run lost")
+    for seed in (0, 1):
+        run = Path(f"runs/bc_row/rpf_original-s1.0-seed{seed}")
+        run.mkdir(parents=True)
+        (run / "best.pt").write_text(f"bc seed {seed}")
+        (run / "results.json").write_text(json.dumps({"val_best": {"success": 0.8 + seed / 100, "spl": 0.8, "epoch": 3}}))
+    dagger = Path("runs/dagger_rpf_original/rpf_original-s1.0-seed1")
+    dagger.mkdir(parents=True)
+    (dagger / "best.pt").write_text("dagger seed 1")
+    (dagger / "results.json").write_text(json.dumps({"best": {"round": 4, "val_success": 0.88, "val_spl": 0.87}}))
+    shipped = table1.train_missing([table1.ROW_BY_NAME["rpf_original-s1"]], [0, 1, 2], [], checkpoints, False, train=False)
+    assert shipped["rpf_original-s1"]["seed"] == 1
+    assert "dagger-rpf_original-s1" not in shipped
+    assert (checkpoints / "dagger-rpf_original-s1.pt").read_text() == "dagger seed 0, run lost"
+    assert (checkpoints / "table1" / "dagger-rpf_original-s1-seed1.pt").read_text() == "dagger seed 1"
