@@ -194,19 +194,24 @@ def build_table(
 
 
 # ---------------------------------------------------------------------- reports
-def cell(stats: dict | None, metric: str) -> str:
-    """``mean +- sd [low, high]`` (no sd for one evaluation), or ``-``."""
+def cell(stats: dict | None, metric: str, with_ci: bool = True) -> str:
+    """``mean +- sd [low, high]`` (no sd for one evaluation; no interval without ``with_ci``), or ``-``."""
     if not stats:
         return "-"
     value = stats[metric]
     sd = "" if value["sd"] is None else f" ± {value['sd']:.3f}"
-    return f"{value['mean']:.3f}{sd} [{value['ci'][0]:.3f}, {value['ci'][1]:.3f}]"
+    return f"{value['mean']:.3f}{sd}" + (f" [{value['ci'][0]:.3f}, {value['ci'][1]:.3f}]" if with_ci else "")
+
+
+def seed_count(row: dict) -> str:
+    """``"<scored> of <expected>"`` seeds of a line."""
+    return f"{len(row['seeds'])} of {len(row['seeds_expected'])}"
 
 
 def seeds_cell(row: dict) -> str:
     if row["model"] == "open_loop":
         return "- (not trained)"
-    text = f"{len(row['seeds'])} of {len(row['seeds_expected'])}"
+    text = seed_count(row)
     return text + (f" (missing: {', '.join(map(str, row['missing_seeds']))})" if row["missing_seeds"] else "")
 
 
@@ -267,14 +272,6 @@ def markdown(table: dict) -> str:
     return "\n".join(out) + "\n"
 
 
-def short_cell(stats: dict | None, metric: str) -> str:
-    """``mean ± sd`` (no sd for one seed), or ``-``: the README's cell."""
-    if not stats:
-        return "-"
-    value = stats[metric]
-    return f"{value['mean']:.3f}" + ("" if value["sd"] is None else f" ± {value['sd']:.3f}")
-
-
 def summary_markdown(table: dict) -> str:
     """The README's results: test-set success and SPL per row (mean ± sd over seeds), the
     DAgger column, the paper's numbers, then the ordering claims on test-set success.
@@ -298,15 +295,15 @@ def summary_markdown(table: dict) -> str:
         if not test:  # no seed scored yet: named below the table, once per row
             untrained.setdefault(row["row"], row["label"].split(",")[0])
             continue
-        seeds = "-" if row["model"] == "open_loop" else f"{len(row['seeds'])} of {len(row['seeds_expected'])}"
+        seeds = "-" if row["model"] == "open_loop" else seed_count(row)
         dagger_row = dagger.get(row["name"])
         dagger_text = "-"
         if dagger_row and dagger_row["sets"].get("test"):
-            dagger_text = f"{short_cell(dagger_row['sets']['test'], 'success')} ({len(dagger_row['seeds'])} of {len(dagger_row['seeds_expected'])})"
+            dagger_text = f"{cell(dagger_row['sets']['test'], 'success', with_ci=False)} ({seed_count(dagger_row)})"
         paper = "-" if row["paper_success"] is None else f"{row['paper_success']:.3f} / {row['paper_spl']:.3f}"
         checkpoint = "-" if row["model"] == "open_loop" else f"`{row['checkpoint_stem']}`"
         out.append(
-            f"| {row['label']} | {checkpoint} | {seeds} | {short_cell(test, 'success')} | {short_cell(test, 'spl')} "
+            f"| {row['label']} | {checkpoint} | {seeds} | {cell(test, 'success', with_ci=False)} | {cell(test, 'spl', with_ci=False)} "
             f"| {dagger_text} | {paper} |"
         )
     if untrained:
