@@ -120,6 +120,21 @@ class DemoStoreConfig:
         elif not isinstance(self.min_route_length_m, (int, float)) or not self.min_route_length_m >= 0:
             raise ValueError(f"min_route_length_m must be a number >= 0 (metres) or None, got {self.min_route_length_m!r}.")
 
+    @classmethod
+    def of_episodes(cls, episodes) -> DemoStoreConfig:
+        """The episode store of a set of numbered episodes: ``episodes`` has ``num_episodes``,
+        ``seed`` (the env seed), ``split``, ``num_houses``, ``demo_length``, ``image_size`` and
+        ``task`` (an evaluation's or a dataset's configuration)."""
+        return cls(
+            num_demos=episodes.num_episodes,
+            split=episodes.split,
+            num_houses=episodes.num_houses,
+            demo_length=episodes.demo_length,
+            image_size=episodes.image_size,
+            task=episodes.task,
+            episodes_seed=episodes.seed,
+        )
+
     @property
     def grid(self) -> int:
         """The houses' grid, cells (``grid_size_cells``, or the default for ``demo_length``)."""

@@ -198,15 +198,7 @@ def make_eval_env(
 
 def episode_store_config(config: EvalConfig) -> DemoStoreConfig:
     """The episode store of ``config``: the demonstrations of its episodes ``0 .. E - 1``."""
-    return DemoStoreConfig(
-        num_demos=config.num_episodes,
-        split=config.split,
-        num_houses=config.num_houses,
-        demo_length=config.demo_length,
-        image_size=config.image_size,
-        task=config.task,
-        episodes_seed=config.seed,
-    )
+    return DemoStoreConfig.of_episodes(config)
 
 
 def episode_store_name(config: EvalConfig) -> str:
