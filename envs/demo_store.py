@@ -177,19 +177,27 @@ def make_demo_chunk(config: DemoStoreConfig, chunk: int) -> TensorDict:
     indices = range(first, min(first + DEMO_CHUNK_ROWS, config.num_demos))
     out = _empty(dataclasses.replace(config, num_demos=len(indices)))
     n = config.demo_length
-    renderer = FirstPersonRenderer(config.image_size, config.image_size)
-    try:
-        for row, index in enumerate(indices):
-            demo = sample_store_demonstration(config, index)
-            house = build_house(demo.house_seed)
-            renderer.render_many([house] * n, demo.poses[:n], out=out["frames"][row].numpy())
-            out["actions"][row] = torch.from_numpy(demo.actions)
-            out["poses"][row] = torch.from_numpy(demo.poses)
-            out["house_seed"][row] = demo.house_seed
-            out["shortest_length_m"][row] = demo.shortest_length_m
-    finally:
-        renderer.close()
+    renderer = _chunk_renderer(config.image_size)
+    for row, index in enumerate(indices):
+        demo = sample_store_demonstration(config, index)
+        house = build_house(demo.house_seed)
+        renderer.render_many([house] * n, demo.poses[:n], out=out["frames"][row].numpy())
+        out["actions"][row] = torch.from_numpy(demo.actions)
+        out["poses"][row] = torch.from_numpy(demo.poses)
+        out["house_seed"][row] = demo.house_seed
+        out["shortest_length_m"][row] = demo.shortest_length_m
     return out
+
+
+_CHUNK_RENDERERS: dict[int, FirstPersonRenderer] = {}
+
+
+def _chunk_renderer(image_size: int) -> FirstPersonRenderer:
+    """The renderer a process builds its store chunks with, kept across chunks and stores: a
+    house's GL resources are uploaded once per process, not once per chunk (closed at exit)."""
+    if image_size not in _CHUNK_RENDERERS:
+        _CHUNK_RENDERERS[image_size] = FirstPersonRenderer(image_size, image_size)
+    return _CHUNK_RENDERERS[image_size]
 
 
 class DemoStore(TensorStore):

@@ -229,10 +229,11 @@ def play_episode_steps(
     """Play the numbered episodes ``first .. first + count - 1`` of a seeded batched env
     with ``policy`` through a TorchRL collector and keep every step of them.
 
-    The env's numbering (:mod:`envs.episode_numbering`) must reach them: its agents
-    start at episode ``first`` (``episode_offset=first``), and ``count`` agents play one
-    episode each. A :class:`~torchrl.collectors.Collector` steps the env in batches of
-    :data:`STEPS_PER_BATCH` steps per agent until all of them have ended; steps of later
+    The env's numbering (:mod:`envs.episode_numbering`) must reach them: with
+    ``numbering.offset = first`` and stride 1, its ``N`` agents play them in turn (agent
+    ``i`` plays ``first + i``, ``first + i + N``, ...). A
+    :class:`~torchrl.collectors.Collector` steps the env in batches of
+    :data:`STEPS_PER_BATCH` steps per agent until all of them have ended; steps of other
     episodes are dropped.
 
     Args:

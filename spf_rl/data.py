@@ -76,7 +76,9 @@ class DatasetConfig:
         demo_length: demonstration length n, steps.
         max_steps: follow-episode limit, steps.
         image_size: frame side, pixels.
-        chunk_size: episodes generated together (one batched env of this many agents).
+        chunk_size: episodes per chunk, the unit of resuming and of parallel workers.
+        num_agents: agents a batched env steps together (each plays several of a chunk's
+            episodes in turn, so few agents idle while a chunk's last episodes end).
         seed: dataset seed: the episodes are episodes ``0 .. num_episodes - 1`` of an
             env seeded with it.
         task: ``"follow"`` or ``"homing"`` (:mod:`envs.homing`).
@@ -90,14 +92,15 @@ class DatasetConfig:
     demo_length: int = 30
     max_steps: int = 50
     image_size: int = 64
-    chunk_size: int = 16
+    chunk_size: int = 64
+    num_agents: int = 16
     seed: int = 0
     task: str = FOLLOW
 
     def __post_init__(self) -> None:
         check_task(self.task, "data.task")
         check_episode_source(self.split, self.num_houses, self.noise)
-        check_positive_ints(self, ("num_episodes", "demo_length", "max_steps", "image_size", "chunk_size"))
+        check_positive_ints(self, ("num_episodes", "demo_length", "max_steps", "image_size", "chunk_size", "num_agents"))
         if not 0.0 <= self.random_action_prob <= 1.0:
             raise ValueError(f"random_action_prob must be in [0, 1], got {self.random_action_prob!r}.")
 
@@ -173,8 +176,9 @@ def demos_root(root: str | os.PathLike) -> Path:
 def generate_chunk(config: DatasetConfig, chunk: int, demos: str | os.PathLike) -> TensorDict:
     """Episodes ``[chunk * chunk_size, ...)`` of a dataset (a pure function of ``config`` and their numbers).
 
-    One batched env of ``chunk_size`` agents, seeded with ``config.seed`` and drawing its
-    demonstrations from the store at ``demos``, plays them with the behaviour policy
+    One batched env of ``num_agents`` agents (fewer for a smaller chunk), seeded with
+    ``config.seed`` and drawing its demonstrations from the store at ``demos``, plays them
+    with the behaviour policy
     (the expert, or a random action with probability ``random_action_prob``) through a
     TorchRL collector; every step is labelled with the expert's action.
     """
@@ -182,7 +186,7 @@ def generate_chunk(config: DatasetConfig, chunk: int, demos: str | os.PathLike) 
 
     first = chunk * config.chunk_size
     count = min(config.chunk_size, config.num_episodes - first)
-    env = _chunk_env(config, count, first, str(demos))
+    env = _chunk_env(config, min(config.num_agents, count), first, str(demos))
     with torch.no_grad():
         return play_episode_steps(
             env, EpsilonExpertPolicy(config.random_action_prob), first, count, STEP_KEYS, config.max_steps,

@@ -49,8 +49,10 @@ def test_chunks_are_deterministic(built):
 
 
 def test_episodes_do_not_depend_on_the_chunking(built, tmp_path):
-    # every episode is a function of the seed and its number: 3 agents a chunk give the same bytes as 2
-    other = EpisodeDataset.build(tmp_path / "three", DatasetConfig(**{**TINY, "chunk_size": 3}), num_workers=1, progress=False)
+    # every episode is a function of the seed and its number: chunks of 3 episodes played by 2 agents
+    # (one of them plays two episodes of each chunk) give the bytes of chunks of 2 played by 2
+    other_config = DatasetConfig(**{**TINY, "chunk_size": 3, "num_agents": 2})
+    other = EpisodeDataset.build(tmp_path / "three", other_config, num_workers=1, progress=False)
     for key in built.episodes.keys(include_nested=True, leaves_only=True):
         assert torch.equal(other.episodes[key], built.episodes[key]), key
     random_steps = built.episodes["steps", "action"] != built.episodes["steps", "expert_action"]
