@@ -27,6 +27,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -189,15 +190,17 @@ def make_demo_chunk(config: DemoStoreConfig, chunk: int) -> TensorDict:
     return out
 
 
-_CHUNK_RENDERERS: dict[int, FirstPersonRenderer] = {}
+_CHUNK_RENDERERS: dict[tuple[int, int], FirstPersonRenderer] = {}
 
 
 def _chunk_renderer(image_size: int) -> FirstPersonRenderer:
-    """The renderer a process builds its store chunks with, kept across chunks and stores: a
-    house's GL resources are uploaded once per process, not once per chunk (closed at exit)."""
-    if image_size not in _CHUNK_RENDERERS:
-        _CHUNK_RENDERERS[image_size] = FirstPersonRenderer(image_size, image_size)
-    return _CHUNK_RENDERERS[image_size]
+    """The renderer a thread builds its store chunks with, kept across chunks and stores: a
+    house's GL resources are uploaded once per thread, not once per chunk (closed at exit).
+    One per thread: an EGL context can be current in one thread only."""
+    key = (threading.get_ident(), image_size)
+    if key not in _CHUNK_RENDERERS:
+        _CHUNK_RENDERERS[key] = FirstPersonRenderer(image_size, image_size)
+    return _CHUNK_RENDERERS[key]
 
 
 class DemoStore(TensorStore):

@@ -198,6 +198,22 @@ def run_episodes(env, policy, num_episodes: int, progress: bool = False) -> list
     if isinstance(num_episodes, bool) or not isinstance(num_episodes, int) or num_episodes <= 0:
         raise ValueError(f"num_episodes must be an int > 0, got {num_episodes!r}.")
     collector = _episode_collector(env, policy, "run_episodes")
+    try:
+        return record_episodes(collector, num_episodes, progress)
+    finally:
+        collector.shutdown(close_env=False)
+
+
+def record_episodes(collector, num_episodes: int, progress: bool = False) -> list[dict]:
+    """Iterate ``collector`` until episodes ``0 .. num_episodes - 1`` have all ended, and
+    record each once, by the number its env gave it (``episode_index``): the loop of
+    :func:`run_episodes`, for any collector over numbered envs (several worker processes
+    whose envs share one numbering, ``episode_offset=w``, ``episode_stride=W``). The caller
+    shuts the collector down.
+
+    Returns:
+        one dict per episode, ordered by episode number (as :func:`run_episodes`).
+    """
     records: dict[int, dict] = {}
     bar = tqdm(total=num_episodes, disable=not progress, desc="episodes")
     try:
@@ -211,7 +227,6 @@ def run_episodes(env, policy, num_episodes: int, progress: bool = False) -> list
             if len(records) == num_episodes:
                 break
     finally:
-        collector.shutdown(close_env=False)
         bar.close()
     return [records[number] for number in range(num_episodes)]
 
@@ -302,4 +317,4 @@ def play_episode_steps(
     return out
 
 
-__all__ = ["EpsilonExpertPolicy", "ExpertPolicy", "OpenLoopReplay", "episode_record", "play_episode_steps", "run_episodes"]
+__all__ = ["EpsilonExpertPolicy", "ExpertPolicy", "OpenLoopReplay", "episode_record", "play_episode_steps", "record_episodes", "run_episodes"]
