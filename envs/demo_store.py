@@ -27,6 +27,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -120,6 +121,21 @@ class DemoStoreConfig:
         elif not isinstance(self.min_route_length_m, (int, float)) or not self.min_route_length_m >= 0:
             raise ValueError(f"min_route_length_m must be a number >= 0 (metres) or None, got {self.min_route_length_m!r}.")
 
+    @classmethod
+    def of_episodes(cls, episodes) -> DemoStoreConfig:
+        """The episode store of a set of numbered episodes: ``episodes`` has ``num_episodes``,
+        ``seed`` (the env seed), ``split``, ``num_houses``, ``demo_length``, ``image_size`` and
+        ``task`` (an evaluation's or a dataset's configuration)."""
+        return cls(
+            num_demos=episodes.num_episodes,
+            split=episodes.split,
+            num_houses=episodes.num_houses,
+            demo_length=episodes.demo_length,
+            image_size=episodes.image_size,
+            task=episodes.task,
+            episodes_seed=episodes.seed,
+        )
+
     @property
     def grid(self) -> int:
         """The houses' grid, cells (``grid_size_cells``, or the default for ``demo_length``)."""
@@ -162,19 +178,29 @@ def make_demo_chunk(config: DemoStoreConfig, chunk: int) -> TensorDict:
     indices = range(first, min(first + DEMO_CHUNK_ROWS, config.num_demos))
     out = _empty(dataclasses.replace(config, num_demos=len(indices)))
     n = config.demo_length
-    renderer = FirstPersonRenderer(config.image_size, config.image_size)
-    try:
-        for row, index in enumerate(indices):
-            demo = sample_store_demonstration(config, index)
-            house = build_house(demo.house_seed)
-            renderer.render_many([house] * n, demo.poses[:n], out=out["frames"][row].numpy())
-            out["actions"][row] = torch.from_numpy(demo.actions)
-            out["poses"][row] = torch.from_numpy(demo.poses)
-            out["house_seed"][row] = demo.house_seed
-            out["shortest_length_m"][row] = demo.shortest_length_m
-    finally:
-        renderer.close()
+    renderer = _chunk_renderer(config.image_size)
+    for row, index in enumerate(indices):
+        demo = sample_store_demonstration(config, index)
+        house = build_house(demo.house_seed)
+        renderer.render_many([house] * n, demo.poses[:n], out=out["frames"][row].numpy())
+        out["actions"][row] = torch.from_numpy(demo.actions)
+        out["poses"][row] = torch.from_numpy(demo.poses)
+        out["house_seed"][row] = demo.house_seed
+        out["shortest_length_m"][row] = demo.shortest_length_m
     return out
+
+
+_CHUNK_RENDERERS: dict[tuple[int, int], FirstPersonRenderer] = {}
+
+
+def _chunk_renderer(image_size: int) -> FirstPersonRenderer:
+    """The renderer a thread builds its store chunks with, kept across chunks and stores: a
+    house's GL resources are uploaded once per thread, not once per chunk (closed at exit).
+    One per thread: an EGL context can be current in one thread only."""
+    key = (threading.get_ident(), image_size)
+    if key not in _CHUNK_RENDERERS:
+        _CHUNK_RENDERERS[key] = FirstPersonRenderer(image_size, image_size)
+    return _CHUNK_RENDERERS[key]
 
 
 class DemoStore(TensorStore):

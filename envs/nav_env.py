@@ -115,7 +115,8 @@ class PathFollowEnv(EnvBase):
             a homing env plays their homing demonstrations.
         episode_offset, episode_stride: episode numbering (:mod:`envs.episode_numbering`): agent
             ``i``'s ``k``-th episode is number ``offset + stride * (i + k * N)``, its seed a
-            function of the env seed and that number alone; emitted as ``episode_index``.
+            function of the env seed and that number alone; emitted as ``episode_index``. They
+            live in ``env.numbering``: a new ``numbering.offset`` applies from the next ``set_seed``.
         seed: optional seed (same as calling :meth:`set_seed`).
         device: torch device of the outputs.
 
@@ -203,7 +204,7 @@ class PathFollowEnv(EnvBase):
             self.task, self._playlist, demo_store,
         )
         self._cpu = self.device is not None and torch.device(self.device).type == "cpu"
-        self._numbering = EpisodeNumbering(self._count, episode_offset, episode_stride)
+        self.numbering = EpisodeNumbering(self._count, episode_offset, episode_stride)
         self._set_seed(seed)
         self._make_specs()
         self._init_state()
@@ -253,7 +254,7 @@ class PathFollowEnv(EnvBase):
     # ---------------------------------------------------------------- seeding
     def _set_seed(self, seed: int | None) -> None:
         # agent i's k-th episode is a fixed episode number, whatever the other agents do
-        self._numbering.reset(self._source.env_seed(seed))
+        self.numbering.reset(self._source.env_seed(seed))
         self._playlist.restart()
 
     # ------------------------------------------------------------- rendering
@@ -299,7 +300,7 @@ class PathFollowEnv(EnvBase):
         return self._observation(zeros, zeros, zeros, reward=None)
 
     def _start_episode(self, index: int, demo_frames: torch.Tensor, demo_actions: torch.Tensor, pixels: torch.Tensor) -> None:
-        self._episode_index[index], episode_seed = self._numbering.next(index)
+        self._episode_index[index], episode_seed = self.numbering.next(index)
         house, demo, self._demo_id[index] = self._source.episode(index, episode_seed, self._episode_index[index])
         self._houses[index], self._house_seed[index] = house, house.seed
         self._demos[index] = demo

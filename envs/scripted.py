@@ -9,14 +9,21 @@ figures (``recipes/expert_stats.py``) use it.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import Collector
 from torchrl.envs.utils import ExplorationType
 from tqdm.auto import tqdm
 
 from envs.expert import TURN_LEFT
+from envs.specs import NUM_DEMO_ACTIONS
+from envs.transforms import philox_uniforms
+
+#: Mixed into the episode seed so the behaviour policy's coins are independent of the actuation noise.
+BEHAVIOUR_STREAM_SALT = 0xE5B1
 
 
 class ExpertPolicy(TensorDictModuleBase):
@@ -39,6 +46,52 @@ class ExpertPolicy(TensorDictModuleBase):
         if "expert_action" not in tensordict.keys():
             raise KeyError("ExpertPolicy needs 'expert_action': build the env with with_expert=True.")
         return tensordict.set("action", tensordict.get("expert_action").clone())
+
+
+class EpsilonExpertPolicy(TensorDictModuleBase):
+    """The expert, except that with probability ``random_action_prob`` a step takes a
+    uniformly random action (forward, left or right): the behaviour policy of BC
+    datasets, which then see states off the expert's path (their labels stay the
+    expert's ``expert_action``).
+
+    The coins of a step are Philox draws of ``(episode_seed, step_count)``, so an
+    episode gets the same actions in any batch layout, process or number of agents.
+
+    Args:
+        random_action_prob: probability of a random action, in ``[0, 1]``.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> td = TensorDict({"expert_action": torch.full((4,), 2), "episode_seed": torch.arange(4)[:, None],
+        ...     "step_count": torch.zeros(4, 1, dtype=torch.long)}, [4])
+        >>> EpsilonExpertPolicy(0.0)(td)["action"].tolist()
+        [2, 2, 2, 2]
+        >>> actions = EpsilonExpertPolicy(1.0)(td.clone())["action"]
+        >>> bool(((actions >= 0) & (actions < 3)).all())
+        True
+    """
+
+    in_keys = ["expert_action", "episode_seed", "step_count"]
+    out_keys = ["action"]
+
+    def __init__(self, random_action_prob: float) -> None:
+        super().__init__()
+        if not 0.0 <= float(random_action_prob) <= 1.0:
+            raise ValueError(f"random_action_prob must be in [0, 1], got {random_action_prob!r}.")
+        self.random_action_prob = float(random_action_prob)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if "expert_action" not in tensordict.keys():
+            raise KeyError("EpsilonExpertPolicy needs 'expert_action': build the env with with_expert=True.")
+        expert = tensordict.get("expert_action")
+        if self.random_action_prob > 0.0:
+            seeds = tensordict.get("episode_seed").reshape(-1).cpu().numpy() ^ BEHAVIOUR_STREAM_SALT
+            steps = tensordict.get("step_count").reshape(-1).cpu().numpy()
+            coins = torch.from_numpy(philox_uniforms(seeds, steps, 2)).to(expert.device)
+            random_action = (coins[:, 1] * NUM_DEMO_ACTIONS).long().clamp(max=NUM_DEMO_ACTIONS - 1)
+            take_random = coins[:, 0] < self.random_action_prob
+            expert = torch.where(take_random.reshape(expert.shape), random_action.reshape(expert.shape).to(expert.dtype), expert)
+        return tensordict.set("action", expert.clone())
 
 
 class OpenLoopReplay(TensorDictModuleBase):
@@ -102,6 +155,22 @@ def episode_record(final: TensorDictBase) -> dict:
 STEPS_PER_BATCH = 5
 
 
+def _episode_collector(env, policy, caller: str) -> Collector:
+    """The collector that plays a batched env's numbered episodes: :data:`STEPS_PER_BATCH`
+    steps per agent a batch, auto-reset, preallocated buffers, deterministic exploration."""
+    if len(env.batch_size) != 1:
+        raise ValueError(f"{caller} needs a batched env (batch_size [N]), got {list(env.batch_size)}.")
+    return Collector(
+        env,
+        policy,
+        frames_per_batch=env.batch_size[0] * STEPS_PER_BATCH,
+        total_frames=-1,
+        exploration_type=ExplorationType.DETERMINISTIC,
+        use_buffers=True,
+        auto_register_policy_transforms=False,
+    )
+
+
 def run_episodes(env, policy, num_episodes: int, progress: bool = False) -> list[dict]:
     """Play episodes ``0 .. num_episodes - 1`` of a seeded batched env with ``policy``, through a TorchRL collector.
 
@@ -128,17 +197,23 @@ def run_episodes(env, policy, num_episodes: int, progress: bool = False) -> list
     """
     if isinstance(num_episodes, bool) or not isinstance(num_episodes, int) or num_episodes <= 0:
         raise ValueError(f"num_episodes must be an int > 0, got {num_episodes!r}.")
-    if len(env.batch_size) != 1:
-        raise ValueError(f"run_episodes needs a batched env (batch_size [N]), got {list(env.batch_size)}.")
-    collector = Collector(
-        env,
-        policy,
-        frames_per_batch=env.batch_size[0] * STEPS_PER_BATCH,
-        total_frames=-1,
-        exploration_type=ExplorationType.DETERMINISTIC,
-        use_buffers=True,
-        auto_register_policy_transforms=False,
-    )
+    collector = _episode_collector(env, policy, "run_episodes")
+    try:
+        return record_episodes(collector, num_episodes, progress)
+    finally:
+        collector.shutdown(close_env=False)
+
+
+def record_episodes(collector, num_episodes: int, progress: bool = False) -> list[dict]:
+    """Iterate ``collector`` until episodes ``0 .. num_episodes - 1`` have all ended, and
+    record each once, by the number its env gave it (``episode_index``): the loop of
+    :func:`run_episodes`, for any collector over numbered envs (several worker processes
+    whose envs share one numbering, ``episode_offset=w``, ``episode_stride=W``). The caller
+    shuts the collector down.
+
+    Returns:
+        one dict per episode, ordered by episode number (as :func:`run_episodes`).
+    """
     records: dict[int, dict] = {}
     bar = tqdm(total=num_episodes, disable=not progress, desc="episodes")
     try:
@@ -152,9 +227,94 @@ def run_episodes(env, policy, num_episodes: int, progress: bool = False) -> list
             if len(records) == num_episodes:
                 break
     finally:
-        collector.shutdown(close_env=False)
         bar.close()
     return [records[number] for number in range(num_episodes)]
 
 
-__all__ = ["ExpertPolicy", "OpenLoopReplay", "episode_record", "run_episodes"]
+def play_episode_steps(
+    env,
+    policy,
+    first: int,
+    count: int,
+    step_keys: Sequence[str],
+    max_steps: int,
+    episode_keys: Sequence[str] = ("episode_seed",),
+    progress: bool = False,
+) -> TensorDict:
+    """Play the numbered episodes ``first .. first + count - 1`` of a seeded batched env
+    with ``policy`` through a TorchRL collector and keep every step of them.
+
+    The env's numbering (:mod:`envs.episode_numbering`) must reach them: with
+    ``numbering.offset = first`` and stride 1, its ``N`` agents play them in turn (agent
+    ``i`` plays ``first + i``, ``first + i + N``, ...). A
+    :class:`~torchrl.collectors.Collector` steps the env in batches of
+    :data:`STEPS_PER_BATCH` steps per agent until all of them have ended; steps of other
+    episodes are dropped.
+
+    Args:
+        env: a seeded batched :class:`~envs.nav_env.PathFollowEnv` (possibly transformed).
+        policy: a TensorDict policy writing ``"action"``.
+        first: number of the first episode.
+        count: number of episodes (> 0).
+        step_keys: keys of the root tensordict kept at every step (``"action"`` included).
+        max_steps: the env's episode limit (the padded length).
+        episode_keys: integer observations kept once per episode (read at its last step).
+        progress: show a progress bar.
+
+    Returns:
+        a ``[count]`` TensorDict ordered by episode number: ``steps`` (``[count, max_steps]``:
+        ``step_keys``, ``mask`` of the valid steps, ``is_init``), and per episode
+        ``episode_keys``, ``length``, ``success`` and ``spl``.
+    """
+    if isinstance(count, bool) or not isinstance(count, int) or count <= 0:
+        raise ValueError(f"count must be an int > 0, got {count!r}.")
+    spec = env.full_observation_spec.clone().update(env.full_action_spec)
+    steps = TensorDict(
+        {key: torch.zeros(count, max_steps, *spec[key].shape[1:], dtype=spec[key].dtype) for key in step_keys},
+        batch_size=[count, max_steps],
+    )
+    steps.set("mask", torch.zeros(count, max_steps, dtype=torch.bool))
+    out = TensorDict(
+        {
+            "steps": steps,
+            **{key: torch.zeros(count, dtype=torch.int64) for key in episode_keys},
+            "length": torch.zeros(count, dtype=torch.int64),
+            "success": torch.zeros(count, dtype=torch.bool),
+            "spl": torch.zeros(count, dtype=torch.float32),
+        },
+        batch_size=[count],
+    )
+    collector = _episode_collector(env, policy, "play_episode_steps")
+    ended = torch.zeros(count, dtype=torch.bool)
+    bar = tqdm(total=count, disable=not progress, desc="episodes")
+    try:
+        for batch in collector:
+            batch = batch.reshape(-1)
+            episode = batch.get("episode_index").reshape(-1) - first
+            wanted = (episode >= 0) & (episode < count)
+            if not wanted.any():
+                continue
+            rows, episode = batch[wanted], episode[wanted]
+            step = rows.get("step_count").reshape(-1)
+            for key in step_keys:
+                steps.get(key)[episode, step] = rows.get(key).reshape(len(episode), *steps.get(key).shape[2:])
+            steps.get("mask")[episode, step] = True
+            final = rows.get(("next", "done")).reshape(-1)
+            done_rows, done_episodes = rows.get("next")[final], episode[final]
+            for key in episode_keys:
+                out[key][done_episodes] = done_rows.get(key).reshape(-1)
+            out["length"][done_episodes] = step[final] + 1
+            out["success"][done_episodes] = done_rows.get("success").reshape(-1)
+            out["spl"][done_episodes] = done_rows.get("spl").reshape(-1).float()
+            bar.update(int((~ended[done_episodes]).sum()))
+            ended[done_episodes] = True
+            if ended.all():
+                break
+    finally:
+        collector.shutdown(close_env=False)
+        bar.close()
+    steps.set("is_init", (torch.arange(max_steps) == 0).expand(count, max_steps).unsqueeze(-1).clone())
+    return out
+
+
+__all__ = ["EpsilonExpertPolicy", "ExpertPolicy", "OpenLoopReplay", "episode_record", "play_episode_steps", "record_episodes", "run_episodes"]

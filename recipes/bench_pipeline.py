@@ -122,7 +122,6 @@ class Sizes:
         collectors: collectors of DAgger and of collection (``CollectorConfig``'s default;
             more than one fails in DAgger rounds of more than one batch, in both trees).
         num_agents: agents per collector (``CollectorConfig``'s default).
-        chunk_size: episodes per dataset chunk (``DatasetConfig``'s default).
         eval_agents: agents stepped together by the evaluation (``EvalConfig``'s default).
         num_houses: houses of each split.
         demo_length, max_steps, image_size: the episodes' sizes.
@@ -141,7 +140,6 @@ class Sizes:
     workers: int = 2
     collectors: int = 1
     num_agents: int = 8
-    chunk_size: int = 16
     eval_agents: int = 25
     num_houses: int = 4
     demo_length: int = 30

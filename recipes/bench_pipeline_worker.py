@@ -96,7 +96,7 @@ def _dataset_config(sizes: Sizes, applied: list[str]):
 
     values = dict(
         num_episodes=sizes.dataset_episodes, split="train", num_houses=sizes.num_houses, noise="paper",
-        chunk_size=sizes.chunk_size, seed=sizes.seed, **_episode_sizes(sizes),
+        seed=sizes.seed, **_episode_sizes(sizes),
     )
     return configured(DatasetConfig(), values, {}, applied)
 

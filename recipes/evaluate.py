@@ -65,6 +65,7 @@ def evaluate_path(path: str, args: argparse.Namespace) -> dict:
         image_size=image_size,
         render=path != "open_loop",
         store_root=args.store_root or None,
+        num_collectors=args.num_collectors,
     )
     summary, records = evaluate_policy(policy, eval_config, progress=not args.no_progress)
     return {
@@ -106,11 +107,17 @@ def main(argv: list[str] | None = None) -> list[dict]:
         help="directory keeping the episode stores (demonstrations rendered once, reused by later evaluations of "
         "the same episodes; the scores do not change); '' renders them at every episode start (default: %(default)s)",
     )
+    parser.add_argument(
+        "--num-collectors", type=int, default=1,
+        help="processes playing the episodes, each with a CPU copy of the policy (same episodes and scores; default: 1)",
+    )
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if args.episodes <= 0:
         parser.error(f"--episodes must be > 0, got {args.episodes}")
+    if args.num_collectors <= 0:
+        parser.error(f"--num-collectors must be a positive int, got {args.num_collectors}")
     try:
         args.device = resolve_device(args.device, name="--device")
     except ValueError as err:

@@ -1,48 +1,60 @@
 """Episode datasets on disk: perturbed follow episodes labelled by the expert.
 
-A dataset is a :class:`~envs.tensor_store.TensorStore` (the project's one on-disk
-store, shared with the demo store) holding one memory-mapped TensorDict of ``E``
-episodes, read back through TorchRL's :class:`~torchrl.data.TensorStorage`::
+A dataset is two :class:`~envs.tensor_store.TensorStore` directories (the project's
+one on-disk store), read back through TorchRL's :class:`~torchrl.data.TensorStorage`::
 
-    <root>/meta.json     kind, format and env versions, configuration, SHA-256 of every tensor
-    <root>/data/         the memory-mapped tensors
+    <root>/meta.json        kind, format and env versions, configuration, SHA-256 of every tensor
+    <root>/data/            the follow episodes, memory-mapped
+    <root>-demos/           their demonstrations: a DemoStore, frames stored once
 
-Per episode it stores the demonstration once (``demo_frames [n, H, W, 3]``,
-``demo_actions [n]``) and the follow episode step by step (``steps`` with batch
-``[T]``: ``pixels``, the executed ``action``, the expert's ``expert_action``
-label, ``mask`` for valid steps and ``is_init``).
+The episodes are episodes ``0 .. E - 1`` of a batched env seeded with the dataset
+seed (numbered episodes, :mod:`envs.episode_numbering`), their demonstrations those
+of an episode store (:class:`~envs.demo_store.DemoStoreConfig` with ``episodes_seed``):
+per episode, ``demo_id`` (its row in the store), the follow episode step by step
+(``steps`` with batch ``[T]``: ``pixels``, the executed ``action``, the expert's
+``expert_action`` label, ``mask`` for valid steps and ``is_init``), ``episode_seed``,
+``length``, ``success`` and ``spl``. Sampling (:meth:`EpisodeDataset.replay_buffer`,
+:meth:`EpisodeDataset.__getitem__`) adds ``demo_frames`` and ``demo_actions``, looked
+up by ``demo_id``.
 
-Episodes are generated in chunks, in parallel worker processes; chunk ``c`` is a
-pure function of ``(seed, c)``, so an interrupted run resumes where it stopped
-(from ``<root>.partial``) and gives the same bytes as an uninterrupted one. A
-tensor whose bytes do not match its checksum, a missing file, a shape that
-disagrees with the configuration, or data made by another env version raises
-:class:`DatasetError`.
+The behaviour policy (:class:`~envs.scripted.EpsilonExpertPolicy`) is stepped by a
+TorchRL collector (:func:`~envs.scripted.play_episode_steps`), the env emitting
+``demo_id`` instead of the frames. Episodes are generated in chunks, in parallel
+worker processes; every episode is a pure function of ``(seed, its number)``, so an
+interrupted run resumes where it stopped (from ``<root>.partial``) and gives the same
+bytes as an uninterrupted one. A tensor whose bytes do not match its checksum, a
+missing file, a shape that disagrees with the configuration, or data made by another
+env version or format raises :class:`DatasetError`.
 """
 from __future__ import annotations
 
+import functools
 import logging
 import os
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
-from tensordict import TensorDict
+from tensordict import TensorDict, TensorDictBase
 from torchrl.data import SamplerWithoutReplacement, TensorDictReplayBuffer, TensorStorage
 from torchrl.data.replay_buffers import ImmutableDatasetWriter
 
 from envs.checks import check_episode_source, check_positive_ints
+from envs.demo_store import DemoStore, DemoStoreConfig
 from envs.homing import FOLLOW, check_task
 from envs.specs import NUM_RGB_CHANNELS
 from envs.transforms import DEFAULT_NOISE
 from envs.tensor_store import StoreError, TensorStore
+from envs.version import ENV_VERSION
 
 logger = logging.getLogger(__name__)
 
 #: Version of the on-disk layout; bumped when it changes.
-DATASET_FORMAT_VERSION = 3
-NUM_DEMO_ACTIONS = 3
+DATASET_FORMAT_VERSION = 4
+#: Suffix of the directory beside a dataset that holds its demonstrations.
+DEMOS_SUFFIX = "-demos"
+#: Keys of a dataset episode's steps, as the env emits them.
+STEP_KEYS = ("pixels", "action", "expert_action")
 
 
 class DatasetError(StoreError):
@@ -64,8 +76,11 @@ class DatasetConfig:
         demo_length: demonstration length n, steps.
         max_steps: follow-episode limit, steps.
         image_size: frame side, pixels.
-        chunk_size: episodes generated together (one batched env of this many agents).
-        seed: dataset seed; chunk ``c`` uses ``(seed, c)``.
+        chunk_size: episodes per chunk, the unit of resuming and of parallel workers.
+        num_agents: agents a batched env steps together (each plays several of a chunk's
+            episodes in turn, so few agents idle while a chunk's last episodes end).
+        seed: dataset seed: the episodes are episodes ``0 .. num_episodes - 1`` of an
+            env seeded with it.
         task: ``"follow"`` or ``"homing"`` (:mod:`envs.homing`).
     """
 
@@ -77,14 +92,15 @@ class DatasetConfig:
     demo_length: int = 30
     max_steps: int = 50
     image_size: int = 64
-    chunk_size: int = 16
+    chunk_size: int = 64
+    num_agents: int = 16
     seed: int = 0
     task: str = FOLLOW
 
     def __post_init__(self) -> None:
         check_task(self.task, "data.task")
         check_episode_source(self.split, self.num_houses, self.noise)
-        check_positive_ints(self, ("num_episodes", "demo_length", "max_steps", "image_size", "chunk_size"))
+        check_positive_ints(self, ("num_episodes", "demo_length", "max_steps", "image_size", "chunk_size", "num_agents"))
         if not 0.0 <= self.random_action_prob <= 1.0:
             raise ValueError(f"random_action_prob must be in [0, 1], got {self.random_action_prob!r}.")
 
@@ -92,9 +108,13 @@ class DatasetConfig:
     def num_chunks(self) -> int:
         return -(-self.num_episodes // self.chunk_size)
 
+    def demo_store_config(self) -> DemoStoreConfig:
+        """The demonstrations of the dataset's episodes (an episode store of its seed)."""
+        return DemoStoreConfig.of_episodes(self)
+
 
 def _empty_episodes(config: DatasetConfig) -> TensorDict:
-    e, t, n, s = config.num_episodes, config.max_steps, config.demo_length, config.image_size
+    e, t, s = config.num_episodes, config.max_steps, config.image_size
     steps = TensorDict(
         {
             "pixels": torch.zeros(e, t, s, s, NUM_RGB_CHANNELS, dtype=torch.uint8),
@@ -108,8 +128,7 @@ def _empty_episodes(config: DatasetConfig) -> TensorDict:
     return TensorDict(
         {
             "steps": steps,
-            "demo_frames": torch.zeros(e, n, s, s, NUM_RGB_CHANNELS, dtype=torch.uint8),
-            "demo_actions": torch.zeros(e, n, dtype=torch.int64),
+            "demo_id": torch.zeros(e, dtype=torch.int64),
             "episode_seed": torch.zeros(e, dtype=torch.int64),
             "length": torch.zeros(e, dtype=torch.int64),
             "success": torch.zeros(e, dtype=torch.bool),
@@ -119,60 +138,79 @@ def _empty_episodes(config: DatasetConfig) -> TensorDict:
     )
 
 
-def generate_chunk(config: DatasetConfig, chunk: int) -> TensorDict:
-    """Generate chunk ``chunk`` of a dataset (a pure function of ``(config, chunk)``).
+def empty_training_episodes(config: DatasetConfig) -> TensorDict:
+    """Zeroed episodes in the layout training reads (:func:`~spf_rl.train.bc.bc_loss`): a
+    dataset's, each with its demonstration (``demo_frames``, ``demo_actions``) instead of a
+    ``demo_id``; DAgger's rounds are stored in it.
 
-    One batched env holds ``chunk_size`` agents; each plays exactly one episode
-    driven by the behaviour policy (expert, or a random action with probability
-    ``random_action_prob``), every step labelled with the expert's action.
+    Examples:
+        >>> empty_training_episodes(DatasetConfig(num_episodes=2, demo_length=5, image_size=32))["demo_frames"].shape
+        torch.Size([2, 5, 32, 32, 3])
     """
+    e, n, s = config.num_episodes, config.demo_length, config.image_size
+    return _empty_episodes(config).exclude("demo_id").update(
+        {
+            "demo_frames": torch.zeros(e, n, s, s, NUM_RGB_CHANNELS, dtype=torch.uint8),
+            "demo_actions": torch.zeros(e, n, dtype=torch.int64),
+        }
+    )
+
+
+def format_tag() -> str:
+    """The tag that ends dataset directory names: the layout and env versions, so that
+    data of an older version is never reopened by a run of this one.
+
+    Examples:
+        >>> format_tag() == f"format{DATASET_FORMAT_VERSION}-env{ENV_VERSION}"
+        True
+    """
+    return f"format{DATASET_FORMAT_VERSION}-env{ENV_VERSION}"
+
+
+def demos_root(root: str | os.PathLike) -> Path:
+    """The directory of a dataset's demonstrations: ``<root>-demos``."""
+    root = Path(root)
+    return root.with_name(root.name + DEMOS_SUFFIX)
+
+
+def generate_chunk(config: DatasetConfig, chunk: int, demos: str | os.PathLike) -> TensorDict:
+    """Episodes ``[chunk * chunk_size, ...)`` of a dataset (a pure function of ``config`` and their numbers).
+
+    One batched env of ``num_agents`` agents (fewer for a smaller chunk), seeded with
+    ``config.seed`` and drawing its demonstrations from the store at ``demos``, plays them
+    with the behaviour policy
+    (the expert, or a random action with probability ``random_action_prob``) through a
+    TorchRL collector; every step is labelled with the expert's action.
+    """
+    from envs.scripted import EpsilonExpertPolicy, play_episode_steps
+
     first = chunk * config.chunk_size
     count = min(config.chunk_size, config.num_episodes - first)
-    env = _chunk_env(config, count)
-    chunk_seed = int(np.random.SeedSequence([config.seed, chunk]).generate_state(1)[0])
-    env.set_seed(chunk_seed)
-    generator = torch.Generator().manual_seed(chunk_seed)
-    out = _empty_episodes(DatasetConfig(**{**asdict(config), "num_episodes": count}))
-    td = env.reset()
-    out["demo_frames"] = td["demo_frames"]
-    out["demo_actions"] = td["demo_actions"]
-    out["episode_seed"] = td["episode_seed"].reshape(count)
-    active = torch.ones(count, dtype=torch.bool)
+    env = _chunk_env(config, min(config.num_agents, count), first, str(demos))
     with torch.no_grad():
-        for step in range(config.max_steps):
-            expert = td["expert_action"]
-            random_action = torch.randint(0, NUM_DEMO_ACTIONS, (count,), generator=generator)
-            take_random = torch.rand(count, generator=generator) < config.random_action_prob
-            td["action"] = torch.where(take_random, random_action, expert)
-            out["steps", "pixels"][:, step] = td["pixels"]
-            out["steps", "action"][:, step] = td["action"]
-            out["steps", "expert_action"][:, step] = expert
-            out["steps", "mask"][:, step] = active
-            out["steps", "is_init"][:, step] = step == 0
-            td = env.step(td)
-            done = td["next", "done"].reshape(count) & active
-            out["length"][done] = step + 1
-            out["success"][done] = td["next", "success"].reshape(count)[done]
-            out["spl"][done] = td["next", "spl"].reshape(count)[done]
-            active &= ~done
-            if not active.any():
-                break
-            td = td["next"]
-    return out
+        return play_episode_steps(
+            env, EpsilonExpertPolicy(config.random_action_prob), first, count, STEP_KEYS, config.max_steps,
+            episode_keys=("demo_id", "episode_seed"),
+        )
 
 
 _CHUNK_ENVS: dict[tuple, object] = {}
 
 
-def _chunk_env(config: DatasetConfig, count: int):
-    """The batched env of a worker process, reused across chunks (its GL context and
-    compiled houses are the expensive part); each chunk re-seeds it."""
+def _chunk_env(config: DatasetConfig, count: int, first: int, demos: str):
+    """The env playing episodes ``first .. first + count - 1``, seeded with the dataset seed.
+
+    A worker process reuses one env per configuration across chunks (its GL contexts
+    and compiled houses are the expensive part); each chunk moves its episode
+    numbering to ``first`` and re-seeds it.
+    """
     from torchrl.envs import TransformedEnv
 
     from envs.nav_env import PathFollowEnv
     from envs.transforms import ActuationNoise
 
-    key = (config.split, config.num_houses, config.noise, config.demo_length, config.max_steps, config.image_size, count, config.task)
+    key = (config.split, config.num_houses, config.noise, config.demo_length, config.max_steps, config.image_size,
+           config.task, count, demos)
     if key not in _CHUNK_ENVS:
         _CHUNK_ENVS[key] = TransformedEnv(
             PathFollowEnv(
@@ -184,10 +222,15 @@ def _chunk_env(config: DatasetConfig, count: int):
                 image_size=config.image_size,
                 with_expert=True,
                 task=config.task,
+                demo_store=DemoStore(demos),
+                emit_demo_frames=False,
             ),
             ActuationNoise(config.noise),
         )
-    return _CHUNK_ENVS[key]
+    env = _CHUNK_ENVS[key]
+    env.base_env.numbering.offset = first
+    env.set_seed(config.seed, static_seed=True)
+    return env
 
 
 class EpisodeDataset(TensorStore):
@@ -204,12 +247,17 @@ class EpisodeDataset(TensorStore):
         >>> dataset = EpisodeDataset.build(root, config, num_workers=1, progress=False)
         >>> dataset.episodes["steps", "pixels"].shape
         torch.Size([2, 6, 32, 32, 3])
+        >>> dataset[[1]]["demo_frames"].shape  # looked up by demo_id
+        torch.Size([1, 5, 32, 32, 3])
     """
 
     KIND = "dataset"
     FORMAT_VERSION = DATASET_FORMAT_VERSION
     ERROR = DatasetError
-    FORMAT_HISTORY = "(version 1 stored CHW frames; version 2 was built in place)"
+    FORMAT_HISTORY = (
+        "(version 1 stored CHW frames; version 2 was built in place; version 3 stored every "
+        "episode's demonstration frames and was generated by a hand-written loop)"
+    )
 
     @staticmethod
     def config_from_dict(config: dict) -> DatasetConfig:
@@ -221,8 +269,32 @@ class EpisodeDataset(TensorStore):
 
     @property
     def episodes(self) -> TensorDict:
-        """The episodes, ``[E]`` (memory-mapped, read-only)."""
+        """The episodes, ``[E]`` (memory-mapped, read-only), without their demonstrations
+        (``demo_id`` refers to them; indexing the dataset adds them)."""
         return self.data
+
+    @functools.cached_property
+    def demos(self) -> DemoStore:
+        """The store of the episodes' demonstrations (``<root>-demos``), checked against the dataset."""
+        store = DemoStore(demos_root(self.root), verify=False)
+        expected = self.config.demo_store_config()
+        if store.config != expected:
+            raise DatasetError(
+                f"dataset {self.root}: its demonstration store {store.root} holds {store.config}, "
+                f"expected {expected}. Delete both directories to rebuild them."
+            )
+        return store
+
+    def with_demonstrations(self, episodes: TensorDictBase) -> TensorDictBase:
+        """``episodes`` (rows of this dataset) with ``demo_frames`` and ``demo_actions`` looked up by ``demo_id``."""
+        ids = episodes.get("demo_id").reshape(-1)
+        episodes.set("demo_frames", self.demos.frames[ids].reshape(*episodes.batch_size, *self.demos.frames.shape[1:]))
+        episodes.set("demo_actions", self.demos.actions[ids].reshape(*episodes.batch_size, -1))
+        return episodes
+
+    def __getitem__(self, rows) -> TensorDict:
+        """Episodes ``rows`` (in memory) with their demonstrations."""
+        return self.with_demonstrations(self.episodes[rows].to_tensordict())
 
     @staticmethod
     def exists(root: str | os.PathLike) -> bool:
@@ -239,21 +311,30 @@ class EpisodeDataset(TensorStore):
     ) -> EpisodeDataset:
         """Create the dataset at ``root``, or resume a partial one, then open it.
 
-        Chunks of ``config.chunk_size`` episodes are generated in ``num_workers``
-        ``spawn`` processes into ``<root>.partial``, renamed to ``root`` when complete.
+        The demonstrations are rendered first, into ``<root>-demos`` (a
+        :class:`~envs.demo_store.DemoStore`); then chunks of ``config.chunk_size``
+        episodes are generated in ``num_workers`` ``spawn`` processes into
+        ``<root>.partial``, renamed to ``root`` when complete. Both builds resume.
 
         Raises:
             DatasetError: if ``root`` holds a dataset of another configuration.
+            DemoStoreError: if ``<root>-demos`` holds other demonstrations.
         """
-        return cls.create(root, config, generate_chunk, config.chunk_size, num_workers=num_workers, progress=progress)
+        demos = DemoStore.build(demos_root(root), config.demo_store_config(), progress=progress, num_workers=num_workers)
+        generate = functools.partial(generate_chunk, demos=str(demos.root))
+        dataset = cls.create(root, config, generate, config.chunk_size, num_workers=num_workers, progress=progress)
+        dataset.demos  # noqa: B018 - refuses a demonstration store of another configuration now
+        return dataset
 
     def replay_buffer(self, batch_size: int, seed: int = 0, drop_last: bool = False) -> TensorDictReplayBuffer:
-        """A read-only TorchRL replay buffer over whole episodes (one epoch without replacement at a time)."""
+        """A read-only TorchRL replay buffer over whole episodes (one epoch without replacement at a time);
+        its batches carry ``demo_frames`` and ``demo_actions`` (:meth:`with_demonstrations`)."""
         buffer = TensorDictReplayBuffer(
             storage=TensorStorage(self.episodes),
             writer=ImmutableDatasetWriter(),
             sampler=SamplerWithoutReplacement(drop_last=drop_last),
             batch_size=batch_size,
+            transform=self.with_demonstrations,
         )
         buffer.set_rng(torch.Generator().manual_seed(seed))
         return buffer
@@ -267,4 +348,4 @@ class EpisodeDataset(TensorStore):
         }
 
 
-__all__ = ["DatasetConfig", "DatasetError", "EpisodeDataset", "generate_chunk"]
+__all__ = ["DatasetConfig", "DatasetError", "EpisodeDataset", "demos_root", "empty_training_episodes", "format_tag", "generate_chunk"]

@@ -36,7 +36,7 @@ def test_loss_falls_on_a_tiny_dataset(tmp_path):
     dataset = EpisodeDataset.build(tmp_path / "data", DATA, num_workers=1, progress=False)
     policy = build_policy("spf", spf_config(ModelConfig(sparsity=0.4, feature_dim=16, hidden_size=16), 5, 32))
     optimizer = torch.optim.Adam(policy.parameters(), lr=3e-3)
-    batch = dataset.episodes[:8]
+    batch = dataset[:8]
     first = None
     for _ in range(40):
         loss, _ = bc_loss(policy, batch)
@@ -99,7 +99,7 @@ def test_padded_steps_are_not_encoded_and_change_no_valid_output(model, tmp_path
     from spf_rl.train.bc import episodes_to_sequence
 
     dataset = EpisodeDataset.build(tmp_path / "data", DATA, num_workers=1, progress=False)
-    batch = dataset.episodes[:8]
+    batch = dataset[:8]
     trimmed = episodes_to_sequence(batch).get("mask")  # the time axis bc_loss sees
     assert not trimmed.all(), "the test needs padded steps"
     torch.manual_seed(0)

@@ -178,7 +178,7 @@ def test_smoke_every_measure_runs_against_the_working_tree(tmp_path):
     """A tiny run of the worker (the script the benchmark runs in each tree), here on the working tree only."""
     sizes = dataclasses.replace(
         bench_pipeline.Sizes(),
-        dataset_episodes=4, chunk_size=2, dagger_episodes=2, num_agents=2, eval_episodes=2, eval_agents=2,
+        dataset_episodes=4, dagger_episodes=2, num_agents=2, eval_episodes=2, eval_agents=2,
         bc_steps=1, bc_warmup_steps=0, collection_batches=1, raw_chunks=1, raw_chunk_frames=20,
         num_houses=1, demo_length=5, max_steps=6, image_size=32, workers=1,
     )

@@ -1,4 +1,4 @@
-"""Tests for spf_rl.data: dataset generation, determinism, resume, corruption detection."""
+"""Tests for spf_rl.data: dataset generation, determinism, resume, corruption detection, distribution."""
 from __future__ import annotations
 
 import json
@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 import torch
 
+from envs.demo_store import DemoStoreError
 from envs.version import ENV_VERSION
 
-from spf_rl.data import DatasetConfig, DatasetError, EpisodeDataset, generate_chunk
+from spf_rl.data import DatasetConfig, DatasetError, EpisodeDataset, demos_root, generate_chunk
 
 TINY = dict(num_episodes=6, num_houses=1, demo_length=5, max_steps=8, image_size=32, chunk_size=2)
 
@@ -25,7 +26,13 @@ def test_layout_and_labels(built):
     episodes = built.episodes
     assert episodes.batch_size == torch.Size([6])
     assert episodes["steps", "pixels"].shape == (6, 8, 32, 32, 3)
-    assert episodes["demo_frames"].shape == (6, 5, 32, 32, 3)  # stored once per episode
+    assert "demo_frames" not in episodes.keys()  # stored once, in the demonstration store
+    assert episodes["demo_id"].tolist() == list(range(6))  # episode k plays demonstration k
+    rows = built[[4, 1]]
+    assert rows["demo_frames"].shape == (2, 5, 32, 32, 3)
+    assert torch.equal(rows["demo_frames"], built.demos.frames[[4, 1]])
+    assert torch.equal(rows["demo_actions"], built.demos.actions[[4, 1]])
+    assert rows["demo_frames"].float().std() > 5
     mask = episodes["steps", "mask"]
     assert torch.equal(mask.sum(1), episodes["length"])
     assert episodes["steps", "is_init"][:, 0].all() and not episodes["steps", "is_init"][:, 1:].any()
@@ -36,9 +43,34 @@ def test_layout_and_labels(built):
 
 def test_chunks_are_deterministic(built):
     config = DatasetConfig(**TINY)
-    again = generate_chunk(config, 1)
+    again = generate_chunk(config, 1, demos_root(built.root))
     assert torch.equal(again["steps", "pixels"], built.episodes[2:4]["steps", "pixels"])
     assert torch.equal(again["steps", "expert_action"], built.episodes[2:4]["steps", "expert_action"])
+
+
+def test_episodes_do_not_depend_on_the_chunking(built, tmp_path):
+    # every episode is a function of the seed and its number: chunks of 3 episodes played by 2 agents
+    # (one of them plays two episodes of each chunk) give the bytes of chunks of 2 played by 2
+    other_config = DatasetConfig(**{**TINY, "chunk_size": 3, "num_agents": 2})
+    other = EpisodeDataset.build(tmp_path / "three", other_config, num_workers=1, progress=False)
+    for key in built.episodes.keys(include_nested=True, leaves_only=True):
+        assert torch.equal(other.episodes[key], built.episodes[key]), key
+    random_steps = built.episodes["steps", "action"] != built.episodes["steps", "expert_action"]
+    assert random_steps[built.episodes["steps", "mask"]].any()  # the behaviour policy's random actions
+
+
+def test_a_missing_or_foreign_demonstration_store_is_refused(built, tmp_path):
+    root = tmp_path / "nodemos"
+    shutil.copytree(built.root, root)
+    with pytest.raises(DemoStoreError, match="nodemos-demos"):
+        root_dataset = EpisodeDataset(root)
+        root_dataset.replay_buffer(batch_size=2).sample()
+    shutil.copytree(demos_root(built.root), demos_root(root))
+    meta = json.loads((demos_root(root) / "meta.json").read_text())
+    meta["config"]["episodes_seed"] = 99
+    (demos_root(root) / "meta.json").write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match="demonstration store .* holds"):
+        EpisodeDataset(root)[[0]]
 
 
 def test_interrupted_build_resumes_to_the_same_bytes(built, tmp_path, monkeypatch):
@@ -48,11 +80,11 @@ def test_interrupted_build_resumes_to_the_same_bytes(built, tmp_path, monkeypatc
     real = data_module.generate_chunk
     calls: list[int] = []
 
-    def stop_at_last_chunk(config, chunk):
+    def stop_at_last_chunk(config, chunk, demos):
         calls.append(chunk)
         if chunk == 2:
             raise RuntimeError("stopped")  # as if the run were killed here
-        return real(config, chunk)
+        return real(config, chunk, demos)
 
     monkeypatch.setattr(data_module, "generate_chunk", stop_at_last_chunk)
     with pytest.raises(RuntimeError, match="stopped"):
@@ -61,7 +93,7 @@ def test_interrupted_build_resumes_to_the_same_bytes(built, tmp_path, monkeypatc
     with pytest.raises(DatasetError, match="resume"):
         EpisodeDataset(root)
     calls.clear()
-    monkeypatch.setattr(data_module, "generate_chunk", lambda config, chunk: calls.append(chunk) or real(config, chunk))
+    monkeypatch.setattr(data_module, "generate_chunk", lambda config, chunk, demos: calls.append(chunk) or real(config, chunk, demos))
     resumed = EpisodeDataset.build(root, DatasetConfig(**TINY), num_workers=1, progress=False)
     assert calls == [2]  # chunks 0 and 1 were kept
     for key in built.episodes.keys(include_nested=True, leaves_only=True):
@@ -119,10 +151,11 @@ def test_replay_buffer_yields_each_episode_once_per_epoch(built):
     "changes, match",
     [
         (dict(format_version=1), "version 1 stored CHW frames"),
+        (dict(format_version=3), "version 3 stored every episode's demonstration frames"),
         (dict(env_version=1), f"made by env version 1, but this env is version {ENV_VERSION}"),
         (dict(env_version=None), "made by env version None"),
     ],
-    ids=["old-layout", "old-env", "no-env-version"],
+    ids=["old-layout", "hand-loop-layout", "old-env", "no-env-version"],
 )
 def test_stale_datasets_are_refused(built, tmp_path, changes, match):
     root = tmp_path / "stale"
@@ -135,15 +168,35 @@ def test_stale_datasets_are_refused(built, tmp_path, changes, match):
         EpisodeDataset.build(root, DatasetConfig(**TINY), num_workers=1, progress=False)
 
 
-def test_homing_datasets_and_evaluations_play_homing_episodes():
+def test_homing_datasets_and_evaluations_play_homing_episodes(tmp_path):
     from spf_rl.data import _chunk_env
     from spf_rl.train.evaluation import EvalConfig, make_eval_env
 
-    config = DatasetConfig(**{**TINY, "task": "homing"})
-    assert _chunk_env(config, 2).base_env.task == "homing"
+    config = DatasetConfig(**{**TINY, "num_episodes": 2, "task": "homing"})
+    dataset = EpisodeDataset.build(tmp_path / "homing", config, num_workers=1, progress=False)
+    assert dataset.demos.config.task == "homing"
+    assert _chunk_env(config, 2, 0, str(dataset.demos.root)).base_env.task == "homing"
     env = make_eval_env(EvalConfig(task="homing", num_episodes=2, num_agents=2, demo_length=5, max_steps=8, image_size=32, num_houses=1, render=False))
     assert env.base_env.task == "homing"
     with pytest.raises(ValueError, match="task"):
         DatasetConfig(task="fetch")
     with pytest.raises(ValueError, match="task"):
         EvalConfig(task="fetch")
+
+
+def test_collected_datasets_match_the_hand_loop_datasets_in_distribution(tmp_path):
+    """Behaviour success and mean length of the collector-made dataset against those of the
+    4,000-episode dataset the previous generator (a hand-written loop) made for the bc_row runs,
+    as its committed results record them."""
+    from pathlib import Path
+
+    recorded = json.loads((Path(__file__).parents[1] / "results/bc/bc_row-spf-s0.8-seed0.json").read_text())
+    old = recorded["dataset"]
+    assert recorded["config"]["data"]["num_episodes"] == old["episodes"] == 4000
+    config = DatasetConfig(**{**recorded["config"]["data"], "num_episodes": 96, "chunk_size": 32})
+    new = EpisodeDataset.build(tmp_path / "new", config, num_workers=1, progress=False).episodes
+    lengths = new["length"].double()
+    standard_error = float(lengths.std()) / len(lengths) ** 0.5
+    assert abs(float(lengths.mean()) - old["mean_length"]) < 4 * standard_error
+    failures = int((~new["success"]).sum())  # old rate 0.99: 96 episodes fail at most 6 times with p > 0.999
+    assert failures <= 6

@@ -17,7 +17,7 @@ from torch import nn
 from torchrl.modules import set_recurrent_mode
 
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
-from spf_rl.data import DatasetConfig, _empty_episodes
+from spf_rl.data import DatasetConfig, empty_training_episodes
 from spf_rl.device import AMP_DTYPE, autocast, exact_float32, resolve_device, to_device
 from spf_rl.hub import policy_from_checkpoint
 from spf_rl.modules import SPFConfig
@@ -152,7 +152,7 @@ def test_recipes_with_device_cuda_fail_clearly_here(tmp_path, capsys):
 
 # ---------------------------------------------------------------------- plumbing (meta stands in for a GPU)
 def test_every_leaf_of_a_training_batch_lands_on_the_device():
-    episodes = _empty_episodes(DatasetConfig(num_episodes=3, demo_length=5, max_steps=6, image_size=32))
+    episodes = empty_training_episodes(DatasetConfig(num_episodes=3, demo_length=5, max_steps=6, image_size=32))
     episodes["steps", "mask"][:, :4] = True
     sequence = episodes_to_sequence(episodes, META)
     assert sequence.batch_size == (3, 4) and sequence.device == META
@@ -345,7 +345,7 @@ def test_step_and_sequence_logits_agree_under_bf16_autocast():
 def test_amp_bc_loss_and_ppo_collection_on_the_cpu():
     torch.manual_seed(0)
     policy = build_policy("spf", POLICY)
-    episodes = _empty_episodes(DatasetConfig(num_episodes=2, demo_length=5, max_steps=6, image_size=32))
+    episodes = empty_training_episodes(DatasetConfig(num_episodes=2, demo_length=5, max_steps=6, image_size=32))
     episodes["steps", "mask"][:, :5] = True
     episodes["steps", "pixels"].random_(0, 256)
     loss, _ = bc_loss(policy, episodes, amp=True)

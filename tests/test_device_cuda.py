@@ -12,7 +12,7 @@ import torch
 
 import spf_rl
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
-from spf_rl.data import DatasetConfig, _empty_episodes
+from spf_rl.data import DatasetConfig, empty_training_episodes
 from spf_rl.device import resolve_device
 from spf_rl.hub import policy_from_checkpoint
 from spf_rl.modules import SPFConfig
@@ -65,7 +65,7 @@ def test_auto_resolves_to_cuda_and_bad_indices_are_refused():
 def test_bc_loss_on_cuda_matches_the_cpu(no_tf32):
     torch.manual_seed(0)
     policy = build_policy("spf", POLICY)
-    episodes = _empty_episodes(DatasetConfig(num_episodes=3, demo_length=5, max_steps=6, image_size=32))
+    episodes = empty_training_episodes(DatasetConfig(num_episodes=3, demo_length=5, max_steps=6, image_size=32))
     episodes["steps", "mask"][:, :5] = True
     episodes["steps", "pixels"].random_(0, 256)
     episodes["demo_frames"].random_(0, 256)

@@ -134,6 +134,27 @@ def test_evaluation_scores_the_same_with_and_without_the_store(kind, tmp_path, m
 
 
 @pytest.mark.parametrize("kind", ["spf", "frames_every_step"])
+def test_worker_processes_score_the_same_episodes(kind, tmp_path):
+    """Two collector processes (their envs sharing one numbering, each with a CPU copy of the
+    policy) record the episodes one process does, each once, whatever the agents per env."""
+    if kind == "spf":
+        torch.manual_seed(0)
+        policy = build_policy("spf", SPFConfig(sparsity=0.5, feature_dim=8, hidden_size=8, demo_length=6, image_size=(32, 32)))
+    else:
+        policy = TensorDictModule(FramesEveryStep(), in_keys=["demo_frames"], out_keys=["logits"])
+    root = str(tmp_path / "kept")
+    one_summary, one = evaluate_policy(policy, _eval_config(store_root=root))
+    two_summary, two = evaluate_policy(policy, _eval_config(store_root=root, num_collectors=2, num_agents=2))
+    assert two == one and two_summary == one_summary
+    assert [r["episode_index"] for r in two] == list(range(EPISODES))
+
+
+def test_num_collectors_is_checked():
+    with pytest.raises(ValueError, match="num_collectors"):
+        _eval_config(num_collectors=0)
+
+
+@pytest.mark.parametrize("kind", ["spf", "frames_every_step"])
 def test_unrendered_evaluation_feeds_frame_readers_blank_frames(kind):
     """With ``render=False`` there is no store; a policy that reads ``demo_frames`` gets
     the env's blank frames (zeros), the same episodes as the expert plays."""
@@ -201,6 +222,7 @@ def test_episode_identity_ignores_how_episodes_are_played():
 
     config = _eval_config()
     assert episode_identity(dataclasses.replace(config, store_root="elsewhere")) == episode_identity(config)
+    assert episode_identity(dataclasses.replace(config, num_collectors=2)) == episode_identity(config)
     assert episode_identity(dataclasses.replace(config, seed=SEED + 1)) != episode_identity(config)
 
 

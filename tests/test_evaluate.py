@@ -71,3 +71,18 @@ def test_random_sparsity_model_is_evaluated_at_the_requested_sparsity(tmp_path):
 def test_sparsity_flag_is_refused_for_fixed_sparsity_models(checkpoint, tmp_path):
     with pytest.raises(ValueError, match="--sparsity"):
         _run(_evaluate_module(), checkpoint, tmp_path / "e", "--sparsity", "0.4")
+
+
+def test_worker_processes_write_the_scores_of_one_process(checkpoint, tmp_path):
+    module = _evaluate_module()
+    (one,) = _run(module, checkpoint, tmp_path / "one")
+    (two,) = _run(module, checkpoint, tmp_path / "two", "--num-collectors", "2")
+    assert two["episodes_records"] == one["episodes_records"]
+    assert two["eval"]["num_collectors"] == 2
+
+
+def test_num_collectors_is_checked_before_any_work(checkpoint, tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        _run(_evaluate_module(), checkpoint, tmp_path / "f", "--num-collectors", "0")
+    assert "--num-collectors must be a positive int" in capsys.readouterr().err
+    assert not (tmp_path / "f").exists()

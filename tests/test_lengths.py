@@ -10,7 +10,7 @@ import torch
 from tensordict import TensorDict
 
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
-from spf_rl.data import DatasetConfig
+from spf_rl.data import DEMOS_SUFFIX, DatasetConfig, format_tag
 from spf_rl.modules import SPFConfig, SPFPolicy
 from spf_rl.train.bc import OptimConfig
 from spf_rl.train.evaluation import EvalConfig
@@ -124,8 +124,10 @@ def test_mixed_length_training_resumes_and_reports_by_length(tmp_path):
     assert saved["test"]["success"] == pytest.approx(sum(r["success"] for r in rows) / 2)
     assert sorted(saved["test"]["by_length"]) == ["4", "6"]
     assert (run / "success_by_length.png").stat().st_size > 1000
-    datasets = sorted(p.name for p in (tmp_path / "data").iterdir())
-    assert datasets == ["train-4ep-paper-rand0.2-n4-T7-32px-s0", "train-4ep-paper-rand0.2-n6-T10-32px-s0"]
+    tag = format_tag()
+    names = [f"train-4ep-paper-rand0.2-n4-T7-32px-s0-{tag}", f"train-4ep-paper-rand0.2-n6-T10-32px-s0-{tag}"]
+    stored = sorted(p.name for p in (tmp_path / "data").iterdir() if not p.name.endswith(".lock"))
+    assert stored == sorted(names + [name + DEMOS_SUFFIX for name in names])  # each dataset beside its demonstrations
     payload = load_checkpoint(run / "best.pt", expected_model_type="spf")
     assert payload["model_config"].demo_length == 4 and "by_length" in payload["val"]
 

@@ -35,7 +35,7 @@ from tqdm.auto import tqdm
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from envs.homing import FOLLOW
 from envs.checks import check_positive_ints
-from spf_rl.data import DatasetConfig, EpisodeDataset
+from spf_rl.data import DatasetConfig, EpisodeDataset, format_tag
 from spf_rl.device import DEFAULT_DEVICE, autocast, check_device, exact_float32, module_device, resolve_device, to_device
 from spf_rl.modules.memory import memory_bytes
 from spf_rl.modules.policy import SPFPolicy
@@ -137,17 +137,17 @@ class BCConfig:
     def resolved_data_dir(self) -> Path:
         if self.data_dir:
             return Path(self.data_dir)
-        d = self.data
-        task = "" if d.task == FOLLOW else f"-{d.task}"
-        return Path("data") / f"{d.split}-{d.num_episodes}ep-{d.noise}-rand{d.random_action_prob}-n{d.demo_length}-{d.image_size}px-s{d.seed}{task}"
+        d, task = self.data, "" if self.data.task == FOLLOW else f"-{self.data.task}"
+        name = f"{d.split}-{d.num_episodes}ep-{d.noise}-rand{d.random_action_prob}-n{d.demo_length}-{d.image_size}px-s{d.seed}"
+        return Path("data") / f"{name}-{format_tag()}{task}"
 
 
 def episodes_to_sequence(batch: TensorDict, device: torch.device | str | None = None) -> TensorDict:
     """Turn a batch of stored episodes ``[B]`` into the policy's sequence input ``[B, T]`` on ``device``.
 
-    Demonstration frames and actions are stored once per episode; they move to
-    ``device`` once and are then broadcast over time as views (no copy). ``T`` is cut
-    to the longest episode (read on the batch's own device, before the move).
+    Demonstration frames and actions come once per episode (looked up by ``demo_id`` at
+    sampling); they move to ``device`` once and are broadcast over time as views (no
+    copy). ``T`` is cut to the longest episode (read on the batch's device, before the move).
 
     Args:
         batch: stored episodes (:mod:`spf_rl.data` layout).

@@ -57,7 +57,7 @@ from spf_rl.train.collection import (
     collection_device,
     make_collector,
 )
-from spf_rl.train.dagger_rounds import RoundConfig, RoundStore, round_directory, training_sources
+from spf_rl.train.dagger_rounds import RoundConfig, RoundStore, round_directory, source_rows, training_sources
 from spf_rl.train.evaluation import EvalConfig, evaluate_policy, with_episode_sizes
 from spf_rl.train.models import build_policy
 from spf_rl.viz import plot_if_available, pyplot
@@ -269,10 +269,10 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
         done_rounds, history = state["round"], state["history"]
         logger.info("resuming %s after round %d", output, done_rounds)
 
-    bc_episodes = None
+    bc_data = None
     if config.aggregate_bc_data:
         bc_dir = config.bc_data_dir or BCConfig(data=config.bc_data).resolved_data_dir()
-        bc_episodes = EpisodeDataset.build(bc_dir, config.bc_data, config.num_workers, config.progress).episodes
+        bc_data = EpisodeDataset.build(bc_dir, config.bc_data, config.num_workers, config.progress)
 
     run_logger = get_logger(config.logger, logger_name=str(output / "logs"), experiment_name="dagger") if config.logger else None
 
@@ -297,7 +297,7 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
         )
 
     if done_rounds == 0 and not history:
-        bc_count = bc_episodes.shape[0] if bc_episodes is not None else 0
+        bc_count = len(bc_data) if bc_data is not None else 0
         history.append(score(0, {"beta": None, "training_episodes": bc_count}))
         save_checkpoint(best_path, model_type, policy_config, {"model": policy.state_dict(), "round": 0})
         save(0)
@@ -315,8 +315,8 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
             episodes = _collect_round(policy, config, beta, round_seed)
             RoundStore.write(round_dir, RoundConfig(**collection, num_episodes=episodes.shape[0]), episodes)
         collected = {"beta": beta, **behaviour_statistics(episodes, env.max_steps)}
-        sources = training_sources(bc_episodes, output, round_index, config.window_rounds)
-        collected["training_episodes"] = sum(source.shape[0] for source in sources)
+        sources = training_sources(bc_data, output, round_index, config.window_rounds)
+        collected["training_episodes"] = sum(len(source) for source in sources)
         collected["train_loss"], collected["gradient_steps"] = _train_round(policy, optimizer, sources, config, round_index)
         history.append(score(round_index, collected))
         best = max(history, key=lambda r: (r["val_success"], r["val_spl"]))
@@ -390,7 +390,7 @@ def _collect_round(policy: TensorDictModuleBase, config: DAggerConfig, beta: flo
 
 
 def _train_round(
-    policy, optimizer, sources: list[TensorDictBase], config: DAggerConfig, round_index: int
+    policy, optimizer, sources: list[EpisodeDataset | TensorDictBase], config: DAggerConfig, round_index: int
 ) -> tuple[float, int]:
     """Retrain on ``sources``: ``steps_per_round`` steps (or ``epochs_per_round`` passes) of
     batches drawn without replacement, pass after pass, in an order fixed by the seed and round.
@@ -399,7 +399,7 @@ def _train_round(
         the mean loss and the number of gradient steps.
     """
     policy.train()
-    sizes = torch.tensor([source.shape[0] for source in sources])
+    sizes = torch.tensor([len(source) for source in sources])
     offsets = torch.cumsum(sizes, 0)
     total, batch_size = int(offsets[-1]), config.optim.batch_size
     steps = config.steps_per_round or config.epochs_per_round * -(-total // batch_size)
@@ -412,7 +412,7 @@ def _train_round(
         rows = order[step * batch_size : (step + 1) * batch_size]
         source_of_row = torch.searchsorted(offsets, rows, right=True)
         parts = [
-            sources[k][rows[source_of_row == k] - (offsets[k] - sizes[k])].to_tensordict()
+            source_rows(sources[k], rows[source_of_row == k] - (offsets[k] - sizes[k]))
             for k in source_of_row.unique().tolist()
         ]
         loss, _ = bc_loss(policy, torch.cat(parts, 0), amp=config.optim.amp)

@@ -3,7 +3,8 @@
 ``<run>/rounds/round-XX`` is a :class:`RoundStore`, a
 :class:`~envs.tensor_store.TensorStore` like the demo store and the BC datasets:
 ``meta.json`` (round, collection seed, beta, sizes, env version, SHA-256 of every
-tensor) beside the memory-mapped episodes in the layout of :mod:`spf_rl.data`, built
+tensor) beside the memory-mapped episodes in the layout of :mod:`spf_rl.data` (each
+episode holding its demonstration's frames and actions instead of a ``demo_id``), built
 in ``round-XX.partial`` and renamed into place, so a round on disk is complete.
 A stored round of another collection (another seed, beta or size), a corrupt
 one, or one made by another env version is refused with a :class:`RoundError`.
@@ -14,11 +15,12 @@ import logging
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import torch
 from tensordict import TensorDict, TensorDictBase
 
 from envs.checks import check_positive_ints
 from envs.tensor_store import StoreError, TensorStore
-from spf_rl.data import DatasetConfig, EpisodeDataset
+from spf_rl.data import DatasetConfig, EpisodeDataset, empty_training_episodes
 
 logger = logging.getLogger(__name__)
 
@@ -71,10 +73,9 @@ class RoundStore(TensorStore):
 
     Examples:
         >>> import tempfile
-        >>> from spf_rl.data import DatasetConfig, EpisodeDataset
         >>> config = RoundConfig(round_index=1, seed=7, beta=0.0, num_episodes=3, demo_length=4, max_steps=5, image_size=8)
         >>> root = tempfile.mkdtemp() + "/round-01"
-        >>> episodes = EpisodeDataset.empty(DatasetConfig(num_episodes=3, demo_length=4, max_steps=5, image_size=8))
+        >>> episodes = RoundStore.empty(config)
         >>> RoundStore.write(root, config, episodes).episodes["steps", "pixels"].shape
         torch.Size([3, 5, 8, 8, 3])
         >>> RoundStore(root).config.seed
@@ -96,7 +97,7 @@ class RoundStore(TensorStore):
             num_episodes=config.num_episodes, demo_length=config.demo_length, max_steps=config.max_steps,
             image_size=config.image_size,
         )
-        return EpisodeDataset.empty(sizes)
+        return empty_training_episodes(sizes)
 
     @property
     def episodes(self) -> TensorDict:
@@ -133,16 +134,24 @@ def round_directory(output: Path, round_index: int) -> Path:
 
 
 def training_sources(
-    bc_episodes: TensorDictBase | None, output: Path, round_index: int, window: int | None
-) -> list[TensorDictBase]:
-    """The episodes retraining sees after round ``round_index``: the BC data and the window of rounds."""
+    bc_data: EpisodeDataset | None, output: Path, round_index: int, window: int | None
+) -> list[EpisodeDataset | TensorDictBase]:
+    """The episodes retraining sees after round ``round_index``: the BC dataset and the window of
+    rounds (each indexable by rows, :func:`source_rows`)."""
     first = 1 if window is None else max(1, round_index - window + 1)
     paths = [round_directory(output, r) for r in range(first, round_index + 1)]
     if missing := [path for path in paths if not (path / "meta.json").exists()]:  # e.g. last.pt copied without the rounds
         raise FileNotFoundError(
             f"DAgger round data {missing[0]} is missing or incomplete, so {output} cannot resume; delete it to start over."
         )
-    return ([bc_episodes] if bc_episodes is not None else []) + [RoundStore(path).episodes for path in paths]
+    return ([bc_data] if bc_data is not None else []) + [RoundStore(path).episodes for path in paths]
 
 
-__all__ = ["RoundConfig", "RoundError", "RoundStore", "round_directory", "training_sources"]
+def source_rows(source: EpisodeDataset | TensorDictBase, rows: torch.Tensor) -> TensorDict:
+    """Episodes ``rows`` of a training source, in memory, in the round layout (demonstrations included)."""
+    if isinstance(source, EpisodeDataset):
+        return source[rows].exclude("demo_id")
+    return source[rows].to_tensordict()
+
+
+__all__ = ["RoundConfig", "RoundError", "RoundStore", "round_directory", "source_rows", "training_sources"]

@@ -17,12 +17,17 @@ The env and its rendering run on the CPU; the policy runs where its weights are
 (move it with ``policy.to(device)`` first): each step's inputs go to that device and
 the logits, action and next recurrent state come back
 (:func:`~spf_rl.device.act_on_device`). Evaluation is always float32, also for runs
-trained with mixed precision.
+trained with mixed precision. With ``num_collectors`` above 1, worker processes play
+the episodes through a TorchRL multi-process collector, each with a CPU copy of the
+policy (:class:`GreedyActor`), their envs sharing one episode numbering: the same
+episodes, each recorded once.
 """
 from __future__ import annotations
 
 import contextlib
+import copy
 import dataclasses
+import functools
 import os
 import tempfile
 from collections.abc import Callable
@@ -32,13 +37,14 @@ from pathlib import Path
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+from torchrl.collectors import Collector
 from torchrl.envs import Compose, InitTracker, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from envs.demo_store import DemoStore, DemoStoreConfig
 from envs.nav_env import PathFollowEnv
 from envs.version import ENV_VERSION
-from envs.scripted import run_episodes
+from envs.scripted import STEPS_PER_BATCH, record_episodes, run_episodes
 from envs.checks import check_episode_source, check_positive_ints
 from envs.homing import FOLLOW, check_task
 from envs.transforms import DEFAULT_NOISE, ActuationNoise
@@ -69,6 +75,10 @@ class EvalConfig:
             :func:`evaluate_policy` builds the store in a temporary directory and
             deletes it afterwards. The episodes and scores are the same either way.
             Used only where ``render`` is true.
+        num_collectors: processes playing the episodes: ``1`` in this process; more: a
+            TorchRL multi-process collector whose workers each step a batched env of
+            ``num_agents`` agents with a CPU copy of the policy. The episodes and scores
+            are the same for any number.
     """
 
     split: str = "test"
@@ -83,15 +93,16 @@ class EvalConfig:
     render: bool = True
     task: str = FOLLOW
     store_root: str | None = None
+    num_collectors: int = 1
 
     def __post_init__(self) -> None:
         check_task(self.task, "task")
         check_episode_source(self.split, self.num_houses, self.noise)
-        check_positive_ints(self, ("num_episodes", "num_agents", "demo_length", "max_steps", "image_size"))
+        check_positive_ints(self, ("num_episodes", "num_agents", "demo_length", "max_steps", "image_size", "num_collectors"))
 
 
 #: Fields of :class:`EvalConfig` that choose how episodes are played, never which.
-HOW_FIELDS = ("store_root",)
+HOW_FIELDS = ("store_root", "num_collectors")
 
 
 def episode_identity(config: EvalConfig) -> dict:
@@ -126,6 +137,44 @@ def greedy(policy: TensorDictModuleBase):
         return tensordict
 
     return act
+
+
+class GreedyActor(TensorDictModuleBase):
+    """A picklable greedy actor: ``policy``'s arg-max action, fed ``demo_frames`` looked up
+    by ``demo_id`` in ``demo_store`` where it reads them (:func:`with_store_lookup`'s
+    rule). What the workers of a multi-process evaluation run.
+
+    Args:
+        policy: a TensorDict policy writing ``"logits"`` (or ``"action"``).
+        demo_store: the episode store the env draws from (``None``: the env emits the frames).
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> from tensordict.nn import TensorDictModule
+        >>> actor = GreedyActor(TensorDictModule(torch.nn.Linear(2, 3), ["obs"], ["logits"]))
+        >>> actor(TensorDict({"obs": torch.ones(4, 2)}, [4]))["action"].shape
+        torch.Size([4])
+    """
+
+    def __init__(self, policy: TensorDictModuleBase, demo_store: DemoStore | None = None) -> None:
+        super().__init__()
+        self.policy = policy
+        reads_frames = demo_store is not None and "demo_frames" in policy.in_keys
+        carries_memory = getattr(policy, "memory_key", None) in policy.in_keys
+        self.lookup = (
+            demo_store.lookup_module(only_where=getattr(policy, "is_init_key", "is_init") if carries_memory else None)
+            if reads_frames
+            else None
+        )
+        extra = list(self.lookup.in_keys) if self.lookup is not None else []
+        self.in_keys = list(dict.fromkeys([k for k in policy.in_keys if self.lookup is None or k != "demo_frames"] + extra))
+        self.out_keys = list(dict.fromkeys([*policy.out_keys, "action"]))
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if self.lookup is not None:
+            tensordict = self.lookup(tensordict)
+        tensordict = greedy(self.policy)(tensordict)
+        return tensordict.exclude("demo_frames", inplace=True) if self.lookup is not None else tensordict
 
 
 def greedy_on_device(policy: TensorDictModuleBase):
@@ -165,13 +214,18 @@ def episode_store_root() -> str:
 
 
 def make_eval_env(
-    config: EvalConfig, policy: TensorDictModuleBase | None = None, demo_store: DemoStore | None = None
+    config: EvalConfig,
+    policy: TensorDictModuleBase | None = None,
+    demo_store: DemoStore | None = None,
+    worker: int = 0,
+    workers: int = 1,
 ) -> TransformedEnv:
     """Batched env with noise, ``is_init`` and the policy's recurrent-state primer.
 
     With ``demo_store`` (an episode store of ``config``, :func:`episode_store`) it
     emits ``demo_id`` instead of the demonstration frames; with ``render=False``, no
-    frames (they would be blank) unless ``policy`` reads ``demo_frames``.
+    frames (they would be blank) unless ``policy`` reads ``demo_frames``. The env of
+    worker ``worker`` of ``workers`` plays episode numbers ``worker``, ``worker + workers``, ...
     """
     reads_frames = policy is not None and "demo_frames" in policy.in_keys
     transforms = [ActuationNoise(config.noise), InitTracker()]
@@ -189,6 +243,8 @@ def make_eval_env(
             task=config.task,
             demo_store=demo_store,
             emit_demo_frames=demo_store is None and (config.render or reads_frames),
+            episode_offset=worker,
+            episode_stride=workers,
         ),
         Compose(*transforms),
     )
@@ -198,15 +254,7 @@ def make_eval_env(
 
 def episode_store_config(config: EvalConfig) -> DemoStoreConfig:
     """The episode store of ``config``: the demonstrations of its episodes ``0 .. E - 1``."""
-    return DemoStoreConfig(
-        num_demos=config.num_episodes,
-        split=config.split,
-        num_houses=config.num_houses,
-        demo_length=config.demo_length,
-        image_size=config.image_size,
-        task=config.task,
-        episodes_seed=config.seed,
-    )
+    return DemoStoreConfig.of_episodes(config)
 
 
 def episode_store_name(config: EvalConfig) -> str:
@@ -274,16 +322,40 @@ def evaluate_policy(policy: TensorDictModuleBase, config: EvalConfig, progress: 
             # without a store_root, the episode store lives as long as this evaluation
             root = None if config.store_root is not None else stack.enter_context(tempfile.TemporaryDirectory())
             store = episode_store(config, root)
-            env = make_eval_env(config, policy, store)
-            stack.callback(env.close)
-            act = with_store_lookup(greedy_on_device(policy), policy, store)
             with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-                records = run_episodes(env, act, config.num_episodes, progress=progress)
+                if config.num_collectors == 1:
+                    env = make_eval_env(config, policy, store)
+                    stack.callback(env.close)
+                    act = with_store_lookup(greedy_on_device(policy), policy, store)
+                    records = run_episodes(env, act, config.num_episodes, progress=progress)
+                else:
+                    collector = _worker_collector(policy, config, store)
+                    stack.callback(collector.shutdown)
+                    records = record_episodes(collector, config.num_episodes, progress=progress)
     finally:
         policy.train(was_training)
     summary = summarize(records)
     summary["mean_goal_distance_m"] = float(sum(r["goal_distance"] for r in records) / len(records))
     return summary, records
+
+
+def _worker_collector(policy: TensorDictModuleBase, config: EvalConfig, store: DemoStore | None) -> Collector:
+    """A multi-process collector of ``config.num_collectors`` workers, each stepping a batched
+    env (episode numbers ``w, w + W, ...``) with a CPU copy of ``policy`` (:class:`GreedyActor`)."""
+    workers = config.num_collectors
+    actor = GreedyActor(copy.deepcopy(policy).cpu().eval(), store)
+    factories = [functools.partial(make_eval_env, config, actor.policy, store, w, workers) for w in range(workers)]
+    agents = min(config.num_agents, config.num_episodes)
+    return Collector(
+        factories,
+        actor,
+        num_collectors=workers,
+        sync=True,
+        frames_per_batch=workers * agents * STEPS_PER_BATCH,
+        total_frames=-1,
+        exploration_type=ExplorationType.DETERMINISTIC,
+        auto_register_policy_transforms=False,
+    )
 
 
 def record_rollout(policy: TensorDictModuleBase, config: EvalConfig) -> dict:

@@ -30,7 +30,7 @@ from tensordict import TensorDict
 from envs.checks import check_positive_int
 from envs.follow import default_max_steps
 from envs.house_grid import default_grid_size_cells
-from spf_rl.data import DatasetConfig, EpisodeDataset
+from spf_rl.data import DatasetConfig, EpisodeDataset, format_tag
 from spf_rl.device import DEFAULT_DEVICE, check_device
 from spf_rl.modules.policy import SPFPolicy
 from spf_rl.train.bc import (
@@ -206,7 +206,7 @@ class MixedLengthConfig:
 
     def dataset_dir(self, index: int) -> Path:
         d = self.dataset_config(index)
-        name = f"{d.split}-{d.num_episodes}ep-{d.noise}-rand{d.random_action_prob}-n{d.demo_length}-T{d.max_steps}-{d.image_size}px-s{d.seed}"
+        name = f"{d.split}-{d.num_episodes}ep-{d.noise}-rand{d.random_action_prob}-n{d.demo_length}-T{d.max_steps}-{d.image_size}px-s{d.seed}-{format_tag()}"
         return Path(self.data_root) / name
 
 
