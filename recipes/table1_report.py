@@ -272,6 +272,19 @@ def markdown(table: dict) -> str:
     return "\n".join(out) + "\n"
 
 
+def _sparsities_line(rows: list[dict]) -> str:
+    """One summary line for a model scored at several sparsities: means side by side."""
+    def means(metric: str) -> str:
+        return " / ".join(f"{r['sets']['test'][metric]['mean']:.3f}" for r in rows)
+
+    sparsities = " / ".join(f"{r['sparsity']:g}" for r in rows)
+    label = f"{rows[0]['label'].split(',')[0]}, at {sparsities}"
+    return (
+        f"| {label} | `{rows[0]['checkpoint_stem']}` | {seed_count(rows[0])} | {means('success')} | {means('spl')} "
+        f"| - | - |"
+    )
+
+
 def summary_markdown(table: dict) -> str:
     """The README's results: test-set success and SPL per row (mean ± sd over seeds), the
     DAgger column, the paper's numbers, then the ordering claims on test-set success.
@@ -290,10 +303,16 @@ def summary_markdown(table: dict) -> str:
         "|---|---|---|---|---|---|---|",
     ]
     untrained: dict[str, str] = {}
-    for row in (r for r in table["rows"] if not r["dagger_of"]):
+    lines = [r for r in table["rows"] if not r["dagger_of"]]
+    for row in lines:
         test = row["sets"].get("test")
         if not test:  # no seed scored yet: named below the table, once per row
             untrained.setdefault(row["row"], row["label"].split(",")[0])
+            continue
+        at = [r for r in lines if r["row"] == row["row"] and r["sets"].get("test")]
+        if len(at) > 1:  # one model scored at several sparsities: one line, values side by side
+            if row is at[0]:
+                out.append(_sparsities_line(at))
             continue
         seeds = "-" if row["model"] == "open_loop" else seed_count(row)
         dagger_row = dagger.get(row["name"])

@@ -233,6 +233,21 @@ def test_summary_names_unscored_rows_once_and_keeps_test_success_claims():
     assert text.count("a beats b") == 1 and "| a beats b | +0.100 [+0.050, +0.150] | < 1e-4 | yes |" in text
 
 
+def test_summary_puts_a_model_scored_at_several_sparsities_on_one_line():
+    from table1_report import summary_markdown
+
+    base = {"model": "spf_random", "dagger_of": None, "seeds": [0, 1], "seeds_expected": [0, 1, 2], "missing_seeds": [2],
+            "paper_success": None, "paper_spl": None, "row": "r", "checkpoint_stem": "r"}
+    rows = [
+        {**base, "name": f"r@{s:g}", "label": f"Random, at {s:g}", "sparsity": s,
+         "sets": {"test": {"success": {"mean": m, "sd": 0.01}, "spl": {"mean": m - 0.01, "sd": 0.01}}}}
+        for s, m in ((0.4, 0.6), (1.0, 0.7))
+    ]
+    text = summary_markdown({"rows": rows, "claims": []})
+    assert text.count("Random") == 1
+    assert "| Random, at 0.4 / 1 | `r` | 2 of 3 | 0.600 / 0.700 | 0.590 / 0.690 | - | - |" in text
+
+
 @pytest.mark.parametrize("row", [row for row in table1.ROWS if row.dagger_preset], ids=lambda row: row.name)
 def test_every_dagger_preset_starts_from_its_rows_run(row):
     """A row's DAgger preset starts from that row's own BC run (per seed), so the DAgger column is the row's."""
