@@ -113,10 +113,10 @@ CLAIMS = (
     ("dagger-rpf_original-s1", "rpf_original-s1", "DAgger improves the original RPF"),
     ("dagger-spf_rpf_pointer-s0.8", "spf_rpf_pointer-s0.8", "DAgger improves SPF 0.8 with RPF's pointer rule"),
     # one model, one schedule, only the memory it is given changes: the sparsity order without confounders
-    ("spf_random-s0.2-1@0.6", "spf_random-s0.2-1@0.4", "the random-sparsity model: 0.6 beats 0.4"),
-    ("spf_random-s0.2-1@0.8", "spf_random-s0.2-1@0.6", "the random-sparsity model: 0.8 beats 0.6"),
-    ("spf_random-s0.2-1@1", "spf_random-s0.2-1@0.8", "the random-sparsity model: full memory beats 0.8"),
-    ("spf_random-s0.2-1@1", "spf_random-s0.2-1@0.4", "the random-sparsity model: full memory beats 0.4"),
+    ("spf_random-s0.2-1@0.6", "spf_random-s0.2-1@0.4", "random sparsity: 0.6 beats 0.4"),
+    ("spf_random-s0.2-1@0.8", "spf_random-s0.2-1@0.6", "random sparsity: 0.8 beats 0.6"),
+    ("spf_random-s0.2-1@1", "spf_random-s0.2-1@0.8", "random sparsity: 1 beats 0.8"),
+    ("spf_random-s0.2-1@1", "spf_random-s0.2-1@0.4", "random sparsity: 1 beats 0.4"),
 )
 SETS = ("test", "extended")
 #: Houses of the extended test set.
