@@ -293,6 +293,12 @@ def play_episode_steps(
             episode = batch.get("episode_index").reshape(-1) - first
             wanted = (episode >= 0) & (episode < count)
             if not wanted.any():
+                if int(episode.min()) >= count:  # every agent is past them: they can never be played
+                    missing = (~ended).nonzero().reshape(-1)[:5] + first
+                    raise RuntimeError(
+                        f"the env's episode numbering never reaches episodes {missing.tolist()}...: set its "
+                        f"numbering.offset to {first} (stride 1) before seeding it."
+                    )
                 continue
             rows, episode = batch[wanted], episode[wanted]
             step = rows.get("step_count").reshape(-1)

@@ -200,3 +200,13 @@ def test_collected_datasets_match_the_hand_loop_datasets_in_distribution(tmp_pat
     assert abs(float(lengths.mean()) - old["mean_length"]) < 4 * standard_error
     failures = int((~new["success"]).sum())  # old rate 0.99: 96 episodes fail at most 6 times with p > 0.999
     assert failures <= 6
+
+
+def test_episodes_the_numbering_never_reaches_are_an_error_not_a_hang(built):
+    from envs.scripted import EpsilonExpertPolicy, play_episode_steps
+    from spf_rl.data import STEP_KEYS, _chunk_env
+
+    config = DatasetConfig(**TINY)
+    env = _chunk_env(config, 2, 4, str(demos_root(built.root)))  # plays episodes 4, 5, 6, ...
+    with pytest.raises(RuntimeError, match=r"never reaches episodes \[0, 1\]"):
+        play_episode_steps(env, EpsilonExpertPolicy(0.0), 0, 2, STEP_KEYS, config.max_steps)
