@@ -10,8 +10,11 @@ the working tree (checked when this was written):
 * ``spf_rl.train.models``: ``ModelConfig``, ``spf_config``, ``build_policy``;
 * ``spf_rl.train.bc``: ``OptimConfig``, ``bc_loss(policy, batch)``;
 * ``spf_rl.train.dagger``: ``DAggerConfig``, ``ExpertMixturePolicy`` and
-  ``_collect_round(policy, config, beta, seed)`` (one round's collection, as
-  ``train_dagger`` runs it: ``make_collector`` + ``collect_episodes``);
+  ``_collect_round`` (one round's collection, as ``train_dagger`` runs it: at the
+  baseline ``(policy, config, beta, seed)``, ``make_collector`` + ``collect_episodes``;
+  where ``spf_rl.train.dagger_rounds.round_demo_config`` exists,
+  ``(policy, config, round_config, round_dir)``: the round's episode store, then
+  ``make_collector`` with it + ``gather_episode_steps``);
 * ``spf_rl.train.collection``: ``CollectionEnvConfig``, ``CollectorConfig``,
   ``make_collector``;
 * ``spf_rl.train.evaluation``: ``EvalConfig``, ``evaluate_policy``;
@@ -138,8 +141,19 @@ def measure_dagger_collection(sizes: Sizes, scratch: Path, branches: dict) -> di
     )
     config = configured(default, values, {"device": "cpu"}, applied)
     policy = build_learner(sizes)
+    from spf_rl.train import dagger_rounds
+
     start = time.perf_counter()
-    episodes = dagger._collect_round(policy, config, 0.0, sizes.seed)
+    if hasattr(dagger_rounds, "round_demo_config"):  # rounds of numbered episodes on an episode store
+        env = config.env
+        round_config = dagger_rounds.RoundConfig(
+            round_index=1, seed=sizes.seed, beta=0.0, num_episodes=config.episodes_per_round, demo_length=env.demo_length,
+            max_steps=env.max_steps, image_size=env.image_size, split=env.split, num_houses=env.num_houses, noise=env.noise,
+        )
+        episodes = dagger._collect_round(policy, config, round_config, scratch / "dagger" / "round-01")
+        applied.append("round on an episode store (its demonstrations rendered in the timing)")
+    else:
+        episodes = dagger._collect_round(policy, config, 0.0, sizes.seed)
     seconds = time.perf_counter() - start
     count = int(episodes.shape[0])
     branches["dagger_collection"] = applied

@@ -240,11 +240,20 @@ def test_dagger_collects_with_the_learner_on_its_device_into_cpu_storage(tmp_pat
         raise Stop
 
     monkeypatch.setattr(dagger, "make_collector", recording_make_collector)
+    from spf_rl.train.dagger_rounds import RoundConfig
+
     learner = build_policy("spf", POLICY).to(META)
-    config = DAggerConfig(checkpoint="unused.pt", output_dir=str(tmp_path), env=ENV, collector=CollectorConfig(num_agents=2))
+    config = DAggerConfig(
+        checkpoint="unused.pt", output_dir=str(tmp_path), env=ENV, collector=CollectorConfig(num_agents=2),
+        episodes_per_round=2,
+    )
+    round_config = RoundConfig(
+        round_index=1, seed=0, beta=0.5, num_episodes=2, demo_length=5, max_steps=6, image_size=32, num_houses=1
+    )
     with pytest.raises(Stop):
-        dagger._collect_round(learner, config, beta=0.5, seed=0)
+        dagger._collect_round(learner, config, round_config, tmp_path / "round-01")
     assert captured["device"] == META and captured["storing_device"] == "cpu"
+    assert captured["demo_store"] == tmp_path / "round-01-demos"  # the round's episodes, drawn from its store
     assert module_devices(captured["policy"]) == {"meta"}
 
 

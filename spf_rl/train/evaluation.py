@@ -36,7 +36,7 @@ from pathlib import Path
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModuleBase
+from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from torchrl.collectors import Collector
 from torchrl.envs import Compose, InitTracker, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
@@ -159,13 +159,7 @@ class GreedyActor(TensorDictModuleBase):
     def __init__(self, policy: TensorDictModuleBase, demo_store: DemoStore | None = None) -> None:
         super().__init__()
         self.policy = policy
-        reads_frames = demo_store is not None and "demo_frames" in policy.in_keys
-        carries_memory = getattr(policy, "memory_key", None) in policy.in_keys
-        self.lookup = (
-            demo_store.lookup_module(only_where=getattr(policy, "is_init_key", "is_init") if carries_memory else None)
-            if reads_frames
-            else None
-        )
+        self.lookup = frames_lookup(policy, demo_store)
         extra = list(self.lookup.in_keys) if self.lookup is not None else []
         self.in_keys = list(dict.fromkeys([k for k in policy.in_keys if self.lookup is None or k != "demo_frames"] + extra))
         self.out_keys = list(dict.fromkeys([*policy.out_keys, "action"]))
@@ -282,20 +276,36 @@ def episode_store(config: EvalConfig, root: str | os.PathLike | None = None) -> 
     return DemoStore.build(Path(root) / episode_store_name(config), episode_store_config(config), progress=False)
 
 
+def frames_lookup(policy: TensorDictModuleBase, store: DemoStore | None) -> TensorDictModule | None:
+    """The module that feeds ``policy`` its ``demo_frames`` from ``demo_id`` in ``store``
+    (:meth:`~envs.demo_store.DemoStore.lookup_module`), or ``None`` where there is nothing
+    to look up (no store, or a policy that does not read the frames).
+
+    Only where ``is_init`` for policies that carry their memory in a recurrent state
+    (a ``memory_key`` among their ``in_keys``); in every row for other policies
+    reading ``demo_frames``.
+
+    Examples:
+        >>> from tensordict.nn import TensorDictModule
+        >>> frames_lookup(TensorDictModule(torch.nn.Linear(2, 3), ["obs"], ["logits"]), None) is None
+        True
+    """
+    if store is None or "demo_frames" not in policy.in_keys:
+        return None
+    carries_memory = getattr(policy, "memory_key", None) in policy.in_keys
+    return store.lookup_module(only_where=getattr(policy, "is_init_key", "is_init") if carries_memory else None)
+
+
 def with_store_lookup(
     act: Callable[[TensorDictBase], TensorDictBase], policy: TensorDictModuleBase, store: DemoStore | None
 ) -> Callable[[TensorDictBase], TensorDictBase]:
     """``act`` (a callable running ``policy``) fed ``demo_frames`` looked up from
-    ``demo_id`` in ``store`` (on the CPU, before it runs), the frames dropped after it.
-
-    Only where ``is_init`` for policies that carry their memory in a recurrent state
-    (a ``memory_key`` among their ``in_keys``); in every row for other policies
-    reading ``demo_frames``; not at all for policies that do not read them.
+    ``demo_id`` in ``store`` (on the CPU, before it runs, :func:`frames_lookup`), the
+    frames dropped after it.
     """
-    if store is None or "demo_frames" not in policy.in_keys:
+    lookup = frames_lookup(policy, store)
+    if lookup is None:
         return act
-    carries_memory = getattr(policy, "memory_key", None) in policy.in_keys
-    lookup = store.lookup_module(only_where=getattr(policy, "is_init_key", "is_init") if carries_memory else None)
 
     def act_with_frames(tensordict: TensorDictBase) -> TensorDictBase:
         return act(lookup(tensordict)).exclude("demo_frames", inplace=True)
