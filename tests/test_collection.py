@@ -15,6 +15,7 @@ from envs.scripted import gather_episode_steps
 from spf_rl.data import STEP_KEYS
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig, make_collection_env, make_collector
 from spf_rl.train.dagger import ExpertMixturePolicy
+from spf_rl.train.evaluation import FramesFromStore
 
 TINY_ENV = CollectionEnvConfig(num_houses=1, demo_length=5, max_steps=6, image_size=32)
 
@@ -58,7 +59,7 @@ def test_numbered_episodes_of_a_store_do_not_depend_on_the_collector_layout(tmp_
     torch.manual_seed(0)
     policy = tiny_policy().eval()
     store = episode_store(tmp_path / "store", count=7, seed=4)
-    behaviour = ExpertMixturePolicy(policy, beta=0.5, demo_store=store)
+    behaviour = ExpertMixturePolicy(FramesFromStore(policy, store), beta=0.5)
     assert "demo_id" in behaviour.in_keys and "demo_frames" not in behaviour.in_keys
     layouts = [CollectorConfig(num_agents=3), CollectorConfig(num_agents=2), CollectorConfig(num_agents=2, num_collectors=2)]
     first, *others = [play_store(behaviour, store, 7, 4, layout) for layout in layouts]
@@ -79,7 +80,7 @@ def test_numbered_collection_refuses_resets_at_each_batch(tmp_path):
     store = episode_store(tmp_path / "store", count=2, seed=0)
     with pytest.raises(ValueError, match="reset_at_each_iter"):
         make_collector(
-            ExpertMixturePolicy(tiny_policy().eval(), 0.0, demo_store=store), TINY_ENV, CollectorConfig(num_agents=2),
+            ExpertMixturePolicy(FramesFromStore(tiny_policy().eval(), store), 0.0), TINY_ENV, CollectorConfig(num_agents=2),
             frames_per_batch=10, reset_at_each_iter=True, demo_store=store.root,
         )
 
@@ -149,7 +150,7 @@ def test_ray_backend_collects_a_batch_on_a_local_cluster(tmp_path):
         assert TINY_ENV.noise == "paper" and (deviation > np.deg2rad(1.0)).mean() > 0.5
         # numbered episodes of an episode store: two Ray actors play the same episodes as one local collector
         store = episode_store(tmp_path / "store", count=5, seed=2)
-        behaviour = ExpertMixturePolicy(policy, beta=0.0, demo_store=store)
+        behaviour = ExpertMixturePolicy(FramesFromStore(policy, store), beta=0.0)
         local = play_store(behaviour, store, 5, 2, CollectorConfig(num_agents=2))
         remote = play_store(behaviour, store, 5, 2, CollectorConfig(backend="ray", num_collectors=2, num_agents=2))
         for key in ("pixels", "action", "mask"):

@@ -36,6 +36,7 @@ from torchrl.collectors import Collector
 from torchrl.envs import Compose, EnvBase, InitTracker, ParallelEnv, TensorDictPrimer, TransformedEnv
 from torchrl.modules.utils import get_primers_from_module
 
+from envs.demo_store import DemoStore
 from envs.nav_env import PathFollowEnv
 from envs.checks import check_episode_source, check_positive_ints
 from envs.transforms import DEFAULT_NOISE, ActuationNoise
@@ -137,26 +138,27 @@ def collection_device(setting: str | torch.device, config: CollectorConfig) -> t
     return device
 
 
-def _single_agent_env(env_config: CollectionEnvConfig, numbered: _Numbered | None = None) -> TransformedEnv:
-    return TransformedEnv(_base_env(env_config, None, numbered), ActuationNoise(env_config.noise))
+def _single_agent_env(env_config: CollectionEnvConfig, store: _StoreEpisodes | None = None) -> TransformedEnv:
+    return TransformedEnv(_base_env(env_config, None, store), ActuationNoise(env_config.noise))
 
 
 @dataclass(frozen=True)
-class _Numbered:
-    """Envs that play numbered episodes of an episode store: the store's directory, the
-    seed every env shares, and this env's numbering (``offset``, ``stride``)."""
+class _StoreEpisodes:
+    """Envs whose demonstrations come from a :class:`~envs.demo_store.DemoStore`: its
+    directory, and for an episode store (numbered episodes) the seed every env shares and
+    this env's numbering (``offset``, ``stride``); ``seed=None``: seeded by the collector."""
 
     demo_store: str
-    seed: int
+    seed: int | None = None
     offset: int = 0
     stride: int = 1
 
-    def agent(self, index: int, num_agents: int) -> _Numbered:
+    def agent(self, index: int, num_agents: int) -> _StoreEpisodes:
         """The numbering of single-agent env ``index`` of ``num_agents`` (a ``ParallelEnv``'s workers)."""
-        return _Numbered(self.demo_store, self.seed, self.offset + self.stride * index, self.stride * num_agents)
+        return _StoreEpisodes(self.demo_store, self.seed, self.offset + self.stride * index, self.stride * num_agents)
 
 
-def _base_env(env_config: CollectionEnvConfig, num_agents: int | None, numbered: _Numbered | None = None) -> PathFollowEnv:
+def _base_env(env_config: CollectionEnvConfig, num_agents: int | None, store: _StoreEpisodes | None = None) -> PathFollowEnv:
     env = PathFollowEnv(
         env_config.split,
         num_houses=env_config.num_houses,
@@ -167,17 +169,17 @@ def _base_env(env_config: CollectionEnvConfig, num_agents: int | None, numbered:
         with_expert=env_config.with_expert,
         **(
             {}
-            if numbered is None
+            if store is None
             else dict(
-                demo_store=numbered.demo_store,
+                demo_store=store.demo_store,
                 emit_demo_frames=False,
-                episode_offset=numbered.offset,
-                episode_stride=numbered.stride,
+                episode_offset=store.offset,
+                episode_stride=store.stride,
             )
         ),
     )
-    if numbered is not None:
-        env.set_seed(numbered.seed)
+    if store is not None and store.seed is not None:
+        env.set_seed(store.seed)
     return env
 
 
@@ -186,7 +188,7 @@ def make_collection_env(
     num_agents: int,
     env_mode: Literal["batched", "parallel"] = "batched",
     primer: TensorDictPrimer | None = None,
-    numbered: _Numbered | None = None,
+    store: _StoreEpisodes | None = None,
 ) -> TransformedEnv:
     """The env one collector steps: ``num_agents`` agents with noise, ``is_init`` and
     (optionally) a recurrent policy's primer. Importable, so a
@@ -197,8 +199,8 @@ def make_collection_env(
         num_agents: agents in the env.
         env_mode: ``"batched"`` or ``"parallel"`` (see :class:`CollectorConfig`).
         primer: the policy's :class:`~torchrl.envs.TensorDictPrimer` (its recurrent state).
-        numbered: play numbered episodes of an episode store (see :func:`make_collector`'s
-            ``demo_store``); the envs are seeded here.
+        store: draw the demonstrations from a store (see :func:`make_collector`'s
+            ``demo_store``); for numbered episodes the envs are seeded here.
 
     Examples:
         >>> env = make_collection_env(CollectionEnvConfig(num_houses=1, demo_length=5, image_size=32), num_agents=2)
@@ -208,11 +210,11 @@ def make_collection_env(
     if env_mode not in ENV_MODES:
         raise ValueError(f"env_mode must be one of {ENV_MODES}, got {env_mode!r}.")
     if env_mode == "batched":
-        env: EnvBase = _base_env(env_config, num_agents, numbered)
+        env: EnvBase = _base_env(env_config, num_agents, store)
         transforms = [ActuationNoise(env_config.noise), InitTracker()]
     else:
         factories = [
-            functools.partial(_single_agent_env, env_config, None if numbered is None else numbered.agent(i, num_agents))
+            functools.partial(_single_agent_env, env_config, None if store is None else store.agent(i, num_agents))
             for i in range(num_agents)
         ]
         env = ParallelEnv(num_agents, factories, mp_start_method="spawn")
@@ -262,13 +264,15 @@ def make_collector(
         storing_device: where the yielded batches are stored (``None``: ``device``
             for the local backend, so that a learner on a GPU gets its batch there;
             pass ``"cpu"`` for batches that go to disk).
-        demo_store: an episode store (:meth:`~envs.demo_store.DemoStoreConfig.of_episodes`
-            with ``episodes_seed = seed``): the envs play its numbered episodes, every env
-            seeded with ``seed`` and collector ``w`` of ``W`` playing episode numbers ``w,
-            w + W, ...`` (:func:`~envs.scripted.gather_episode_steps` keeps them), and emit
-            ``demo_id`` instead of the frames, which ``policy`` looks up itself
-            (:func:`~spf_rl.train.evaluation.frames_lookup`). ``None``: each env renders a
-            random demonstration at every reset.
+        demo_store: a :class:`~envs.demo_store.DemoStore`'s directory: the envs draw their
+            demonstrations from it and emit ``demo_id`` instead of the frames, which
+            ``policy`` looks up itself (:class:`~spf_rl.train.evaluation.FramesFromStore`).
+            An episode store (:meth:`~envs.demo_store.DemoStoreConfig.of_episodes` with
+            ``episodes_seed = seed``) is played as numbered episodes: every env seeded with
+            ``seed``, collector ``w`` of ``W`` playing episode numbers ``w, w + W, ...``
+            (:func:`~envs.scripted.gather_episode_steps` keeps them). Any other store: a
+            random demonstration of it per episode, the envs seeded by the collector.
+            ``None``: each env renders a random demonstration at every reset.
 
     Returns:
         a :class:`~torchrl.collectors.Collector`, :class:`~torchrl.collectors.MultiSyncCollector`
@@ -278,7 +282,7 @@ def make_collector(
         ImportError: for ``backend="ray"`` without ray installed.
         ValueError: ``backend="ray"`` with a ``device`` other than the CPU (the Ray
             actors act on the CPU; use the local backend for a GPU learner), or
-            ``demo_store`` with ``reset_at_each_iter`` (resets would skip numbered episodes).
+            an episode store with ``reset_at_each_iter`` (resets would skip numbered episodes).
 
     Examples:
         >>> import torch
@@ -294,8 +298,11 @@ def make_collector(
         primer = policy.make_tensordict_primer()
     else:  # e.g. a ProbabilisticActor around a recurrent policy: the primers of its submodules
         primer = get_primers_from_module(policy, warn=False) if isinstance(policy, torch.nn.Module) else None
-    if demo_store is not None and reset_at_each_iter:
-        raise ValueError("make_collector: demo_store (numbered episodes) cannot be combined with reset_at_each_iter=True.")
+    numbered = demo_store is not None and DemoStore(demo_store, verify=False).config.episodes_seed is not None
+    if numbered and reset_at_each_iter:
+        raise ValueError(
+            "make_collector: an episode store as demo_store (numbered episodes) cannot be combined with reset_at_each_iter=True."
+        )
     env_factories = [
         functools.partial(
             make_collection_env,
@@ -303,7 +310,9 @@ def make_collector(
             num_agents=config.num_agents,
             env_mode=config.env_mode,
             primer=primer,
-            numbered=None if demo_store is None else _Numbered(str(demo_store), seed, w, config.num_collectors),
+            store=None if demo_store is None else (
+                _StoreEpisodes(str(demo_store), seed, w, config.num_collectors) if numbered else _StoreEpisodes(str(demo_store))
+            ),
         )
         for w in range(config.num_collectors)
     ]
@@ -352,7 +361,7 @@ def make_collector(
         )
     else:
         collector = Collector(env_factories[0](), policy, auto_register_policy_transforms=False, **common)
-    if demo_store is not None:  # the envs were seeded as they were built, and reset once since
+    if numbered:  # the envs were seeded as they were built, and reset once since
         return collector
     collector.set_seed(seed)
     if config.backend != "ray":

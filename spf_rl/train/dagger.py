@@ -62,7 +62,7 @@ from spf_rl.train.dagger_rounds import (
     source_rows,
     training_sources,
 )
-from spf_rl.train.evaluation import EvalConfig, evaluate_policy, frames_lookup, with_episode_sizes
+from spf_rl.train.evaluation import EvalConfig, FramesFromStore, evaluate_policy, with_episode_sizes
 from spf_rl.train.models import build_policy
 from spf_rl.viz import plot_if_available, pyplot
 
@@ -84,9 +84,6 @@ class ExpertMixturePolicy(TensorDictModuleBase):
     Args:
         learner: module writing ``"logits"`` (e.g. :class:`~spf_rl.modules.SPFPolicy`).
         beta: probability of the expert's action, in ``[0, 1]``.
-        demo_store: the episode store the env draws from: the learner's ``demo_frames``
-            are looked up by ``demo_id`` (:func:`~spf_rl.train.evaluation.frames_lookup`)
-            and dropped after it. ``None``: the env emits them.
 
     Examples:
         >>> import torch
@@ -101,17 +98,13 @@ class ExpertMixturePolicy(TensorDictModuleBase):
         [0, 0, 0, 0]
     """
 
-    def __init__(self, learner: TensorDictModuleBase, beta: float, demo_store: DemoStore | None = None) -> None:
+    def __init__(self, learner: TensorDictModuleBase, beta: float) -> None:
         super().__init__()
         if not 0.0 <= float(beta) <= 1.0:
             raise ValueError(f"beta must be in [0, 1], got {beta!r}.")
         self.learner = learner
         self.beta = float(beta)
-        self.lookup = frames_lookup(learner, demo_store)
-        learner_keys = learner.in_keys if self.lookup is None else [
-            *[key for key in learner.in_keys if key != "demo_frames"], *self.lookup.in_keys
-        ]
-        self.in_keys = list(dict.fromkeys([*learner_keys, "expert_action", "episode_seed", "step_count"]))
+        self.in_keys = list(dict.fromkeys([*learner.in_keys, "expert_action", "episode_seed", "step_count"]))
         self.out_keys = list(dict.fromkeys([*learner.out_keys, "action"]))
 
     def make_tensordict_primer(self):
@@ -119,10 +112,7 @@ class ExpertMixturePolicy(TensorDictModuleBase):
         return self.learner.make_tensordict_primer()
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        if self.lookup is not None:
-            tensordict = self.learner(self.lookup(tensordict)).exclude("demo_frames", inplace=True)
-        else:
-            tensordict = self.learner(tensordict)
+        tensordict = self.learner(tensordict)
         action = tensordict.get("logits").argmax(-1)
         if self.beta > 0.0:
             expert = tensordict.get("expert_action").reshape(action.shape).to(action.dtype)
@@ -368,7 +358,7 @@ def _collect_round(policy: TensorDictModuleBase, config: DAggerConfig, round_con
     env, layout = config.env, config.collector
     demos = DemoStore.build(demos_root(round_dir), round_demo_config(round_config), progress=False)
     policy.eval()
-    behaviour = ExpertMixturePolicy(policy, round_config.beta, demo_store=demos)
+    behaviour = ExpertMixturePolicy(FramesFromStore(policy, demos), round_config.beta)
     collector = make_collector(
         behaviour,
         env,
