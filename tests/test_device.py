@@ -379,7 +379,7 @@ def tiny_ppo_config(tmp_path: Path, checkpoint: Path, **overrides) -> PPOConfig:
     values = dict(
         checkpoint=str(checkpoint), output_dir=str(tmp_path / "run"), frames_per_batch=24, total_frames=48,
         ppo_epochs=1, minibatch_rows=1, critic_warmup_iters=1, val_every=2, kl_coef=0.1, logger="", progress=False,
-        collector=CollectorConfig(num_agents=2),
+        store_demos=6, store_root=str(tmp_path / "stores"), collector=CollectorConfig(num_agents=2),
         env=CollectionEnvConfig(num_houses=1, demo_length=5, max_steps=8, image_size=32, with_expert=False),
         val=EvalConfig(split="val", seed=1, **evaluation), test=EvalConfig(split="test", seed=2, **evaluation),
     )
