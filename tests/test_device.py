@@ -273,7 +273,7 @@ def test_ppo_puts_policy_value_head_reference_and_collector_on_the_device(tmp_pa
     monkeypatch.setattr(ppo, "make_collector", recording_make_collector)
     config = PPOConfig(
         checkpoint=str(checkpoint), output_dir=str(tmp_path / "run"), frames_per_batch=12, total_frames=12,
-        minibatch_rows=1, kl_coef=0.1, collector=CollectorConfig(num_agents=2),
+        minibatch_rows=1, kl_coef=0.1, store_demos=4, collector=CollectorConfig(num_agents=2),
         env=CollectionEnvConfig(num_houses=1, demo_length=5, max_steps=6, image_size=32, with_expert=False),
     )
     config.device = META
