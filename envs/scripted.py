@@ -248,16 +248,53 @@ def play_episode_steps(
     ``numbering.offset = first`` and stride 1, its ``N`` agents play them in turn (agent
     ``i`` plays ``first + i``, ``first + i + N``, ...). A
     :class:`~torchrl.collectors.Collector` steps the env in batches of
-    :data:`STEPS_PER_BATCH` steps per agent until all of them have ended; steps of other
-    episodes are dropped.
+    :data:`STEPS_PER_BATCH` steps per agent; :func:`gather_episode_steps` keeps the steps.
 
     Args:
         env: a seeded batched :class:`~envs.nav_env.PathFollowEnv` (possibly transformed).
         policy: a TensorDict policy writing ``"action"``.
+        first, count, step_keys, max_steps, episode_keys, progress: as :func:`gather_episode_steps`.
+
+    Returns:
+        as :func:`gather_episode_steps`.
+    """
+    _check_count(count)
+    collector = _episode_collector(env, policy, "play_episode_steps")
+    try:
+        return gather_episode_steps(collector, first, count, step_keys, max_steps, episode_keys, progress)
+    finally:
+        collector.shutdown(close_env=False)
+
+
+def _check_count(count: int) -> None:
+    if isinstance(count, bool) or not isinstance(count, int) or count <= 0:
+        raise ValueError(f"count must be an int > 0, got {count!r}.")
+
+
+def gather_episode_steps(
+    collector,
+    first: int,
+    count: int,
+    step_keys: Sequence[str],
+    max_steps: int,
+    episode_keys: Sequence[str] = ("episode_seed",),
+    progress: bool = False,
+) -> TensorDict:
+    """Iterate ``collector`` until the numbered episodes ``first .. first + count - 1`` have
+    all ended, and keep every step of them (steps of other episodes are dropped).
+
+    ``collector`` is any TorchRL collector over numbered envs that reach those episodes:
+    one batched env, or the envs of several worker processes or Ray actors sharing one
+    numbering (env ``w`` of ``W`` with ``episode_offset = first + w``, stride ``W``).
+    Each step lands in its episode's row at its ``step_count``, so the result does not
+    depend on the number of collectors, envs or agents. The caller shuts the collector down.
+
+    Args:
+        collector: the collector (its batches hold ``episode_index`` and ``step_count``).
         first: number of the first episode.
         count: number of episodes (> 0).
         step_keys: keys of the root tensordict kept at every step (``"action"`` included).
-        max_steps: the env's episode limit (the padded length).
+        max_steps: the envs' episode limit (the padded length).
         episode_keys: integer observations kept once per episode (read at its last step).
         progress: show a progress bar.
 
@@ -265,18 +302,15 @@ def play_episode_steps(
         a ``[count]`` TensorDict ordered by episode number: ``steps`` (``[count, max_steps]``:
         ``step_keys``, ``mask`` of the valid steps, ``is_init``), and per episode
         ``episode_keys``, ``length``, ``success`` and ``spl``.
+
+    Raises:
+        RuntimeError: if every env is past episodes that have not been played (a numbering
+            that never reaches them), or the collector stops before they have all ended.
     """
-    if isinstance(count, bool) or not isinstance(count, int) or count <= 0:
-        raise ValueError(f"count must be an int > 0, got {count!r}.")
-    spec = env.full_observation_spec.clone().update(env.full_action_spec)
-    steps = TensorDict(
-        {key: torch.zeros(count, max_steps, *spec[key].shape[1:], dtype=spec[key].dtype) for key in step_keys},
-        batch_size=[count, max_steps],
-    )
-    steps.set("mask", torch.zeros(count, max_steps, dtype=torch.bool))
+    _check_count(count)
+    steps: TensorDict | None = None
     out = TensorDict(
         {
-            "steps": steps,
             **{key: torch.zeros(count, dtype=torch.int64) for key in episode_keys},
             "length": torch.zeros(count, dtype=torch.int64),
             "success": torch.zeros(count, dtype=torch.bool),
@@ -284,12 +318,11 @@ def play_episode_steps(
         },
         batch_size=[count],
     )
-    collector = _episode_collector(env, policy, "play_episode_steps")
     ended = torch.zeros(count, dtype=torch.bool)
     bar = tqdm(total=count, disable=not progress, desc="episodes")
     try:
         for batch in collector:
-            batch = batch.reshape(-1)
+            batch = batch.reshape(-1).to("cpu")
             episode = batch.get("episode_index").reshape(-1) - first
             wanted = (episode >= 0) & (episode < count)
             if not wanted.any():
@@ -301,6 +334,12 @@ def play_episode_steps(
                     )
                 continue
             rows, episode = batch[wanted], episode[wanted]
+            if steps is None:  # shapes and dtypes from the first kept steps
+                steps = TensorDict(
+                    {key: torch.zeros(count, max_steps, *rows.get(key).shape[1:], dtype=rows.get(key).dtype) for key in step_keys},
+                    batch_size=[count, max_steps],
+                )
+                steps.set("mask", torch.zeros(count, max_steps, dtype=torch.bool))
             step = rows.get("step_count").reshape(-1)
             for key in step_keys:
                 steps.get(key)[episode, step] = rows.get(key).reshape(len(episode), *steps.get(key).shape[2:])
@@ -317,10 +356,12 @@ def play_episode_steps(
             if ended.all():
                 break
     finally:
-        collector.shutdown(close_env=False)
         bar.close()
+    if not ended.all():
+        missing = (~ended).nonzero().reshape(-1)[:5] + first
+        raise RuntimeError(f"the collector stopped before episodes {missing.tolist()}... ended: give it more total_frames.")
     steps.set("is_init", (torch.arange(max_steps) == 0).expand(count, max_steps).unsqueeze(-1).clone())
-    return out
+    return TensorDict({"steps": steps, **out}, batch_size=[count])
 
 
-__all__ = ["EpsilonExpertPolicy", "ExpertPolicy", "OpenLoopReplay", "episode_record", "play_episode_steps", "record_episodes", "run_episodes"]
+__all__ = ["EpsilonExpertPolicy", "ExpertPolicy", "OpenLoopReplay", "episode_record", "gather_episode_steps", "play_episode_steps", "record_episodes", "run_episodes"]

@@ -10,8 +10,11 @@ the working tree (checked when this was written):
 * ``spf_rl.train.models``: ``ModelConfig``, ``spf_config``, ``build_policy``;
 * ``spf_rl.train.bc``: ``OptimConfig``, ``bc_loss(policy, batch)``;
 * ``spf_rl.train.dagger``: ``DAggerConfig``, ``ExpertMixturePolicy`` and
-  ``_collect_round(policy, config, beta, seed)`` (one round's collection, as
-  ``train_dagger`` runs it: ``make_collector`` + ``collect_episodes``);
+  ``_collect_round`` (one round's collection, as ``train_dagger`` runs it: at the
+  baseline ``(policy, config, beta, seed)``, ``make_collector`` + ``collect_episodes``;
+  where ``spf_rl.train.dagger_rounds.round_demo_config`` exists,
+  ``(policy, config, round_config, round_dir)``: the round's episode store, then
+  ``make_collector`` with it + ``gather_episode_steps``);
 * ``spf_rl.train.collection``: ``CollectionEnvConfig``, ``CollectorConfig``,
   ``make_collector``;
 * ``spf_rl.train.evaluation``: ``EvalConfig``, ``evaluate_policy``;
@@ -23,11 +26,10 @@ Every config starts from the tree's own defaults (``dataclasses.replace`` of
 ``DatasetConfig()``, ``DAggerConfig()``, ``EvalConfig()``), with only the sizes of
 :class:`Sizes` set, so each pipeline runs as it does by default. Where the trees
 may differ the worker branches on what exists and says so in its output
-(``branches``): for ``collection``, a tree whose ``CollectionEnvConfig`` has
-``demo_store`` and ``emit_demo_frames`` collects from a demo store with ``demo_id``
-only and the frames looked up on the policy side (neither 5b5e344 nor main has one;
-run once, tiny, against the work in progress of the ``pipeline`` branch at fe715ca);
-otherwise the default env renders the demonstrations at each reset. Config fields
+(``branches``): for ``collection``, a tree whose ``make_collector`` takes
+``demo_store`` collects from a demo store with ``demo_id`` only and the frames looked
+up on the policy side (``FramesFromStore``), as PPO does; otherwise the default env
+renders the demonstrations at each reset. Config fields
 for worker processes that only a tree's ``EvalConfig`` has (``num_workers``,
 ``num_collectors``) are set to ``Sizes.workers`` and listed.
 
@@ -44,6 +46,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import inspect
 import json
 import logging
 import shutil
@@ -55,7 +58,6 @@ from functools import partial
 from pathlib import Path
 from typing import Any, Callable
 
-from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the working tree's recipes, whatever the PYTHONPATH
 
@@ -138,8 +140,19 @@ def measure_dagger_collection(sizes: Sizes, scratch: Path, branches: dict) -> di
     )
     config = configured(default, values, {"device": "cpu"}, applied)
     policy = build_learner(sizes)
+    from spf_rl.train import dagger_rounds
+
     start = time.perf_counter()
-    episodes = dagger._collect_round(policy, config, 0.0, sizes.seed)
+    if hasattr(dagger_rounds, "round_demo_config"):  # rounds of numbered episodes on an episode store
+        env = config.env
+        round_config = dagger_rounds.RoundConfig(
+            round_index=1, seed=sizes.seed, beta=0.0, num_episodes=config.episodes_per_round, demo_length=env.demo_length,
+            max_steps=env.max_steps, image_size=env.image_size, split=env.split, num_houses=env.num_houses, noise=env.noise,
+        )
+        episodes = dagger._collect_round(policy, config, round_config, scratch / "dagger" / "round-01")
+        applied.append("round on an episode store (its demonstrations rendered in the timing)")
+    else:
+        episodes = dagger._collect_round(policy, config, 0.0, sizes.seed)
     seconds = time.perf_counter() - start
     count = int(episodes.shape[0])
     branches["dagger_collection"] = applied
@@ -253,15 +266,29 @@ def measure_collection(sizes: Sizes, scratch: Path, branches: dict) -> dict:
     from spf_rl.train.dagger import DAggerConfig, ExpertMixturePolicy
 
     applied: list[str] = []
-    env = _collection_env(sizes, scratch, applied)
+    env = dataclasses.replace(DAggerConfig().env, **_collection_env_values(sizes))
     layout = dataclasses.replace(DAggerConfig().collector, num_collectors=sizes.collectors, num_agents=sizes.num_agents)
-    policy = ExpertMixturePolicy(build_learner(sizes).eval(), 0.0)
-    if getattr(env, "demo_store", None) is not None:
-        policy = StoreLookupPolicy(env.demo_store, policy)
+    learner = build_learner(sizes).eval()
+    frames_per_batch = layout.total_agents * sizes.max_steps
+    if "demo_store" in inspect.signature(make_collector).parameters:  # envs drawing from a store, frames looked up
+        from envs.demo_store import DemoStore, DemoStoreConfig
+        from spf_rl.train.evaluation import FramesFromStore
+
+        store_config = DemoStoreConfig(
+            num_demos=sizes.store_demos, split="train", num_houses=sizes.num_houses,
+            demo_length=sizes.demo_length, image_size=sizes.image_size, seed=sizes.seed,
+        )
+        store = DemoStore.build(scratch / "demo_store", store_config, progress=False)  # untimed
+        policy = ExpertMixturePolicy(FramesFromStore(learner, store), 0.0)
+        factory = partial(make_collector, policy, env, layout, frames_per_batch=frames_per_batch, seed=sizes.seed,
+                          demo_store=store.root)
+        applied.append("demo store (make_collector(demo_store=), demo_id only, policy-side lookup: FramesFromStore)")
+    else:
+        policy = ExpertMixturePolicy(learner, 0.0)
+        factory = partial(make_collector, policy, env, layout, frames_per_batch=frames_per_batch, seed=sizes.seed)
+        applied.append("default env (demonstrations rendered at each reset; make_collector has no demo_store)")
     house = split_seeds("train", sizes.num_houses)[0]
     raw = bench_raw(house, sizes.image_size, sizes.raw_chunks, sizes.raw_chunk_frames, WARMUP_FRAMES, sizes.seed)
-    frames_per_batch = layout.total_agents * sizes.max_steps
-    factory = partial(make_collector, policy, env, layout, frames_per_batch=frames_per_batch, seed=sizes.seed)
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         result = bench_collector(factory, 0, sizes.collection_batches, 1)
     branches["collection"] = applied
@@ -270,41 +297,6 @@ def measure_collection(sizes: Sizes, scratch: Path, branches: dict) -> dict:
 
 def _collection_env_values(sizes: Sizes) -> dict:
     return dict(split="train", noise="paper", num_houses=sizes.num_houses, with_expert=True, **_episode_sizes(sizes))
-
-
-def _collection_env(sizes: Sizes, scratch: Path, applied: list[str]):
-    """The pipelines' collection env (``DAggerConfig().env`` with the sizes): from a demo store
-    (``demo_id`` only) where the tree has one."""
-    from spf_rl.train.dagger import DAggerConfig
-
-    env = dataclasses.replace(DAggerConfig().env, **_collection_env_values(sizes))
-    if not {"demo_store", "emit_demo_frames"} <= {f.name for f in fields(env)}:
-        applied.append("default env (demonstrations rendered at each reset; CollectionEnvConfig has no demo_store)")
-        return env
-    from envs.demo_store import DemoStore, DemoStoreConfig
-
-    root = scratch / "demo_store"
-    store_config = DemoStoreConfig(
-        num_demos=sizes.store_demos, split="train", num_houses=sizes.num_houses,
-        demo_length=sizes.demo_length, image_size=sizes.image_size, seed=sizes.seed,
-    )
-    DemoStore.build(root, store_config, progress=False)  # once per tree's scratch, untimed after the first
-    applied.append("demo store (CollectionEnvConfig.demo_store, emit_demo_frames=False, policy-side lookup)")
-    return dataclasses.replace(env, demo_store=str(root), emit_demo_frames=False)
-
-
-class StoreLookupPolicy(TensorDictSequential):
-    """``policy`` behind a demo store's look-up of ``demo_frames`` where ``is_init`` is true (the
-    frames kept out of the collected batch), keeping the policy's recurrent-state primer."""
-
-    def __init__(self, store_root: str, policy: TensorDictModuleBase) -> None:
-        from envs.demo_store import DemoStore
-
-        lookup = DemoStore(store_root, verify=False).lookup_module(only_where="is_init")
-        super().__init__(lookup, policy, selected_out_keys=list(policy.out_keys))
-
-    def make_tensordict_primer(self):
-        return self.module[1].make_tensordict_primer()
 
 
 MEASURE_FUNCTIONS: dict[str, Callable[[Sizes, Path, dict], dict]] = {

@@ -167,6 +167,14 @@ def format_tag() -> str:
     return f"format{DATASET_FORMAT_VERSION}-env{ENV_VERSION}"
 
 
+def attach_demonstrations(episodes: TensorDictBase, demos: DemoStore) -> TensorDictBase:
+    """``episodes`` (in place) with ``demo_frames`` and ``demo_actions`` looked up by their ``demo_id`` in ``demos``."""
+    ids = episodes.get("demo_id").reshape(-1)
+    episodes.set("demo_frames", demos.frames[ids].reshape(*episodes.batch_size, *demos.frames.shape[1:]))
+    episodes.set("demo_actions", demos.actions[ids].reshape(*episodes.batch_size, -1))
+    return episodes
+
+
 def demos_root(root: str | os.PathLike) -> Path:
     """The directory of a dataset's demonstrations: ``<root>-demos``."""
     root = Path(root)
@@ -287,10 +295,7 @@ class EpisodeDataset(TensorStore):
 
     def with_demonstrations(self, episodes: TensorDictBase) -> TensorDictBase:
         """``episodes`` (rows of this dataset) with ``demo_frames`` and ``demo_actions`` looked up by ``demo_id``."""
-        ids = episodes.get("demo_id").reshape(-1)
-        episodes.set("demo_frames", self.demos.frames[ids].reshape(*episodes.batch_size, *self.demos.frames.shape[1:]))
-        episodes.set("demo_actions", self.demos.actions[ids].reshape(*episodes.batch_size, -1))
-        return episodes
+        return attach_demonstrations(episodes, self.demos)
 
     def __getitem__(self, rows) -> TensorDict:
         """Episodes ``rows`` (in memory) with their demonstrations."""
@@ -348,4 +353,4 @@ class EpisodeDataset(TensorStore):
         }
 
 
-__all__ = ["DatasetConfig", "DatasetError", "EpisodeDataset", "demos_root", "empty_training_episodes", "format_tag", "generate_chunk"]
+__all__ = ["DatasetConfig", "DatasetError", "EpisodeDataset", "attach_demonstrations", "demos_root", "empty_training_episodes", "format_tag", "generate_chunk"]

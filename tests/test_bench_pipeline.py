@@ -192,7 +192,7 @@ def test_smoke_every_measure_runs_against_the_working_tree(tmp_path):
     assert measures["bc_training"]["labelled_steps"] <= 4 * 6  # at most every step of the 4 episodes
     assert measures["collection"]["raw_fps"] > 0 and measures["collection"]["frames_per_batch"] == 2 * 6
     assert (tmp_path / "new" / "bc_data" / "meta.json").exists()  # the first dataset built, kept for bc_training
-    assert output["branches"]["collection"][0].startswith("default env")  # this tree has no demo-store collection
+    assert output["branches"]["collection"][0].startswith("demo store")  # this tree collects from a demo store
 
 
 def test_a_worker_imports_the_packages_of_its_own_tree(tmp_path):

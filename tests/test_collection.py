@@ -1,4 +1,4 @@
-"""Collection through TorchRL collectors (local and Ray) and the episode layout of collected batches."""
+"""Collection through TorchRL collectors (local and Ray), and numbered episodes of an episode store kept whole."""
 from __future__ import annotations
 
 import importlib.util
@@ -10,15 +10,12 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 
 from spf_rl.modules import SPFConfig, make_spf_policy
-from spf_rl.train.collection import (
-    CollectionEnvConfig,
-    CollectorConfig,
-    batch_to_episodes,
-    collect_episodes,
-    make_collection_env,
-    make_collector,
-)
+from envs.demo_store import DemoStore, DemoStoreConfig
+from envs.scripted import gather_episode_steps
+from spf_rl.data import STEP_KEYS
+from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig, make_collection_env, make_collector
 from spf_rl.train.dagger import ExpertMixturePolicy
+from spf_rl.train.evaluation import FramesFromStore
 
 TINY_ENV = CollectionEnvConfig(num_houses=1, demo_length=5, max_steps=6, image_size=32)
 
@@ -27,51 +24,24 @@ def tiny_policy():
     return make_spf_policy(SPFConfig(demo_length=5, sparsity=0.4, feature_dim=8, hidden_size=8, image_size=(32, 32)))
 
 
-def synthetic_batch(done: list[list[bool]]) -> TensorDict:
-    n, t = len(done), len(done[0])
-    done_t = torch.tensor(done).unsqueeze(-1)
-    is_init = torch.zeros(n, t, 1, dtype=torch.bool)
-    is_init[:, 0] = True
-    is_init[:, 1:] = done_t[:, :-1]
-    step = torch.arange(n * t).reshape(n, t)
-    return TensorDict(
-        {
-            "pixels": step[..., None, None, None].expand(n, t, 3, 2, 2).to(torch.uint8),
-            "action": step % 3,
-            "expert_action": (step + 1) % 3,
-            "is_init": is_init,
-            "demo_frames": step[..., None, None, None, None].expand(n, t, 4, 3, 2, 2).to(torch.uint8),
-            "demo_actions": torch.zeros(n, t, 4, dtype=torch.long),
-            "episode_seed": step[..., None],
-            "next": {
-                "done": done_t,
-                "success": done_t.clone(),
-                "spl": done_t.float() * 0.5,
-            },
-        },
-        batch_size=[n, t],
+def episode_store(root, count: int, seed: int) -> DemoStore:
+    """The demonstrations of episodes ``0 .. count - 1`` of env seed ``seed`` in TINY_ENV's houses."""
+    config = DemoStoreConfig(
+        num_demos=count, split=TINY_ENV.split, num_houses=TINY_ENV.num_houses, demo_length=TINY_ENV.demo_length,
+        image_size=TINY_ENV.image_size, episodes_seed=seed,
     )
+    return DemoStore.build(root, config, progress=False)
 
 
-def test_batch_to_episodes_cuts_pads_and_labels():
-    batch = synthetic_batch([[False, True, False, False], [False, False, False, True]])
-    episodes = batch_to_episodes(batch, max_steps=5)
-    # row 0: an episode of 2 steps, then one cut short after 2; row 1: one episode of 4 steps
-    assert episodes["length"].tolist() == [2, 2, 4]
-    assert episodes["success"].tolist() == [True, False, True]
-    assert episodes["spl"].tolist() == [0.5, 0.0, 0.5]
-    assert episodes["steps"].batch_size == torch.Size([3, 5])
-    assert episodes["steps", "mask"].sum(-1).tolist() == [2, 2, 4]
-    # each episode keeps the demonstration of its first step, and its own steps in order
-    assert episodes["demo_frames"][:, 0, 0, 0, 0].tolist() == [0, 2, 4]
-    assert episodes["steps", "pixels"][1, :2, 0, 0, 0].tolist() == [2, 3]
-    assert episodes["steps", "expert_action"][2, :4].tolist() == [2, 0, 1, 2]
-    assert not episodes["steps", "mask"][0, 2:].any()
-
-
-def test_batch_to_episodes_refuses_too_long_batches():
-    with pytest.raises(ValueError, match="max_steps"):
-        batch_to_episodes(synthetic_batch([[False] * 7]), max_steps=5)
+def play_store(behaviour, store: DemoStore, count: int, seed: int, config: CollectorConfig):
+    collector = make_collector(
+        behaviour, TINY_ENV, config, frames_per_batch=config.total_agents * 5, seed=seed, demo_store=store.root
+    )
+    try:
+        with torch.no_grad():
+            return gather_episode_steps(collector, 0, count, STEP_KEYS, TINY_ENV.max_steps, ("demo_id", "episode_seed"))
+    finally:
+        collector.shutdown()
 
 
 def test_collector_config_errors_name_the_parameter():
@@ -83,26 +53,36 @@ def test_collector_config_errors_name_the_parameter():
         CollectorConfig(num_agents=0)
 
 
-def test_local_collection_of_a_recurrent_policy_is_deterministic():
+def test_numbered_episodes_of_a_store_do_not_depend_on_the_collector_layout(tmp_path):
+    """A recurrent learner with its frames looked up: the same episodes, steps and actions from one
+    collector of 3 agents, of 2 agents, or 2 worker processes of 2 agents; each episode whole, from its start."""
     torch.manual_seed(0)
     policy = tiny_policy().eval()
-    behaviour = ExpertMixturePolicy(policy, beta=0.5)
-
-    def collect():
-        collector = make_collector(
-            behaviour, TINY_ENV, CollectorConfig(num_agents=3), frames_per_batch=18, seed=4, reset_at_each_iter=True
-        )
-        try:
-            with torch.no_grad():
-                return collect_episodes(collector, TINY_ENV.max_steps, num_batches=2)
-        finally:
-            collector.shutdown()
-
-    first, second = collect(), collect()
+    store = episode_store(tmp_path / "store", count=7, seed=4)
+    behaviour = ExpertMixturePolicy(FramesFromStore(policy, store), beta=0.5)
+    assert "demo_id" in behaviour.in_keys and "demo_frames" not in behaviour.in_keys
+    layouts = [CollectorConfig(num_agents=3), CollectorConfig(num_agents=2), CollectorConfig(num_agents=2, num_collectors=2)]
+    first, *others = [play_store(behaviour, store, 7, 4, layout) for layout in layouts]
+    assert first["demo_id"].tolist() == list(range(7))  # episode j plays the store's demonstration j
     assert first["steps", "mask"][:, 0].all() and first["steps", "is_init"][:, 0].all()
-    assert int(first["length"].sum()) == 2 * 18  # every collected step is in one episode
-    assert torch.equal(first["steps", "pixels"], second["steps", "pixels"])
-    assert torch.equal(first["steps", "action"], second["steps", "action"])
+    lengths = first["steps", "mask"].sum(-1)
+    assert torch.equal(lengths, first["length"]) and (lengths >= 1).all()
+    assert torch.equal(first["steps", "mask"], torch.arange(TINY_ENV.max_steps) < lengths[:, None])  # no gaps
+    assert 0 < int(first["steps", "action"][first["steps", "mask"]].ne(first["steps", "expert_action"][first["steps", "mask"]]).sum())
+    for other in others:
+        for key in ("pixels", "action", "expert_action", "mask"):
+            assert torch.equal(first["steps", key], other["steps", key]), key
+        for key in ("demo_id", "episode_seed", "length", "success", "spl"):
+            assert torch.equal(first[key], other[key]), key
+
+
+def test_numbered_collection_refuses_resets_at_each_batch(tmp_path):
+    store = episode_store(tmp_path / "store", count=2, seed=0)
+    with pytest.raises(ValueError, match="reset_at_each_iter"):
+        make_collector(
+            ExpertMixturePolicy(FramesFromStore(tiny_policy().eval(), store), 0.0), TINY_ENV, CollectorConfig(num_agents=2),
+            frames_per_batch=10, reset_at_each_iter=True, demo_store=store.root,
+        )
 
 
 @pytest.mark.parametrize("num_collectors", [1, 2])
@@ -134,7 +114,7 @@ def test_parallel_env_mode_matches_spec():
 
 
 @pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason="ray is not installed (pip install '.[distributed]')")
-def test_ray_backend_collects_a_batch_on_a_local_cluster():
+def test_ray_backend_collects_a_batch_on_a_local_cluster(tmp_path):
     import ray
 
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
@@ -161,8 +141,6 @@ def test_ray_backend_collects_a_batch_on_a_local_cluster():
         with torch.no_grad():
             local = policy(batch[:, :1].clone().squeeze(1))
         assert torch.equal(local["logits"].argmax(-1), batch["action"][:, 0])
-        episodes = batch_to_episodes(batches[0], TINY_ENV.max_steps)
-        assert int(episodes["length"].sum()) == 12
         # the actuation noise reached the Ray actor's env: executed turns differ from the nominal ones
         from envs.demos import nominal_motion
 
@@ -170,6 +148,14 @@ def test_ray_backend_collects_a_batch_on_a_local_cluster():
         nominal = nominal_motion(batch["action"].numpy())[..., 2]
         deviation = np.abs(np.angle(np.exp(1j * (turned - nominal))))
         assert TINY_ENV.noise == "paper" and (deviation > np.deg2rad(1.0)).mean() > 0.5
+        # numbered episodes of an episode store: two Ray actors play the same episodes as one local collector
+        store = episode_store(tmp_path / "store", count=5, seed=2)
+        behaviour = ExpertMixturePolicy(FramesFromStore(policy, store), beta=0.0)
+        local = play_store(behaviour, store, 5, 2, CollectorConfig(num_agents=2))
+        remote = play_store(behaviour, store, 5, 2, CollectorConfig(backend="ray", num_collectors=2, num_agents=2))
+        for key in ("pixels", "action", "mask"):
+            assert torch.equal(local["steps", key], remote["steps", key]), key
+        assert torch.equal(local["length"], remote["length"])
     finally:
         ray.shutdown()
 

@@ -12,7 +12,7 @@ from tensordict.nn import TensorDictModule
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.modules import SPFConfig
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig
-from spf_rl.train.dagger import DAggerConfig, ExpertMixturePolicy, behaviour_statistics, train_dagger
+from spf_rl.train.dagger import DAggerConfig, ExpertMixturePolicy, train_dagger
 from spf_rl.train.dagger_rounds import RoundConfig, RoundError, RoundStore
 from spf_rl.train.evaluation import EvalConfig
 from spf_rl.train.models import build_policy
@@ -128,7 +128,12 @@ def test_rounds_aggregate_retrain_and_report(tmp_path, bc_checkpoint):
     assert (stored.config.round_index, stored.config.beta, stored.config.max_steps) == (1, 0.5, 6)
     episodes = stored.episodes
     assert episodes.batch_size == torch.Size([4])
-    assert episodes["steps", "is_init"][:, 0].all()
+    assert episodes["steps", "is_init"][:, 0].all() and episodes["steps", "mask"][:, 0].all()
+    # numbered episodes 0..3 of the round's seed, each referring to its demonstration in round-01-demos
+    assert episodes["demo_id"].tolist() == [0, 1, 2, 3] and "demo_frames" not in episodes.keys()
+    rows = stored[torch.tensor([2, 0])]
+    assert torch.equal(rows["demo_frames"][0], stored.demos.frames[2]) and rows["demo_frames"].shape == (2, 5, 32, 32, 3)
+    assert history[1]["episodes"] == 4 and history[1]["behaviour_success"] == episodes["success"].float().mean().item()
     # every stored state carries a valid expert label
     labels = episodes["steps", "expert_action"][episodes["steps", "mask"]]
     assert labels.numel() > 0 and labels.min() >= 0 and labels.max() <= 2
@@ -141,25 +146,8 @@ def test_rounds_aggregate_retrain_and_report(tmp_path, bc_checkpoint):
     build_policy("spf", best["model_config"]).load_state_dict(best["model"])
 
 
-def test_behaviour_success_counts_first_episodes_only():
-    # batches of 6 steps per agent. Agent 0: success after 2 steps, then a fragment of 4 steps cut by
-    # the batch end; agent 1: ran all 6 steps without success; agent 2: success after 3 steps, then a
-    # second success after 3 more (kept whole only because it was quick: not counted either)
-    episodes = TensorDict(
-        {
-            "success": torch.tensor([True, False, False, True, True]),
-            "length": torch.tensor([2, 4, 6, 3, 3]),
-        },
-        [5],
-    )
-    stats = behaviour_statistics(episodes, max_steps=6)
-    assert stats == {"collected_trajectories": 5, "first_episodes": 3, "behaviour_success": pytest.approx(2 / 3)}
-    with pytest.raises(ValueError, match="max_steps"):
-        behaviour_statistics(episodes, max_steps=5)  # lengths 2 + 4 cross a 5-step batch boundary
-
-
-def test_expert_only_round_succeeds_in_every_complete_episode(tmp_path, bc_checkpoint):
-    """beta = 1: the expert drives, so every first episode succeeds (the fragments after it are not failures)."""
+def test_expert_only_round_succeeds_in_every_episode(tmp_path, bc_checkpoint):
+    """beta = 1 without noise: the expert drives every step of every (whole) episode, so each succeeds."""
     config = tiny_config(
         tmp_path, bc_checkpoint, rounds=1, beta0=1.0, episodes_per_round=8, env=CollectionEnvConfig(
             num_houses=1, demo_length=5, max_steps=12, image_size=32, noise="none"
@@ -167,9 +155,23 @@ def test_expert_only_round_succeeds_in_every_complete_episode(tmp_path, bc_check
     )
     config.val = config.test = EvalConfig(split="val", seed=1, num_episodes=2, num_agents=2, demo_length=5, max_steps=12, image_size=32, num_houses=1)
     round_one = train_dagger(config)["history"][1]
-    assert round_one["first_episodes"] >= 2
-    assert round_one["collected_trajectories"] > round_one["first_episodes"]  # episodes end early: fragments follow
-    assert round_one["behaviour_success"] == 1.0
+    assert round_one["episodes"] == 8 and round_one["behaviour_success"] == 1.0
+    episodes = RoundStore(tmp_path / "dagger" / "rounds" / "round-01").episodes
+    steps = episodes["steps"][episodes["steps", "mask"]]
+    assert torch.equal(steps["action"], steps["expert_action"])
+    assert round_one["mean_length"] == episodes["length"].float().mean().item() < 12
+
+
+def test_a_round_is_the_same_whatever_the_collector_layout(tmp_path, bc_checkpoint):
+    """Numbered episodes: 2 agents, 3 agents or 2 worker processes store the same round bytes."""
+    def round_one(name: str, collector: CollectorConfig):
+        train_dagger(tiny_config(tmp_path / name, bc_checkpoint, rounds=1, episodes_per_round=5, collector=collector))
+        return RoundStore(tmp_path / name / "dagger" / "rounds" / "round-01").episodes
+
+    first = round_one("a", CollectorConfig(num_agents=2))
+    for name, layout in (("b", CollectorConfig(num_agents=3)), ("c", CollectorConfig(num_agents=2, num_collectors=2))):
+        other = round_one(name, layout)
+        assert all(torch.equal(first[key], other[key]) for key in first.keys(True, True)), name
 
 
 def test_interrupted_run_resumes_to_the_same_result(tmp_path, bc_checkpoint):
@@ -177,7 +179,8 @@ def test_interrupted_run_resumes_to_the_same_result(tmp_path, bc_checkpoint):
     train_dagger(tiny_config(tmp_path / "b", bc_checkpoint, rounds=1))  # "interrupted" after round 1
     round_one = (tmp_path / "b" / "dagger" / "rounds" / "round-01").stat().st_mtime_ns
     # an interruption after round 2's episodes were stored but before last.pt: they are reused
-    shutil.copytree(tmp_path / "a" / "dagger" / "rounds" / "round-02", tmp_path / "b" / "dagger" / "rounds" / "round-02")
+    for name in ("round-02-demos", "round-02"):
+        shutil.copytree(tmp_path / "a" / "dagger" / "rounds" / name, tmp_path / "b" / "dagger" / "rounds" / name)
     resumed = train_dagger(tiny_config(tmp_path / "b", bc_checkpoint))
     assert (tmp_path / "b" / "dagger" / "rounds" / "round-01").stat().st_mtime_ns == round_one  # not re-collected
     assert [r["round"] for r in resumed["history"]] == [0, 1, 2]
@@ -203,6 +206,20 @@ def test_a_stored_round_of_another_run_or_corrupt_is_refused(tmp_path, bc_checkp
     pixels.write_bytes(bytes(damaged))
     with pytest.raises(RoundError, match="checksum mismatch"):
         train_dagger(tiny_config(tmp_path / "a", bc_checkpoint, rounds=1))
+
+
+def test_a_round_of_an_older_layout_or_without_its_demonstrations_is_refused(tmp_path, bc_checkpoint):
+    train_dagger(tiny_config(tmp_path, bc_checkpoint, rounds=1))
+    round_dir = tmp_path / "dagger" / "rounds" / "round-01"
+    (tmp_path / "dagger" / "last.pt").unlink()  # as if interrupted after storing round 1
+    shutil.rmtree(round_dir.with_name("round-01-demos"))
+    with pytest.raises(RoundError, match="round-01-demos are missing"):
+        train_dagger(tiny_config(tmp_path, bc_checkpoint, rounds=1))
+    meta = json.loads((round_dir / "meta.json").read_text())
+    meta["format_version"] = 1
+    (round_dir / "meta.json").write_text(json.dumps(meta))
+    with pytest.raises(RoundError, match="version 1 stored every episode's demonstration frames"):
+        RoundStore(round_dir)
 
 
 def test_round_store_refuses_a_wrong_count_and_bad_configs(tmp_path):

@@ -240,11 +240,20 @@ def test_dagger_collects_with_the_learner_on_its_device_into_cpu_storage(tmp_pat
         raise Stop
 
     monkeypatch.setattr(dagger, "make_collector", recording_make_collector)
+    from spf_rl.train.dagger_rounds import RoundConfig
+
     learner = build_policy("spf", POLICY).to(META)
-    config = DAggerConfig(checkpoint="unused.pt", output_dir=str(tmp_path), env=ENV, collector=CollectorConfig(num_agents=2))
+    config = DAggerConfig(
+        checkpoint="unused.pt", output_dir=str(tmp_path), env=ENV, collector=CollectorConfig(num_agents=2),
+        episodes_per_round=2,
+    )
+    round_config = RoundConfig(
+        round_index=1, seed=0, beta=0.5, num_episodes=2, demo_length=5, max_steps=6, image_size=32, num_houses=1
+    )
     with pytest.raises(Stop):
-        dagger._collect_round(learner, config, beta=0.5, seed=0)
+        dagger._collect_round(learner, config, round_config, tmp_path / "round-01")
     assert captured["device"] == META and captured["storing_device"] == "cpu"
+    assert captured["demo_store"] == tmp_path / "round-01-demos"  # the round's episodes, drawn from its store
     assert module_devices(captured["policy"]) == {"meta"}
 
 
@@ -264,7 +273,7 @@ def test_ppo_puts_policy_value_head_reference_and_collector_on_the_device(tmp_pa
     monkeypatch.setattr(ppo, "make_collector", recording_make_collector)
     config = PPOConfig(
         checkpoint=str(checkpoint), output_dir=str(tmp_path / "run"), frames_per_batch=12, total_frames=12,
-        minibatch_rows=1, kl_coef=0.1, collector=CollectorConfig(num_agents=2),
+        minibatch_rows=1, kl_coef=0.1, store_demos=4, collector=CollectorConfig(num_agents=2),
         env=CollectionEnvConfig(num_houses=1, demo_length=5, max_steps=6, image_size=32, with_expert=False),
     )
     config.device = META
@@ -370,7 +379,7 @@ def tiny_ppo_config(tmp_path: Path, checkpoint: Path, **overrides) -> PPOConfig:
     values = dict(
         checkpoint=str(checkpoint), output_dir=str(tmp_path / "run"), frames_per_batch=24, total_frames=48,
         ppo_epochs=1, minibatch_rows=1, critic_warmup_iters=1, val_every=2, kl_coef=0.1, logger="", progress=False,
-        collector=CollectorConfig(num_agents=2),
+        store_demos=6, store_root=str(tmp_path / "stores"), collector=CollectorConfig(num_agents=2),
         env=CollectionEnvConfig(num_houses=1, demo_length=5, max_steps=8, image_size=32, with_expert=False),
         val=EvalConfig(split="val", seed=1, **evaluation), test=EvalConfig(split="test", seed=2, **evaluation),
     )

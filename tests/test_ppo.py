@@ -60,6 +60,8 @@ def tiny_config(tmp_path, checkpoint, iterations: int, **overrides) -> PPOConfig
         minibatch_rows=1,
         val_every=1,
         critic_warmup_iters=1,
+        store_demos=6,
+        store_root=str(tmp_path / "stores"),
         progress=False,
         collector=CollectorConfig(num_agents=AGENTS),
         env=ENV,
@@ -115,6 +117,35 @@ def test_recomputed_log_prob_in_sequence_mode_equals_collected(collected):
     wrong.set("is_init", torch.zeros_like(wrong.get("is_init")))
     wrong.set("spf_hidden", torch.ones_like(wrong.get("spf_hidden")))
     assert (recompute_log_prob(actor, wrong) - batch.get("action_log_prob")).abs().max() > 1e-3
+
+
+def test_store_collection_carries_ids_and_replays_with_the_frames_looked_up(tmp_path):
+    """PPO's path: envs emit demo_id only, the actor looks the frames up; the update looks them up
+    where segments start (zeros elsewhere) and replays the collected log-probabilities exactly."""
+    from envs.demo_store import DemoStore, DemoStoreConfig
+    from spf_rl.train.evaluation import FramesFromStore, frames_lookup
+
+    store = DemoStore.build(tmp_path / "store", DemoStoreConfig(num_demos=4, num_houses=1, demo_length=5, image_size=32), progress=False)
+    torch.manual_seed(0)
+    policy = build_policy("spf", POLICY).eval()
+    actor, _ = make_ppo_modules(policy)
+    collector = make_collector(
+        FramesFromStore(actor, store), ENV, CollectorConfig(num_agents=AGENTS), frames_per_batch=AGENTS * STEPS,
+        total_frames=AGENTS * STEPS, seed=0, reset_at_each_iter=True, demo_store=store.root,
+    )
+    try:
+        batch = next(iter(collector))
+    finally:
+        collector.shutdown()
+    assert "demo_frames" not in batch.keys() and batch["demo_id"].max() < 4
+    is_init = batch.get("is_init").squeeze(-1)
+    assert is_init[:, 0].all() and is_init[:, 1:].any()
+    lookup = frames_lookup(policy, store)
+    assert lookup.in_keys == ["demo_id", "is_init"]  # the SPF policy carries its memory: segment starts only
+    lookup(batch)
+    assert (batch["demo_frames"][~is_init] == 0).all()
+    assert torch.equal(batch["demo_frames"][is_init], store.frames[batch["demo_id"][is_init].reshape(-1)])
+    torch.testing.assert_close(recompute_log_prob(actor, batch), batch.get("action_log_prob"), atol=1e-5, rtol=0)
 
 
 def test_random_sparsity_model_replays_its_eval_mask():
@@ -237,6 +268,7 @@ def test_end_to_end_interrupt_and_resume(tmp_path, checkpoint, monkeypatch):
         ({"minibatch_rows": AGENTS + 1}, "minibatch_rows"),
         ({"frames_per_batch": AGENTS * STEPS + 1}, "frames_per_batch"),
         ({"total_frames": AGENTS}, "total_frames"),
+        ({"store_demos": 0}, "store_demos"),
     ],
 )
 def test_bad_config_values_are_refused(tmp_path, checkpoint, overrides, match):

@@ -15,25 +15,28 @@ for them from two small configs:
   :class:`~torchrl.envs.ParallelEnv` of ``num_agents`` single-agent workers
   (``env_mode="parallel"``).
 
-:func:`collect_episodes` turns collected batches into the episode layout of
-:mod:`spf_rl.data` (one demonstration per episode, steps padded to
-``max_steps``), so DAgger's rounds can be stored and trained on like the BC dataset.
+With ``demo_store`` (an episode store), :func:`make_collector`'s envs play that
+store's numbered episodes and emit ``demo_id`` instead of the frames (the policy
+looks them up); :func:`~envs.scripted.gather_episode_steps` keeps each episode's
+steps, in the layout of :mod:`spf_rl.data`, whatever the number of collectors: the
+path of DAgger's rounds.
 """
 from __future__ import annotations
 
 import functools
 import importlib.util
 import logging
+import os
 from dataclasses import dataclass
 from typing import Literal
 
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import Collector
-from torchrl.collectors.utils import split_trajectories
 from torchrl.envs import Compose, EnvBase, InitTracker, ParallelEnv, TensorDictPrimer, TransformedEnv
 from torchrl.modules.utils import get_primers_from_module
 
+from envs.demo_store import DemoStore
 from envs.nav_env import PathFollowEnv
 from envs.checks import check_episode_source, check_positive_ints
 from envs.transforms import DEFAULT_NOISE, ActuationNoise
@@ -44,6 +47,8 @@ logger = logging.getLogger(__name__)
 BACKENDS = ("local", "ray")
 ENV_MODES = ("batched", "parallel")
 _HAS_RAY = importlib.util.find_spec("ray") is not None
+#: ``total_frames`` given to a Ray collector asked never to stop (``-1``).
+RAY_ENDLESS_FRAMES = 2**62
 
 
 @dataclass
@@ -133,12 +138,28 @@ def collection_device(setting: str | torch.device, config: CollectorConfig) -> t
     return device
 
 
-def _single_agent_env(env_config: CollectionEnvConfig) -> TransformedEnv:
-    return TransformedEnv(_base_env(env_config, None), ActuationNoise(env_config.noise))
+def _single_agent_env(env_config: CollectionEnvConfig, store: _StoreEpisodes | None = None) -> TransformedEnv:
+    return TransformedEnv(_base_env(env_config, None, store), ActuationNoise(env_config.noise))
 
 
-def _base_env(env_config: CollectionEnvConfig, num_agents: int | None) -> PathFollowEnv:
-    return PathFollowEnv(
+@dataclass(frozen=True)
+class _StoreEpisodes:
+    """Envs whose demonstrations come from a :class:`~envs.demo_store.DemoStore`: its
+    directory, and for an episode store (numbered episodes) the seed every env shares and
+    this env's numbering (``offset``, ``stride``); ``seed=None``: seeded by the collector."""
+
+    demo_store: str
+    seed: int | None = None
+    offset: int = 0
+    stride: int = 1
+
+    def agent(self, index: int, num_agents: int) -> _StoreEpisodes:
+        """The numbering of single-agent env ``index`` of ``num_agents`` (a ``ParallelEnv``'s workers)."""
+        return _StoreEpisodes(self.demo_store, self.seed, self.offset + self.stride * index, self.stride * num_agents)
+
+
+def _base_env(env_config: CollectionEnvConfig, num_agents: int | None, store: _StoreEpisodes | None = None) -> PathFollowEnv:
+    env = PathFollowEnv(
         env_config.split,
         num_houses=env_config.num_houses,
         num_agents=num_agents,
@@ -146,7 +167,20 @@ def _base_env(env_config: CollectionEnvConfig, num_agents: int | None) -> PathFo
         max_steps=env_config.max_steps,
         image_size=env_config.image_size,
         with_expert=env_config.with_expert,
+        **(
+            {}
+            if store is None
+            else dict(
+                demo_store=store.demo_store,
+                emit_demo_frames=False,
+                episode_offset=store.offset,
+                episode_stride=store.stride,
+            )
+        ),
     )
+    if store is not None and store.seed is not None:
+        env.set_seed(store.seed)
+    return env
 
 
 def make_collection_env(
@@ -154,6 +188,7 @@ def make_collection_env(
     num_agents: int,
     env_mode: Literal["batched", "parallel"] = "batched",
     primer: TensorDictPrimer | None = None,
+    store: _StoreEpisodes | None = None,
 ) -> TransformedEnv:
     """The env one collector steps: ``num_agents`` agents with noise, ``is_init`` and
     (optionally) a recurrent policy's primer. Importable, so a
@@ -164,6 +199,8 @@ def make_collection_env(
         num_agents: agents in the env.
         env_mode: ``"batched"`` or ``"parallel"`` (see :class:`CollectorConfig`).
         primer: the policy's :class:`~torchrl.envs.TensorDictPrimer` (its recurrent state).
+        store: draw the demonstrations from a store (see :func:`make_collector`'s
+            ``demo_store``); for numbered episodes the envs are seeded here.
 
     Examples:
         >>> env = make_collection_env(CollectionEnvConfig(num_houses=1, demo_length=5, image_size=32), num_agents=2)
@@ -173,10 +210,14 @@ def make_collection_env(
     if env_mode not in ENV_MODES:
         raise ValueError(f"env_mode must be one of {ENV_MODES}, got {env_mode!r}.")
     if env_mode == "batched":
-        env: EnvBase = _base_env(env_config, num_agents)
+        env: EnvBase = _base_env(env_config, num_agents, store)
         transforms = [ActuationNoise(env_config.noise), InitTracker()]
     else:
-        env = ParallelEnv(num_agents, functools.partial(_single_agent_env, env_config), mp_start_method="spawn")
+        factories = [
+            functools.partial(_single_agent_env, env_config, None if store is None else store.agent(i, num_agents))
+            for i in range(num_agents)
+        ]
+        env = ParallelEnv(num_agents, factories, mp_start_method="spawn")
         transforms = [InitTracker()]
     if primer is not None:
         transforms.append(primer.clone())
@@ -194,6 +235,7 @@ def make_collector(
     reset_at_each_iter: bool = False,
     device: torch.device | str | None = None,
     storing_device: torch.device | str | None = None,
+    demo_store: str | os.PathLike | None = None,
 ):
     """A TorchRL collector running ``policy`` in the path-following env.
 
@@ -222,6 +264,15 @@ def make_collector(
         storing_device: where the yielded batches are stored (``None``: ``device``
             for the local backend, so that a learner on a GPU gets its batch there;
             pass ``"cpu"`` for batches that go to disk).
+        demo_store: a :class:`~envs.demo_store.DemoStore`'s directory: the envs draw their
+            demonstrations from it and emit ``demo_id`` instead of the frames, which
+            ``policy`` looks up itself (:class:`~spf_rl.train.evaluation.FramesFromStore`).
+            An episode store (:meth:`~envs.demo_store.DemoStoreConfig.of_episodes` with
+            ``episodes_seed = seed``) is played as numbered episodes: every env seeded with
+            ``seed``, collector ``w`` of ``W`` playing episode numbers ``w, w + W, ...``
+            (:func:`~envs.scripted.gather_episode_steps` keeps them). Any other store: a
+            random demonstration of it per episode, the envs seeded by the collector.
+            ``None``: each env renders a random demonstration at every reset.
 
     Returns:
         a :class:`~torchrl.collectors.Collector`, :class:`~torchrl.collectors.MultiSyncCollector`
@@ -230,7 +281,8 @@ def make_collector(
     Raises:
         ImportError: for ``backend="ray"`` without ray installed.
         ValueError: ``backend="ray"`` with a ``device`` other than the CPU (the Ray
-            actors act on the CPU; use the local backend for a GPU learner).
+            actors act on the CPU; use the local backend for a GPU learner), or
+            an episode store with ``reset_at_each_iter`` (resets would skip numbered episodes).
 
     Examples:
         >>> import torch
@@ -246,9 +298,24 @@ def make_collector(
         primer = policy.make_tensordict_primer()
     else:  # e.g. a ProbabilisticActor around a recurrent policy: the primers of its submodules
         primer = get_primers_from_module(policy, warn=False) if isinstance(policy, torch.nn.Module) else None
-    env_factory = functools.partial(
-        make_collection_env, env_config, num_agents=config.num_agents, env_mode=config.env_mode, primer=primer
-    )
+    numbered = demo_store is not None and DemoStore(demo_store, verify=False).config.episodes_seed is not None
+    if numbered and reset_at_each_iter:
+        raise ValueError(
+            "make_collector: an episode store as demo_store (numbered episodes) cannot be combined with reset_at_each_iter=True."
+        )
+    env_factories = [
+        functools.partial(
+            make_collection_env,
+            env_config,
+            num_agents=config.num_agents,
+            env_mode=config.env_mode,
+            primer=primer,
+            store=None if demo_store is None else (
+                _StoreEpisodes(str(demo_store), seed, w, config.num_collectors) if numbered else _StoreEpisodes(str(demo_store))
+            ),
+        )
+        for w in range(config.num_collectors)
+    ]
     common = dict(
         frames_per_batch=frames_per_batch,
         total_frames=total_frames,
@@ -267,8 +334,10 @@ def make_collector(
         if not _HAS_RAY:
             raise ImportError("collector.backend='ray' needs ray: pip install '.[distributed]' (or pip install ray).")
         ray_init_config = {"address": config.ray_address} if config.ray_address else {}
+        if total_frames < 0:  # "never stop": TorchRL's RayCollector would yield nothing for -1
+            common["total_frames"] = RAY_ENDLESS_FRAMES
         collector = Collector(
-            [env_factory] * config.num_collectors,
+            env_factories,
             policy,
             backend="ray",
             num_collectors=config.num_collectors,
@@ -283,7 +352,7 @@ def make_collector(
         )
     elif config.num_collectors > 1:
         collector = Collector(
-            [env_factory] * config.num_collectors,
+            env_factories,
             policy,
             num_collectors=config.num_collectors,
             sync=True,
@@ -291,7 +360,9 @@ def make_collector(
             **common,
         )
     else:
-        collector = Collector(env_factory(), policy, auto_register_policy_transforms=False, **common)
+        collector = Collector(env_factories[0](), policy, auto_register_policy_transforms=False, **common)
+    if numbered:  # the envs were seeded as they were built, and reset once since
+        return collector
     collector.set_seed(seed)
     if config.backend != "ray":
         # the collector reset its envs when it was built, before they had a seed: start the
@@ -303,91 +374,10 @@ def make_collector(
     return collector
 
 
-#: Keys of a collected batch that hold the same value at every step of an episode.
-_PER_EPISODE_KEYS = ("demo_frames", "demo_actions", "episode_seed")
-_STEP_INDEX_KEY = "_step_index"
-
-
-def batch_to_episodes(batch: TensorDictBase, max_steps: int) -> TensorDict:
-    """Cut a collected ``[..., T]`` batch into episodes in the layout of :mod:`spf_rl.data`.
-
-    Each trajectory (a run of steps from an ``is_init`` step) becomes one episode:
-    the demonstration of its first step, and its steps padded to ``max_steps``
-    with ``mask`` marking the valid ones. ``success``/``spl`` are read at the
-    trajectory's last step (false/0 for a trajectory the batch cut short).
-    """
-    batch = batch.reshape(-1, batch.shape[-1]) if batch.ndim != 2 else batch
-    # keys that hold once per episode (30 frames a step) are read at each trajectory's first
-    # step, not split and padded with every step: that copying was most of a DAgger round
-    step_index = torch.arange(batch.numel(), device=batch.device).reshape(batch.shape)
-    stepwise = batch.exclude("collector", *_PER_EPISODE_KEYS).set(_STEP_INDEX_KEY, step_index)
-    trajectories = split_trajectories(stepwise, done_key="done")
-    mask = trajectories.get("mask")
-    keep = mask[:, 0]
-    if not keep.all():
-        trajectories, mask = trajectories[keep], mask[keep]
-    first = trajectories.get(_STEP_INDEX_KEY)[:, 0]
-    first_steps = TensorDict(
-        {key: batch.get(key).flatten(0, 1)[first] for key in _PER_EPISODE_KEYS}, batch_size=first.shape
-    )
-    count, length = trajectories.shape
-    if length > max_steps:
-        raise ValueError(f"collected trajectories of {length} steps exceed max_steps={max_steps}.")
-    pad = max_steps - length
-
-    def padded(value: torch.Tensor) -> torch.Tensor:
-        if pad == 0:
-            return value
-        return torch.cat([value, value.new_zeros(count, pad, *value.shape[2:])], 1)
-
-    lengths = mask.sum(-1)
-    last = (lengths - 1).clamp(min=0)
-    rows = torch.arange(count)
-    final = trajectories.get("next")[rows, last]
-    steps = TensorDict(
-        {
-            "pixels": padded(trajectories.get("pixels")),
-            "action": padded(trajectories.get("action")),
-            "expert_action": padded(trajectories.get("expert_action")),
-            "mask": padded(mask),
-            "is_init": padded(trajectories.get("is_init")),
-        },
-        batch_size=[count, max_steps],
-    )
-    done = final.get("done").reshape(count)
-    return TensorDict(
-        {
-            "steps": steps,
-            "demo_frames": first_steps.get("demo_frames"),
-            "demo_actions": first_steps.get("demo_actions"),
-            "episode_seed": first_steps.get("episode_seed").reshape(count),
-            "length": lengths,
-            "success": final.get("success").reshape(count) & done,
-            "spl": torch.where(done, final.get("spl").reshape(count), torch.zeros(count)),
-        },
-        batch_size=[count],
-    )
-
-
-def collect_episodes(collector, max_steps: int, num_batches: int, progress: bool = False) -> TensorDict:
-    """Run ``num_batches`` batches of ``collector`` and return their episodes
-    (:func:`batch_to_episodes`), concatenated."""
-    from tqdm.auto import tqdm
-
-    episodes = []
-    for index, batch in enumerate(tqdm(collector, total=num_batches, desc="collect", disable=not progress)):
-        episodes.append(batch_to_episodes(batch, max_steps))
-        if index + 1 >= num_batches:
-            break
-    return torch.cat(episodes, 0)
-
-
 __all__ = [
     "CollectionEnvConfig",
     "CollectorConfig",
-    "batch_to_episodes",
     "collection_device",
-    "collect_episodes",
     "make_collection_env",
     "make_collector",
 ]

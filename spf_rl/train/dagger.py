@@ -1,10 +1,11 @@
 """DAgger from a behaviour-cloning checkpoint.
 
-Round ``r = 1..R``: roll out a mixture of the learner and the expert (per step
-the expert's action with probability ``beta_r = beta0 * beta_decay ** (r - 1)``,
-else the learner's greedy action) through a TorchRL collector, label every
-visited state with the expert (the env's ``expert_action``), store the round's
-episodes on disk, and retrain the learner with the BC loss for a fixed number of
+Round ``r = 1..R``: play ``episodes_per_round`` numbered episodes of the round's seed
+(their demonstrations rendered once into an episode store, looked up by the learner)
+with a mixture of the learner and the expert (per step the expert's action with
+probability ``beta_r = beta0 * beta_decay ** (r - 1)``, else the learner's greedy
+action) through a TorchRL collector, label every visited state with the expert (the
+env's ``expert_action``), store the round's episodes on disk, and retrain the learner with the BC loss for a fixed number of
 gradient steps on a sliding window of the latest ``window_rounds`` rounds plus the
 BC dataset (by default). Round 0 is the starting BC model.
 
@@ -19,9 +20,9 @@ Every round is scored on the ``val`` split (and on ``test`` when
 Resuming: the round's episodes (``rounds/round-XX``, a
 :class:`~spf_rl.train.dagger_rounds.RoundStore`) and ``last.pt`` (atomic) are the durable state; an
 interrupted run started again with the same config reads the stored rounds
-and continues with the next round. Collection is deterministic: the env's
-per-agent episode streams, the mixing coin (a Philox draw of the episode seed
-and step) and the greedy learner fix every visited state.
+and continues with the next round. Collection is deterministic and does not depend
+on the collector layout: the round's numbered episodes, the mixing coin (a Philox
+draw of the episode seed and step) and the greedy learner fix every visited state.
 
 The learner and its optimiser run on ``DAggerConfig.device`` (see
 :mod:`spf_rl.device`): the collector gets it as ``policy_device`` with the envs on
@@ -45,20 +46,23 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.record.loggers import get_logger
 from tqdm.auto import tqdm
 
+from envs.demo_store import DemoStore
+from envs.scripted import STEPS_PER_BATCH, gather_episode_steps
 from envs.transforms import philox_uniforms
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
-from spf_rl.data import DatasetConfig, EpisodeDataset
+from spf_rl.data import STEP_KEYS, DatasetConfig, EpisodeDataset, demos_root
 from spf_rl.device import DEFAULT_DEVICE, check_device, exact_float32, module_device
 from spf_rl.train.bc import BCConfig, OptimConfig, atomic_json, bc_loss, default_test_config, default_val_config
-from spf_rl.train.collection import (
-    CollectionEnvConfig,
-    CollectorConfig,
-    collect_episodes,
-    collection_device,
-    make_collector,
+from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig, collection_device, make_collector
+from spf_rl.train.dagger_rounds import (
+    RoundConfig,
+    RoundStore,
+    round_demo_config,
+    round_directory,
+    source_rows,
+    training_sources,
 )
-from spf_rl.train.dagger_rounds import RoundConfig, RoundStore, round_directory, source_rows, training_sources
-from spf_rl.train.evaluation import EvalConfig, evaluate_policy, with_episode_sizes
+from spf_rl.train.evaluation import EvalConfig, FramesFromStore, evaluate_policy, with_episode_sizes
 from spf_rl.train.models import build_policy
 from spf_rl.viz import plot_if_available, pyplot
 
@@ -200,32 +204,20 @@ class DAggerConfig:
         return self.beta0 * self.beta_decay ** (round_index - 1)
 
 
-def behaviour_statistics(episodes: TensorDictBase, max_steps: int) -> dict:
-    """Counts and success rate of a round's behaviour episodes.
+def behaviour_statistics(episodes: TensorDictBase) -> dict:
+    """Count, success rate and mean length of a round's behaviour episodes (whole episodes,
+    each played once from its start, so their success rate measures the behaviour policy).
 
-    A round is whole batches of ``max_steps`` steps per agent from a reset, cut into
-    trajectories agent by agent (:func:`~spf_rl.train.collection.batch_to_episodes`),
-    so each agent's trajectories in a batch add up to ``max_steps`` steps: its
-    first episode, then (if that one succeeded early) further episodes, the last
-    one cut short by the batch end. All of them are training data (every state is
-    labelled by the expert), but only first episodes measure the behaviour policy
-    without bias (a later episode is kept whole only if it ended quickly, i.e.
-    mostly when it succeeded), so ``behaviour_success`` is their success rate.
-
-    Raises:
-        ValueError: if the trajectory lengths do not tile batches of ``max_steps``.
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> episodes = TensorDict({"success": torch.tensor([True, False]), "length": torch.tensor([3, 50])}, [2])
+        >>> behaviour_statistics(episodes)
+        {'episodes': 2, 'behaviour_success': 0.5, 'mean_length': 26.5}
     """
-    success = episodes["success"].reshape(-1)
-    lengths = episodes["length"].reshape(-1)
-    ends = lengths.cumsum(0)
-    starts = ends - lengths
-    if (lengths < 1).any() or (starts // max_steps != (ends - 1) // max_steps).any():
-        raise ValueError(f"episode lengths do not tile batches of max_steps={max_steps} steps per agent.")
-    first = starts % max_steps == 0
     return {
-        "collected_trajectories": int(success.numel()),
-        "first_episodes": int(first.sum()),
-        "behaviour_success": float(success[first].float().mean()) if first.any() else None,
+        "episodes": int(episodes.shape[0]),
+        "behaviour_success": float(episodes["success"].float().mean()),
+        "mean_length": float(episodes["length"].float().mean()),
     }
 
 
@@ -306,15 +298,18 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
         round_seed = int(np.random.SeedSequence([config.seed, round_index]).generate_state(1)[0] % (2**31))
         beta = config.beta(round_index)
         round_dir = round_directory(output, round_index)
-        collection = dict(round_index=round_index, seed=round_seed, beta=beta, demo_length=env.demo_length,
-                          max_steps=env.max_steps, image_size=env.image_size)
+        round_config = RoundConfig(
+            round_index=round_index, seed=round_seed, beta=beta, num_episodes=config.episodes_per_round,
+            demo_length=env.demo_length, max_steps=env.max_steps, image_size=env.image_size, split=env.split,
+            num_houses=env.num_houses, noise=env.noise,
+        )
         if (round_dir / "meta.json").exists():  # stored before an interruption (collection is deterministic): reuse it
-            episodes = RoundStore.read(round_dir, collection).episodes.to_tensordict()
+            episodes = RoundStore.read(round_dir, round_config.collection()).episodes
             logger.info("round %d: reusing the episodes stored in %s", round_index, round_dir)
         else:
-            episodes = _collect_round(policy, config, beta, round_seed)
-            RoundStore.write(round_dir, RoundConfig(**collection, num_episodes=episodes.shape[0]), episodes)
-        collected = {"beta": beta, **behaviour_statistics(episodes, env.max_steps)}
+            episodes = _collect_round(policy, config, round_config, round_dir)
+            RoundStore.write(round_dir, round_config, episodes)
+        collected = {"beta": beta, **behaviour_statistics(episodes)}
         sources = training_sources(bc_data, output, round_index, config.window_rounds)
         collected["training_episodes"] = sum(len(source) for source in sources)
         collected["train_loss"], collected["gradient_steps"] = _train_round(policy, optimizer, sources, config, round_index)
@@ -356,41 +351,37 @@ def _test_fields(summary: dict) -> dict:
     return {f"test_{key}": summary[key] for key in ("success", "spl", "success_ci", "spl_ci")}
 
 
-def _collect_round(policy: TensorDictModuleBase, config: DAggerConfig, beta: float, seed: int) -> TensorDict:
-    """The round's episodes: whole batches of ``max_steps`` steps from a reset, until
-    ``episodes_per_round`` episodes have been collected (the surplus is dropped)."""
+def _collect_round(policy: TensorDictModuleBase, config: DAggerConfig, round_config: RoundConfig, round_dir: Path) -> TensorDict:
+    """The round's episodes: numbered episodes ``0 .. E - 1`` of its seed, their demonstrations
+    rendered first into ``round-XX-demos``, played by the beta-mixture through the run's
+    collectors (:func:`~spf_rl.train.collection.make_collector` with the store), each kept whole."""
     env, layout = config.env, config.collector
-    frames_per_batch = layout.total_agents * env.max_steps
+    demos = DemoStore.build(demos_root(round_dir), round_demo_config(round_config), progress=False)
     policy.eval()
-    behaviour = ExpertMixturePolicy(policy, beta)
+    behaviour = ExpertMixturePolicy(FramesFromStore(policy, demos), round_config.beta)
     collector = make_collector(
         behaviour,
         env,
         layout,
-        frames_per_batch=frames_per_batch,
-        seed=seed,
-        reset_at_each_iter=True,
+        frames_per_batch=layout.total_agents * STEPS_PER_BATCH,
+        seed=round_config.seed,
         device=module_device(policy),
         storing_device="cpu",  # the round's episodes go to disk
+        demo_store=demos.root,
     )
-    episodes, count = [], 0
-    bar = tqdm(total=config.episodes_per_round, desc=f"collect (beta {beta:.2f})", disable=not config.progress)
     try:
         with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-            while count < config.episodes_per_round:
-                batch = collect_episodes(collector, env.max_steps, num_batches=1)
-                episodes.append(batch)
-                count += batch.shape[0]
-                bar.update(batch.shape[0])
+            return gather_episode_steps(
+                collector, 0, round_config.num_episodes, STEP_KEYS, env.max_steps,
+                episode_keys=("demo_id", "episode_seed"), progress=config.progress,
+            )
     finally:
         collector.shutdown()
-        bar.close()
-    policy.train()
-    return torch.cat(episodes, 0)[: config.episodes_per_round]
+        policy.train()
 
 
 def _train_round(
-    policy, optimizer, sources: list[EpisodeDataset | TensorDictBase], config: DAggerConfig, round_index: int
+    policy, optimizer, sources: list[EpisodeDataset | RoundStore], config: DAggerConfig, round_index: int
 ) -> tuple[float, int]:
     """Retrain on ``sources``: ``steps_per_round`` steps (or ``epochs_per_round`` passes) of
     batches drawn without replacement, pass after pass, in an order fixed by the seed and round.

@@ -1,16 +1,22 @@
 """DAgger's rounds on disk: each round's episodes, and the window of rounds retraining sees.
 
-``<run>/rounds/round-XX`` is a :class:`RoundStore`, a
+A round plays the numbered episodes ``0 .. E - 1`` of its collection seed. Their
+demonstrations are rendered once, before the round, into
+``<run>/rounds/round-XX-demos`` (a :class:`~envs.demo_store.DemoStore` of those
+episodes, :func:`round_demo_config`); the envs emit ``demo_id`` and the learner looks
+the frames up. ``<run>/rounds/round-XX`` is a :class:`RoundStore`, a
 :class:`~envs.tensor_store.TensorStore` like the demo store and the BC datasets:
-``meta.json`` (round, collection seed, beta, sizes, env version, SHA-256 of every
-tensor) beside the memory-mapped episodes in the layout of :mod:`spf_rl.data` (each
-episode holding its demonstration's frames and actions instead of a ``demo_id``), built
-in ``round-XX.partial`` and renamed into place, so a round on disk is complete.
-A stored round of another collection (another seed, beta or size), a corrupt
-one, or one made by another env version is refused with a :class:`RoundError`.
+``meta.json`` (round, collection seed, beta, episodes, sizes, env version, SHA-256 of
+every tensor) beside the memory-mapped episodes in the layout of a BC dataset
+(:mod:`spf_rl.data`: steps, ``demo_id``), built in ``round-XX.partial`` and renamed
+into place, so a round on disk is complete. Indexing a round adds the demonstrations.
+A stored round of another collection (another seed, beta, split or size), a corrupt
+one, one of an older layout, one whose demonstration store holds other episodes, or
+one made by another env version is refused with a :class:`RoundError`.
 """
 from __future__ import annotations
 
+import functools
 import logging
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -18,9 +24,12 @@ from pathlib import Path
 import torch
 from tensordict import TensorDict, TensorDictBase
 
-from envs.checks import check_positive_ints
+from envs.checks import check_episode_source, check_positive_ints
+from envs.demo_store import DemoStore, DemoStoreConfig
+from envs.homing import FOLLOW
 from envs.tensor_store import StoreError, TensorStore
-from spf_rl.data import DatasetConfig, EpisodeDataset, empty_training_episodes
+from envs.transforms import DEFAULT_NOISE
+from spf_rl.data import DatasetConfig, EpisodeDataset, attach_demonstrations, demos_root
 
 logger = logging.getLogger(__name__)
 
@@ -44,6 +53,9 @@ class RoundConfig:
         demo_length: demonstration length n.
         max_steps: episode limit (steps are padded to it).
         image_size: frame side, pixels.
+        split: house split of the episodes.
+        num_houses: houses of the split (``None``: its default).
+        noise: actuation-noise preset.
     """
 
     round_index: int
@@ -53,15 +65,35 @@ class RoundConfig:
     demo_length: int
     max_steps: int
     image_size: int
+    split: str = "train"
+    num_houses: int | None = None
+    noise: str = DEFAULT_NOISE
 
     def __post_init__(self) -> None:
         check_positive_ints(self, ("round_index", "num_episodes", "demo_length", "max_steps", "image_size"))
+        check_episode_source(self.split, self.num_houses, self.noise)
         if not 0.0 <= self.beta <= 1.0:
             raise ValueError(f"beta must be in [0, 1], got {self.beta!r}.")
 
+    @property
+    def task(self) -> str:
+        """DAgger rounds follow the demonstrated route."""
+        return FOLLOW
+
     def collection(self) -> dict:
-        """The fields that fix the round's episodes (all but their count, known only once collected)."""
-        return {key: value for key, value in asdict(self).items() if key != "num_episodes"}
+        """The fields that fix the round's episodes (all of them)."""
+        return asdict(self)
+
+
+def round_demo_config(config: RoundConfig) -> DemoStoreConfig:
+    """The demonstrations of a round's episodes: an episode store of its seed.
+
+    Examples:
+        >>> round_demo_config(RoundConfig(round_index=1, seed=7, beta=0.0, num_episodes=3, demo_length=4,
+        ...     max_steps=5, image_size=8)).episodes_seed
+        7
+    """
+    return DemoStoreConfig.of_episodes(config)
 
 
 class RoundStore(TensorStore):
@@ -83,9 +115,12 @@ class RoundStore(TensorStore):
     """
 
     KIND = "dagger_round"
-    FORMAT_VERSION = 1
+    FORMAT_VERSION = 2
     ERROR = RoundError
-    FORMAT_HISTORY = "(rounds before version 1 were plain memory-mapped TensorDicts)"
+    FORMAT_HISTORY = (
+        "(version 1 stored every episode's demonstration frames; rounds before version 1 were plain "
+        "memory-mapped TensorDicts)"
+    )
 
     @staticmethod
     def config_from_dict(config: dict) -> RoundConfig:
@@ -97,12 +132,30 @@ class RoundStore(TensorStore):
             num_episodes=config.num_episodes, demo_length=config.demo_length, max_steps=config.max_steps,
             image_size=config.image_size,
         )
-        return empty_training_episodes(sizes)
+        return EpisodeDataset.empty(sizes)
 
     @property
     def episodes(self) -> TensorDict:
         """The round's episodes, ``[E]`` (memory-mapped, read-only)."""
         return self.data
+
+    @functools.cached_property
+    def demos(self) -> DemoStore:
+        """The store of the round's demonstrations (``round-XX-demos``), checked against the round."""
+        root, expected = demos_root(self.root), round_demo_config(self.config)
+        if not (root / "meta.json").exists():
+            raise RoundError(f"dagger_round store {self.root}: its demonstrations {root} are missing; delete the run to start over.")
+        store = DemoStore(root, verify=False)
+        if store.config != expected:
+            raise RoundError(
+                f"dagger_round store {self.root}: its demonstration store {root} holds {store.config}, expected "
+                f"{expected}. Delete the run to start over."
+            )
+        return store
+
+    def __getitem__(self, rows) -> TensorDict:
+        """Episodes ``rows`` (in memory) with their demonstrations (``demo_frames``, ``demo_actions``)."""
+        return attach_demonstrations(self.episodes[rows].to_tensordict(), self.demos)
 
     @classmethod
     def write(cls, root: str | Path, config: RoundConfig, episodes: TensorDictBase) -> RoundStore:
@@ -135,7 +188,7 @@ def round_directory(output: Path, round_index: int) -> Path:
 
 def training_sources(
     bc_data: EpisodeDataset | None, output: Path, round_index: int, window: int | None
-) -> list[EpisodeDataset | TensorDictBase]:
+) -> list[EpisodeDataset | RoundStore]:
     """The episodes retraining sees after round ``round_index``: the BC dataset and the window of
     rounds (each indexable by rows, :func:`source_rows`)."""
     first = 1 if window is None else max(1, round_index - window + 1)
@@ -144,14 +197,13 @@ def training_sources(
         raise FileNotFoundError(
             f"DAgger round data {missing[0]} is missing or incomplete, so {output} cannot resume; delete it to start over."
         )
-    return ([bc_data] if bc_data is not None else []) + [RoundStore(path).episodes for path in paths]
+    return ([bc_data] if bc_data is not None else []) + [RoundStore(path) for path in paths]
 
 
-def source_rows(source: EpisodeDataset | TensorDictBase, rows: torch.Tensor) -> TensorDict:
-    """Episodes ``rows`` of a training source, in memory, in the round layout (demonstrations included)."""
-    if isinstance(source, EpisodeDataset):
-        return source[rows].exclude("demo_id")
-    return source[rows].to_tensordict()
+def source_rows(source: EpisodeDataset | RoundStore, rows: torch.Tensor) -> TensorDict:
+    """Episodes ``rows`` of a training source, in memory, in the layout training reads
+    (:func:`~spf_rl.data.empty_training_episodes`: demonstrations instead of ``demo_id``)."""
+    return source[rows].exclude("demo_id")
 
 
-__all__ = ["RoundConfig", "RoundError", "RoundStore", "round_directory", "source_rows", "training_sources"]
+__all__ = ["RoundConfig", "RoundError", "RoundStore", "round_demo_config", "round_directory", "source_rows", "training_sources"]

@@ -36,10 +36,11 @@ from pathlib import Path
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModuleBase
+from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from torchrl.collectors import Collector
 from torchrl.envs import Compose, InitTracker, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.modules.utils import get_primers_from_module
 
 from envs.demo_store import DemoStore, DemoStoreConfig
 from envs.nav_env import PathFollowEnv
@@ -139,10 +140,57 @@ def greedy(policy: TensorDictModuleBase):
     return act
 
 
+class FramesFromStore(TensorDictModuleBase):
+    """``policy`` fed its ``demo_frames`` from ``demo_id`` in ``demo_store``
+    (:func:`frames_lookup`'s rule), the frames dropped after it: a policy for envs that
+    emit ``demo_id`` only (``emit_demo_frames=False``), so collected batches carry the id
+    and not 30 frames a step. Picklable, for worker processes and Ray actors.
+
+    Args:
+        policy: a TensorDict policy.
+        demo_store: the store the env draws from (``None``: the env emits the frames, and
+            ``policy`` runs as it is).
+
+    Examples:
+        >>> import tempfile
+        >>> from tensordict import TensorDict
+        >>> from tensordict.nn import TensorDictModule
+        >>> from envs.demo_store import DemoStore, DemoStoreConfig
+        >>> store = DemoStore.build(tempfile.mkdtemp() + "/store", DemoStoreConfig(num_demos=2, num_houses=1,
+        ...     demo_length=4, image_size=16), progress=False)
+        >>> reader = TensorDictModule(lambda f: f.float().mean((-4, -3, -2, -1)), ["demo_frames"], ["logits"])
+        >>> fed = FramesFromStore(reader, store)
+        >>> fed.in_keys
+        ['demo_id']
+        >>> out = fed(TensorDict({"demo_id": torch.tensor([[1], [0]])}, [2]))
+        >>> "demo_frames" in out.keys(), bool(out["logits"][0] == store.frames[1].float().mean())
+        (False, True)
+    """
+
+    def __init__(self, policy: TensorDictModuleBase, demo_store: DemoStore | None = None) -> None:
+        super().__init__()
+        self.policy = policy
+        self.lookup = frames_lookup(policy, demo_store)
+        extra = list(self.lookup.in_keys) if self.lookup is not None else []
+        self.in_keys = list(dict.fromkeys([k for k in policy.in_keys if self.lookup is None or k != "demo_frames"] + extra))
+        self.out_keys = list(policy.out_keys)
+
+    def make_tensordict_primer(self):
+        """``policy``'s recurrent-state primer (its own, else those of its submodules), if any."""
+        if hasattr(self.policy, "make_tensordict_primer"):
+            return self.policy.make_tensordict_primer()
+        return get_primers_from_module(self.policy, warn=False)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if self.lookup is None:
+            return self.policy(tensordict)
+        return self.policy(self.lookup(tensordict)).exclude("demo_frames", inplace=True)
+
+
 class GreedyActor(TensorDictModuleBase):
     """A picklable greedy actor: ``policy``'s arg-max action, fed ``demo_frames`` looked up
-    by ``demo_id`` in ``demo_store`` where it reads them (:func:`with_store_lookup`'s
-    rule). What the workers of a multi-process evaluation run.
+    by ``demo_id`` in ``demo_store`` where it reads them (:class:`FramesFromStore`).
+    What the workers of a multi-process evaluation run.
 
     Args:
         policy: a TensorDict policy writing ``"logits"`` (or ``"action"``).
@@ -159,22 +207,12 @@ class GreedyActor(TensorDictModuleBase):
     def __init__(self, policy: TensorDictModuleBase, demo_store: DemoStore | None = None) -> None:
         super().__init__()
         self.policy = policy
-        reads_frames = demo_store is not None and "demo_frames" in policy.in_keys
-        carries_memory = getattr(policy, "memory_key", None) in policy.in_keys
-        self.lookup = (
-            demo_store.lookup_module(only_where=getattr(policy, "is_init_key", "is_init") if carries_memory else None)
-            if reads_frames
-            else None
-        )
-        extra = list(self.lookup.in_keys) if self.lookup is not None else []
-        self.in_keys = list(dict.fromkeys([k for k in policy.in_keys if self.lookup is None or k != "demo_frames"] + extra))
+        self.fed = FramesFromStore(policy, demo_store)
+        self.in_keys = list(self.fed.in_keys)
         self.out_keys = list(dict.fromkeys([*policy.out_keys, "action"]))
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        if self.lookup is not None:
-            tensordict = self.lookup(tensordict)
-        tensordict = greedy(self.policy)(tensordict)
-        return tensordict.exclude("demo_frames", inplace=True) if self.lookup is not None else tensordict
+        return greedy(self.fed)(tensordict)
 
 
 def greedy_on_device(policy: TensorDictModuleBase):
@@ -282,20 +320,39 @@ def episode_store(config: EvalConfig, root: str | os.PathLike | None = None) -> 
     return DemoStore.build(Path(root) / episode_store_name(config), episode_store_config(config), progress=False)
 
 
+def frames_lookup(policy: TensorDictModuleBase, store: DemoStore | None) -> TensorDictModule | None:
+    """The module that feeds ``policy`` its ``demo_frames`` from ``demo_id`` in ``store``
+    (:meth:`~envs.demo_store.DemoStore.lookup_module`), or ``None`` where there is nothing
+    to look up (no store, or a policy that does not read the frames).
+
+    Only where ``is_init`` for policies that carry their memory in a recurrent state
+    (a ``memory_key`` of theirs or of a submodule, e.g. the SPF policy inside a
+    :class:`~torchrl.modules.ProbabilisticActor`, among their ``in_keys``); in every
+    row for other policies reading ``demo_frames``.
+
+    Examples:
+        >>> from tensordict.nn import TensorDictModule
+        >>> frames_lookup(TensorDictModule(torch.nn.Linear(2, 3), ["obs"], ["logits"]), None) is None
+        True
+    """
+    if store is None or "demo_frames" not in policy.in_keys:
+        return None
+    carriers = [m for m in policy.modules() if getattr(m, "memory_key", None) in policy.in_keys] if isinstance(
+        policy, torch.nn.Module
+    ) else []
+    return store.lookup_module(only_where=getattr(carriers[0], "is_init_key", "is_init") if carriers else None)
+
+
 def with_store_lookup(
     act: Callable[[TensorDictBase], TensorDictBase], policy: TensorDictModuleBase, store: DemoStore | None
 ) -> Callable[[TensorDictBase], TensorDictBase]:
     """``act`` (a callable running ``policy``) fed ``demo_frames`` looked up from
-    ``demo_id`` in ``store`` (on the CPU, before it runs), the frames dropped after it.
-
-    Only where ``is_init`` for policies that carry their memory in a recurrent state
-    (a ``memory_key`` among their ``in_keys``); in every row for other policies
-    reading ``demo_frames``; not at all for policies that do not read them.
+    ``demo_id`` in ``store`` (on the CPU, before it runs, :func:`frames_lookup`), the
+    frames dropped after it.
     """
-    if store is None or "demo_frames" not in policy.in_keys:
+    lookup = frames_lookup(policy, store)
+    if lookup is None:
         return act
-    carries_memory = getattr(policy, "memory_key", None) in policy.in_keys
-    lookup = store.lookup_module(only_where=getattr(policy, "is_init_key", "is_init") if carries_memory else None)
 
     def act_with_frames(tensordict: TensorDictBase) -> TensorDictBase:
         return act(lookup(tensordict)).exclude("demo_frames", inplace=True)

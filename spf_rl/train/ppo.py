@@ -15,7 +15,9 @@ run is configured by :class:`~spf_rl.train.ppo_config.PPOConfig`.
   starts ``N`` fresh episodes at ``t = 0``, so each row is one agent's stream of
   whole episodes (plus one cut by the batch end, bootstrapped by the critic) and
   the recurrent state at ``t = 0`` is the zero reset state. The weights are pushed
-  to the collector (:meth:`update_policy_weights_`) before every batch.
+  to the collector (:meth:`update_policy_weights_`) before every batch. Demonstrations
+  come from a store rendered once (``store_demos``): the envs emit ``demo_id``, and the
+  actor (:class:`~spf_rl.train.evaluation.FramesFromStore`) and the update look the frames up.
 * **Device.** The policy, value head, frozen reference and optimisers live on
   ``config.device``; the collector acts there (``policy_device``) with the envs on
   the CPU and stores the batch on the device, where GAE and the updates run.
@@ -62,9 +64,9 @@ from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.device import autocast, exact_float32
 from spf_rl.train.bc import atomic_json
 from spf_rl.train.collection import collection_device, make_collector
-from spf_rl.train.evaluation import evaluate_policy, with_episode_sizes
+from spf_rl.train.evaluation import FramesFromStore, evaluate_policy, frames_lookup, with_episode_sizes
 from spf_rl.train.models import build_policy
-from spf_rl.train.ppo_config import PPOConfig, checked_env_config
+from spf_rl.train.ppo_config import PPOConfig, checked_env_config, training_demo_store
 from spf_rl.train.ppo_loss import (
     AMP_RATIO_SYNC_TOLERANCE,
     EXPERT_KEY,
@@ -165,6 +167,8 @@ class _PPORun:
             normalize_advantage=config.normalize_advantage,
             device=self.device,
         )
+        self.demo_store = training_demo_store(config, self.env_config)
+        self.frames_lookup = frames_lookup(self.policy, self.demo_store)  # where segments start (every row starts one)
         self.advantage_module = GAE(gamma=config.gamma, lmbda=config.lmbda, value_network=None, average_gae=False)
         self.policy_optimizer = torch.optim.Adam(self.policy.parameters(), lr=config.lr)
         self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=config.critic_lr)
@@ -214,7 +218,7 @@ class _PPORun:
         config = self.config
         num_iterations = config.num_iterations
         collector = make_collector(
-            Autocast(self.actor) if config.amp else self.actor,
+            FramesFromStore(Autocast(self.actor) if config.amp else self.actor, self.demo_store),
             self.env_config,
             config.collector,
             frames_per_batch=config.frames_per_batch,
@@ -222,6 +226,7 @@ class _PPORun:
             seed=config.seed + _COLLECTOR_SALT * self.iteration,
             reset_at_each_iter=True,
             device=self.device,
+            demo_store=None if self.demo_store is None else self.demo_store.root,
         )
         run_logger = (
             get_logger(config.logger, logger_name=str(self.output / "logs"), experiment_name="ppo") if config.logger else None
@@ -263,6 +268,8 @@ class _PPORun:
     def _update(self, batch: TensorDictBase) -> dict:
         """GAE, then ``ppo_epochs`` passes over whole-row minibatches; returns the iteration's metrics."""
         config, policy = self.config, self.policy
+        if self.frames_lookup is not None:
+            self.frames_lookup(batch)
         record = episode_statistics(batch)
         compute_values(policy, self.critic, batch, amp=config.amp)
         with torch.no_grad():

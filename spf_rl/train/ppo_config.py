@@ -5,7 +5,11 @@ import dataclasses
 import logging
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 
+from envs.demo_store import DemoStore, DemoStoreConfig
+from envs.homing import FOLLOW
+from envs.version import ENV_VERSION
 from spf_rl.device import DEFAULT_DEVICE, check_device
 from spf_rl.modules import SPFConfig
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig
@@ -13,7 +17,10 @@ from spf_rl.train.evaluation import EvalConfig, episode_store_root
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["PPOConfig", "checked_env_config"]
+#: Seed of the demonstrations PPO's training episodes draw from (``PPOConfig.store_demos``).
+TRAIN_STORE_SEED = 0
+
+__all__ = ["TRAIN_STORE_SEED", "PPOConfig", "checked_env_config", "training_demo_store"]
 
 
 @dataclass
@@ -53,6 +60,13 @@ class PPOConfig:
         critic_trunk_grad: let the value loss's gradient into the policy's trunk
             (``False``: the head reads the features detached).
         val_every: validate every this many iterations (and after the last).
+        store_demos: the training episodes draw their demonstrations at random from a
+            store of this many ``env`` demonstrations (:class:`~envs.demo_store.DemoStore`,
+            seed :data:`TRAIN_STORE_SEED`), rendered once; the envs emit ``demo_id`` and
+            the policy looks the frames up. ``None``: every reset samples and renders a
+            new demonstration.
+        store_root: where that store is kept (shared by runs of the same episodes);
+            ``None``: inside ``output_dir``.
         num_threads: torch intra-op threads during the run (restored after; ``0``:
             leave torch's setting). Collection, rendering and the updates share one
             process; on the 2-core machine one thread was about 5x faster than
@@ -103,6 +117,8 @@ class PPOConfig:
     value_hidden: int = 64
     critic_trunk_grad: bool = False
     val_every: int = 4
+    store_demos: int | None = 2000
+    store_root: str | None = field(default_factory=episode_store_root)
     num_threads: int = 1
     logger: str | None = "csv"
     progress: bool = True
@@ -127,6 +143,8 @@ class PPOConfig:
 
         for name in ("frames_per_batch", "total_frames", "ppo_epochs", "minibatch_rows", "value_hidden", "val_every"):
             positive_int(name)
+        if self.store_demos is not None:
+            positive_int("store_demos")
         if isinstance(self.num_threads, bool) or not isinstance(self.num_threads, int) or self.num_threads < 0:
             raise ValueError(f"num_threads must be an int >= 0 (0: torch's default), got {self.num_threads!r}.")
         if isinstance(self.critic_warmup_iters, bool) or not isinstance(self.critic_warmup_iters, int) or self.critic_warmup_iters < 0:
@@ -200,3 +218,25 @@ def checked_env_config(config: PPOConfig, policy_config: SPFConfig) -> Collectio
         logger.info("bc_coef > 0: the env emits expert_action (env.with_expert=True)")
         env = dataclasses.replace(env, with_expert=True)
     return env
+
+
+def training_demo_store(config: PPOConfig, env: CollectionEnvConfig) -> DemoStore | None:
+    """The store PPO's training episodes draw their demonstrations from (built on first
+    use, under ``config.store_root``), or ``None`` without ``config.store_demos``.
+
+    Its directory name holds the episodes' split, sizes, seed, count and env version, so
+    runs of the same episodes share it and one of an older env is never reopened.
+    """
+    if config.store_demos is None:
+        return None
+    store_config = DemoStoreConfig(
+        num_demos=config.store_demos, split=env.split, num_houses=env.num_houses, demo_length=env.demo_length,
+        image_size=env.image_size, seed=TRAIN_STORE_SEED,
+    )
+    houses = "" if env.num_houses is None else f"-{env.num_houses}houses"
+    name = (
+        f"{env.split}{houses}-{FOLLOW}-n{env.demo_length}-{env.image_size}px-seed{TRAIN_STORE_SEED}"
+        f"-{config.store_demos}demos-env{ENV_VERSION}"
+    )
+    root = Path(config.store_root) if config.store_root is not None else Path(config.output_dir) / "demos"
+    return DemoStore.build(root / name, store_config, progress=config.progress)
