@@ -167,8 +167,8 @@ class _PPORun:
             normalize_advantage=config.normalize_advantage,
             device=self.device,
         )
-        self.demo_store = training_demo_store(config, self.env_config)
-        self.frames_lookup = frames_lookup(self.policy, self.demo_store)  # where segments start (every row starts one)
+        self.demo_store = training_demo_store(config, self.env_config)  # frames looked up where segments start:
+        self.frames_lookup = frames_lookup(self.policy, self.demo_store)  # every row starts one
         self.advantage_module = GAE(gamma=config.gamma, lmbda=config.lmbda, value_network=None, average_gae=False)
         self.policy_optimizer = torch.optim.Adam(self.policy.parameters(), lr=config.lr)
         self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=config.critic_lr)
@@ -268,8 +268,7 @@ class _PPORun:
     def _update(self, batch: TensorDictBase) -> dict:
         """GAE, then ``ppo_epochs`` passes over whole-row minibatches; returns the iteration's metrics."""
         config, policy = self.config, self.policy
-        if self.frames_lookup is not None:
-            self.frames_lookup(batch)
+        batch = self.frames_lookup(batch) if self.frames_lookup is not None else batch
         record = episode_statistics(batch)
         compute_values(policy, self.critic, batch, amp=config.amp)
         with torch.no_grad():
