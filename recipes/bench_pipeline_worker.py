@@ -140,7 +140,10 @@ def measure_dagger_collection(sizes: Sizes, scratch: Path, branches: dict) -> di
     )
     config = configured(default, values, {"device": "cpu"}, applied)
     policy = build_learner(sizes)
-    from spf_rl.train import dagger_rounds
+    try:
+        from spf_rl.train import dagger_rounds
+    except ImportError:  # the baseline tree: rounds are batches from a reset, in spf_rl.train.dagger
+        dagger_rounds = None
 
     start = time.perf_counter()
     if hasattr(dagger_rounds, "round_demo_config"):  # rounds of numbered episodes on an episode store
