@@ -65,6 +65,21 @@ def test_long_preset_is_at_least_20k_steps_on_8k_episodes():
     assert config.output_dir.startswith("runs/bc_long/")
 
 
+def test_pointer_rule_long_presets_chain_bc_into_dagger():
+    """bc_pointer_long is bc_long with RPF's pointer rule; dagger_pointer_long starts from its best checkpoint."""
+    from spf_rl.train.dagger import DAggerConfig
+
+    bc = load_config(BCConfig, "bc", ["seed=1"], preset="bc_pointer_long")
+    long = load_config(BCConfig, "bc", ["seed=1"], preset="bc_long")
+    assert (bc.model.name, bc.model.sparsity, bc.model.pointer_update) == ("spf", 0.8, "rpf")
+    assert long.model.pointer_update != "rpf"
+    assert (bc.data, bc.optim, bc.val, bc.test) == (long.data, long.optim, long.val, long.test)  # the long schedule
+    dagger = load_config(DAggerConfig, "dagger", ["seed=1"], preset="dagger_pointer_long")
+    assert dagger.checkpoint == f"{bc.output_dir}/best.pt"
+    assert dagger.bc_data.num_episodes == bc.data.num_episodes
+    assert dagger.output_dir != load_config(DAggerConfig, "dagger", ["seed=1"], preset="dagger_long").output_dir
+
+
 def test_the_recipe_trains_the_dataclass_defaults():
     """One home for every default: bc.yaml only names the run."""
     from dataclasses import asdict
