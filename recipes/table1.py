@@ -21,7 +21,10 @@ the best validation success of each row to the row's shipped name
 (``python recipes/dagger.py --preset dagger_long|dagger_rpf|dagger_rpf_original seed=S``) is copied
 to ``checkpoints/table1/dagger-<row>-seed<S>.pt`` (or put one there yourself), and its best
 seed by validation to ``checkpoints/dagger-<row>.pt``. ``--from-checkpoints`` trains
-nothing, but still copies and ships what finished runs left.
+nothing, but still copies and ships what finished runs left. A per-seed checkpoint
+whose run directory is gone (no ``results.json``) is scored on its run's own
+validation episodes (cached in ``results/eval/table1/val/``), so that shipping stays
+by validation.
 
 Every checkpoint is scored on the same episodes: the ``test`` set (``bc_long``'s test
 config: 1,000 episodes of the 18 test houses, seed 2, ``paper`` noise) and the
@@ -46,18 +49,18 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import hashlib
 import json
 import logging
 import shutil
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from config_utils import load_config  # noqa: E402
-from table1_report import Line, build_table, load_cached, write_cached, write_reports  # noqa: E402
+from table1_report import Line, build_table, cache_entry, load_cached, write_cached, write_reports  # noqa: E402
 
 logger = logging.getLogger("table1")
 
@@ -257,13 +260,30 @@ def copy_atomic(source: Path, target: Path) -> None:
     tmp.replace(target)
 
 
-def dagger_run_dir(row: RowSpec, seed: int) -> Path | None:
-    """The run directory of a row's DAgger run for ``seed`` (its preset's ``output_dir``), if the row has one."""
+def dagger_config(row: RowSpec, seed: int):
+    """The ``DAggerConfig`` of a row's DAgger run for ``seed`` (its DAgger preset), if the row has one."""
     if row.dagger_preset is None:
         return None
     from spf_rl.train.dagger import DAggerConfig
 
-    return Path(load_config(DAggerConfig, "dagger", [f"seed={seed}"], preset=row.dagger_preset).output_dir)
+    return load_config(DAggerConfig, "dagger", [f"seed={seed}"], preset=row.dagger_preset)
+
+
+def dagger_run_dir(row: RowSpec, seed: int) -> Path | None:
+    """The run directory of a row's DAgger run for ``seed`` (its preset's ``output_dir``), if the row has one."""
+    config = dagger_config(row, seed)
+    return None if config is None else Path(config.output_dir)
+
+
+def run_validation(line: str, row: RowSpec, seed: int, overrides: list[str], quick: bool):
+    """The validation episodes the run of ``line`` (a row, or ``dagger-<row>``) and ``seed`` picked its checkpoint on."""
+    from spf_rl.train.evaluation import with_episode_sizes
+
+    if line == row.name:
+        config = row_config(row, seed, overrides, quick)
+        return with_episode_sizes(config.val, config.data)
+    config = dagger_config(row, seed)
+    return with_episode_sizes(config.val, config.env)
 
 
 def ship_best(checkpoints: Path, line: str, scores: dict) -> dict | None:
@@ -278,13 +298,16 @@ def ship_best(checkpoints: Path, line: str, scores: dict) -> dict | None:
 
 
 def train_missing(
-    rows: list[RowSpec], seeds: list[int], overrides: list[str], checkpoints: Path, quick: bool, train: bool = True
+    rows: list[RowSpec], seeds: list[int], overrides: list[str], checkpoints: Path, quick: bool, train: bool = True,
+    validate: Callable[[str, int, Path, object], tuple[float, float]] | None = None,
 ) -> dict:
     """Train (or resume) every missing row x seed (with ``train``), copy the best checkpoint of every finished
     BC and DAgger run to its per-seed name, and ship each line's best seed by validation; returns ``{line: shipped}``.
 
-    A line with a per-seed checkpoint whose run directory has no results (its validation score is unknown, e.g.
-    a run directory that was lost) is not re-shipped: its shipped checkpoint is left as it is."""
+    A per-seed checkpoint whose run directory has no results (e.g. a run directory that was lost) is scored
+    with ``validate(line, seed, checkpoint, val_config)`` -> ``(success, spl)`` on its run's validation
+    episodes; without ``validate`` its score is unknown, and its line is not re-shipped (its shipped
+    checkpoint is left as it is)."""
     from spf_rl.train.bc import train_bc
 
     shipped = {}
@@ -314,6 +337,10 @@ def train_missing(
             elif dagger_dir and seed_checkpoint(checkpoints, f"dagger-{row.name}", seed).exists():
                 unscored[f"dagger-{row.name}"].append(seed)
         for line, line_scores in ((row.name, scores), (f"dagger-{row.name}", dagger_scores)):
+            while validate is not None and unscored[line]:
+                seed = unscored[line].pop()
+                val_config = run_validation(line, row, seed, overrides, quick)
+                line_scores[seed] = validate(line, seed, seed_checkpoint(checkpoints, line, seed), val_config)
             if unscored[line]:  # a seed's validation score is unknown: it may be the best, so ship nothing new
                 logger.warning(
                     "%s: seed(s) %s have a checkpoint in %s/table1 but no run results (validation unknown): "
@@ -326,10 +353,6 @@ def train_missing(
 
 
 # ------------------------------------------------------------------- evaluation
-def file_sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
 def eval_config(config, line: Line):
     """The evaluation config of a line: open-loop replay ignores the camera, so its (same) episodes are not rendered."""
     return dataclasses.replace(config, render=False) if line.model == "open_loop" else config
@@ -350,21 +373,6 @@ def evaluate_line(line: Line, checkpoint: Path | None, config, device: str) -> l
     return evaluate_policy(policy, config, progress=False)[1]
 
 
-def cache_entry(line: Line, seed: int | None, set_name: str, config, checkpoint: Path | None, eval_dir: Path):
-    """``(path, meta)`` of the cached records of one line x seed x set: the cache is used only when
-    ``meta`` (evaluation config, checkpoint file and its SHA-256, env version) is unchanged."""
-    from envs.version import ENV_VERSION
-    from spf_rl.train.evaluation import episode_identity
-
-    meta = {
-        "line": line.name, "seed": seed, "set": set_name, "eval": episode_identity(config),
-        "checkpoint": None if checkpoint is None else str(checkpoint),
-        "checkpoint_sha256": None if checkpoint is None else file_sha256(checkpoint),
-        "env_version": ENV_VERSION,
-    }
-    return eval_dir / set_name / (line.name + ("" if seed is None else f"-seed{seed}") + ".json"), meta
-
-
 def evaluate_all(lines: list[Line], seeds: list[int], sets: dict, args, device: str) -> tuple[dict, list[dict]]:
     """Records ``{line: {set: {seed: records}}}`` of every line x seed x set whose checkpoint exists, from
     the cache or evaluated now (then cached), and the list of what is missing."""
@@ -380,7 +388,7 @@ def evaluate_all(lines: list[Line], seeds: list[int], sets: dict, args, device: 
                 continue
             for set_name, config in sets.items():
                 config = eval_config(config, line)
-                path, meta = cache_entry(line, seed, set_name, config, checkpoint, args.eval_dir)
+                path, meta = cache_entry(line.name, seed, set_name, config, checkpoint, args.eval_dir)
                 records = load_cached(path, meta)
                 if records is None:
                     logger.info("evaluating %s seed %s on the %s set (%d episodes)", line.name, seed, set_name,
@@ -389,6 +397,25 @@ def evaluate_all(lines: list[Line], seeds: list[int], sets: dict, args, device: 
                     write_cached(path, meta, records)
                 evaluations[line.name][set_name][seed] = records
     return evaluations, missing
+
+
+def cached_validation(eval_dir: Path, device: str) -> Callable[[str, int, Path, object], tuple[float, float]]:
+    """``validate`` for :func:`train_missing`: a checkpoint's (success, SPL) on validation episodes, cached."""
+    from spf_rl.hub import policy_from_checkpoint
+    from spf_rl.train.evaluation import evaluate_policy
+
+    def validate(line: str, seed: int, checkpoint: Path, config) -> tuple[float, float]:
+        path, meta = cache_entry(line, seed, "val", config, checkpoint, eval_dir)
+        records = load_cached(path, meta)
+        if records is None:
+            logger.info("%s seed %d has no run results: scoring it on %d validation episodes", line, seed,
+                        config.num_episodes)
+            records = evaluate_policy(policy_from_checkpoint(checkpoint, device=device)[0], config, progress=False)[1]
+            write_cached(path, meta, records)
+        return (sum(float(r["success"]) for r in records) / len(records),
+                sum(float(r["spl"]) for r in records) / len(records))
+
+    return validate
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -400,7 +427,8 @@ def main(argv: list[str] | None = None) -> dict:
     base = load_config(BCConfig, "bc", args.overrides, preset="bc_long")
     device = str(resolve_device(base.device))
     rows = [ROW_BY_NAME[name] for name in args.rows]
-    shipped = train_missing(rows, args.seeds, args.overrides, args.checkpoints, args.quick, train=not args.from_checkpoints)
+    shipped = train_missing(rows, args.seeds, args.overrides, args.checkpoints, args.quick, train=not args.from_checkpoints,
+                            validate=cached_validation(args.eval_dir, device))
     sets = {name: args.eval_sets[name] for name in args.sets}
     lines = table_lines(rows, base.data.demo_length, base.data.image_size)
     evaluations, missing = evaluate_all(lines, args.seeds, sets, args, device)

@@ -10,6 +10,7 @@ is read and written by :func:`load_cached` and :func:`write_cached`.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import logging
 import os
@@ -57,6 +58,25 @@ class Line:
 
 
 # ------------------------------------------------------------------------- files
+def file_sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def cache_entry(line: str, seed: int | None, set_name: str, config, checkpoint: Path | None, eval_dir: Path):
+    """``(path, meta)`` of the cached records of one line x seed x set: the cache is used only when
+    ``meta`` (evaluation config, checkpoint file and its SHA-256, env version) is unchanged."""
+    from envs.version import ENV_VERSION
+    from spf_rl.train.evaluation import episode_identity
+
+    meta = {
+        "line": line, "seed": seed, "set": set_name, "eval": episode_identity(config),
+        "checkpoint": None if checkpoint is None else str(checkpoint),
+        "checkpoint_sha256": None if checkpoint is None else file_sha256(checkpoint),
+        "env_version": ENV_VERSION,
+    }
+    return eval_dir / set_name / (line + ("" if seed is None else f"-seed{seed}") + ".json"), meta
+
+
 def atomic_write_text(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` through a temporary file and :func:`os.replace`."""
     tmp = path.with_name(f".{path.name}.tmp")

@@ -12,6 +12,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
 
 import table1  # noqa: E402
+import table1_report  # noqa: E402
 from config_utils import load_config  # noqa: E402
 from table1_report import build_table, load_cached, write_cached  # noqa: E402
 
@@ -49,7 +50,7 @@ def cache_fake_evaluations(tmp_path: Path, plan: dict[str, tuple[float, list]]) 
                 checkpoint.parent.mkdir(parents=True, exist_ok=True)
                 checkpoint.write_bytes(f"weights of {line.checkpoint_stem} {seed}".encode())
             config = table1.eval_config(sets["test"], line)
-            path, meta = table1.cache_entry(line, seed, "test", config, checkpoint, tmp_path / "eval")
+            path, meta = table1.cache_entry(line.name, seed, "test", config, checkpoint, tmp_path / "eval")
             write_cached(path, meta, fake_records(rate, seed or 0))
 
 
@@ -61,7 +62,10 @@ def test_table_from_cached_records_counts_seeds_and_tests_the_claims(tmp_path, m
         "dagger-spf-s0.8": (0.9, [0]),
     })
     monkeypatch.setattr(table1, "evaluate_line", lambda *a: pytest.fail("everything is cached: nothing to evaluate"))
+    # the checkpoints have no run results: each is scored on validation (here a stub) and the best one shipped
+    monkeypatch.setattr(table1, "cached_validation", lambda eval_dir, device: lambda line, seed, path, config: (seed / 10, 0.0))
     table = table1.main(options(tmp_path, "--from-checkpoints", "--rows", ROWS, "--sets", "test"))
+    assert table["shipped"]["spf-s0.8"]["seed"] == 2 and table["shipped"]["action_only-s0"]["seed"] == 1
 
     saved = json.loads((tmp_path / "out" / "table1.json").read_text())
     assert saved["seeds"] == [0, 1, 2] and saved["claims"] == json.loads(json.dumps(table["claims"]))
@@ -144,7 +148,7 @@ def test_quick_open_loop_run_plays_real_episodes_once(tmp_path, monkeypatch):
     assert row["sets"]["test"]["episodes"] == table1.QUICK_EPISODES
     line = table1.table_lines([table1.ROW_BY_NAME["open_loop"]], 30, 64)[0]
     config = table1.eval_config(table1.eval_sets([], quick=True)["extended"], line)
-    records = load_cached(*table1.cache_entry(line, None, "extended", config, None, tmp_path / "eval"))
+    records = load_cached(*table1.cache_entry(line.name, None, "extended", config, None, tmp_path / "eval"))
     assert len(records) == table1.QUICK_EPISODES and not config.render
     assert {r["house_seed"] for r in records} <= set(split_seeds("test", table1.EXTENDED_HOUSES))
     monkeypatch.setattr(table1, "evaluate_line", lambda *a: pytest.fail("a rerun must read the cache"))
@@ -266,9 +270,9 @@ def test_the_pointer_row_trains_spf_with_rpfs_pointer_rule():
     assert config.output_dir.endswith("spf_rpf_pointer-s0.8-seed1")
 
 
-def test_a_seed_without_run_results_blocks_reshipping_its_line(tmp_path, monkeypatch):
-    """A per-seed DAgger checkpoint whose run directory is gone has no validation score: the shipped file stays."""
-    monkeypatch.chdir(tmp_path)
+def _lost_dagger_seed(tmp_path: Path) -> Path:
+    """Checkpoints and runs of the original RPF: BC seeds 0 and 1 finished, DAgger seed 1 finished, and a
+    per-seed DAgger checkpoint of seed 0 (also the shipped one) whose run directory is gone."""
     checkpoints = tmp_path / "checkpoints"
     (checkpoints / "table1").mkdir(parents=True)
     (checkpoints / "table1" / "dagger-rpf_original-s1-seed0.pt").write_text("dagger seed 0, run lost")
@@ -282,6 +286,53 @@ def test_a_seed_without_run_results_blocks_reshipping_its_line(tmp_path, monkeyp
     dagger.mkdir(parents=True)
     (dagger / "best.pt").write_text("dagger seed 1")
     (dagger / "results.json").write_text(json.dumps({"best": {"round": 4, "val_success": 0.88, "val_spl": 0.87}}))
+    return checkpoints
+
+
+@pytest.mark.parametrize("lost_seed_val, shipped_seed", [(0.95, 0), (0.50, 1)])
+def test_a_seed_without_run_results_is_scored_on_its_runs_validation_episodes(
+    tmp_path, monkeypatch, lost_seed_val, shipped_seed
+):
+    monkeypatch.chdir(tmp_path)
+    checkpoints = _lost_dagger_seed(tmp_path)
+    calls = []
+
+    def validate(line, seed, checkpoint, config):
+        calls.append((line, seed, checkpoint.name, config.split, config.num_episodes, config.seed))
+        return lost_seed_val, lost_seed_val
+
+    shipped = table1.train_missing([table1.ROW_BY_NAME["rpf_original-s1"]], [0, 1, 2], [], checkpoints, False,
+                                   train=False, validate=validate)
+    assert calls == [("dagger-rpf_original-s1", 0, "dagger-rpf_original-s1-seed0.pt", "val", 300, 1)]
+    assert shipped["dagger-rpf_original-s1"] == {"seed": shipped_seed, "val_success": [lost_seed_val, 0.88][shipped_seed],
+                                                 "val_spl": [lost_seed_val, 0.87][shipped_seed]}
+    expected = "dagger seed 0, run lost" if shipped_seed == 0 else "dagger seed 1"
+    assert (checkpoints / "dagger-rpf_original-s1.pt").read_text() == expected
+
+
+def test_cached_validation_scores_once_and_rereads_the_cache(tmp_path, monkeypatch):
+    import spf_rl.hub
+    import spf_rl.train.evaluation
+
+    from spf_rl.train.bc import default_val_config
+
+    checkpoint = tmp_path / "ckpt.pt"
+    checkpoint.write_bytes(b"weights")
+    episodes = [{key: 0 for key in table1_report.RECORD_KEYS} | {"success": s, "spl": s / 2} for s in (1, 0, 1, 1)]
+    monkeypatch.setattr(spf_rl.hub, "policy_from_checkpoint", lambda path, device: ("policy", None))
+    monkeypatch.setattr(spf_rl.train.evaluation, "evaluate_policy", lambda policy, config, progress: ({}, episodes))
+    validate = table1.cached_validation(tmp_path / "eval", "cpu")
+    assert validate("dagger-x", 0, checkpoint, default_val_config()) == (0.75, 0.375)
+    monkeypatch.setattr(spf_rl.train.evaluation, "evaluate_policy", lambda *a, **k: pytest.fail("must read the cache"))
+    assert validate("dagger-x", 0, checkpoint, default_val_config()) == (0.75, 0.375)
+    assert (tmp_path / "eval" / "val" / "dagger-x-seed0.json").exists()
+
+
+def test_a_seed_without_run_results_blocks_reshipping_its_line(tmp_path, monkeypatch):
+    """Without ``validate``, a per-seed DAgger checkpoint whose run directory is gone has no validation
+    score: the shipped file stays."""
+    monkeypatch.chdir(tmp_path)
+    checkpoints = _lost_dagger_seed(tmp_path)
     shipped = table1.train_missing([table1.ROW_BY_NAME["rpf_original-s1"]], [0, 1, 2], [], checkpoints, False, train=False)
     assert shipped["rpf_original-s1"]["seed"] == 1
     assert "dagger-rpf_original-s1" not in shipped
