@@ -14,6 +14,7 @@ from spf_rl.train.models import build_policy
 
 SHIPPED = [
     "action_only-s0",
+    "dagger-rpf-s1",
     "dagger-rpf_original-s1",
     "dagger-spf-s0.8",
     "dagger-spf_rpf_pointer-s0.8",
