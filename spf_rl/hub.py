@@ -59,7 +59,7 @@ def list_checkpoints() -> list[str]:
 
     Examples:
         >>> list_checkpoints()[:3]
-        ['action_only-s0', 'dagger-rpf_original-s1', 'dagger-spf-s0.8']
+        ['action_only-s0', 'dagger-rpf-s1', 'dagger-rpf_original-s1']
     """
     return sorted(path.stem for path in checkpoint_dir().glob("*.pt"))
 
