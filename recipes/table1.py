@@ -60,7 +60,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from config_utils import load_config  # noqa: E402
-from table1_report import Line, build_table, cache_entry, load_cached, write_cached, write_reports  # noqa: E402
+from table1_report import Line, build_table, cache_entry, cached_records, write_reports  # noqa: E402
 
 logger = logging.getLogger("table1")
 
@@ -388,14 +388,13 @@ def evaluate_all(lines: list[Line], seeds: list[int], sets: dict, args, device: 
                 continue
             for set_name, config in sets.items():
                 config = eval_config(config, line)
-                path, meta = cache_entry(line.name, seed, set_name, config, checkpoint, args.eval_dir)
-                records = load_cached(path, meta)
-                if records is None:
+                def evaluate(line=line, seed=seed, set_name=set_name, config=config, checkpoint=checkpoint):
                     logger.info("evaluating %s seed %s on the %s set (%d episodes)", line.name, seed, set_name,
                                 config.num_episodes)
-                    records = evaluate_line(line, checkpoint, config, device)
-                    write_cached(path, meta, records)
-                evaluations[line.name][set_name][seed] = records
+                    return evaluate_line(line, checkpoint, config, device)
+
+                entry = cache_entry(line.name, seed, set_name, config, checkpoint, args.eval_dir)
+                evaluations[line.name][set_name][seed] = cached_records(*entry, evaluate)
     return evaluations, missing
 
 
@@ -405,13 +404,12 @@ def cached_validation(eval_dir: Path, device: str) -> Callable[[str, int, Path, 
     from spf_rl.train.evaluation import evaluate_policy
 
     def validate(line: str, seed: int, checkpoint: Path, config) -> tuple[float, float]:
-        path, meta = cache_entry(line, seed, "val", config, checkpoint, eval_dir)
-        records = load_cached(path, meta)
-        if records is None:
+        def evaluate() -> list[dict]:
             logger.info("%s seed %d has no run results: scoring it on %d validation episodes", line, seed,
                         config.num_episodes)
-            records = evaluate_policy(policy_from_checkpoint(checkpoint, device=device)[0], config, progress=False)[1]
-            write_cached(path, meta, records)
+            return evaluate_policy(policy_from_checkpoint(checkpoint, device=device)[0], config, progress=False)[1]
+
+        records = cached_records(*cache_entry(line, seed, "val", config, checkpoint, eval_dir), evaluate)
         return (sum(float(r["success"]) for r in records) / len(records),
                 sum(float(r["spl"]) for r in records) / len(records))
 

@@ -14,7 +14,7 @@ import hashlib
 import json
 import logging
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -114,6 +114,15 @@ def load_cached(path: Path, meta: dict) -> list[dict] | None:
 
 
 # ------------------------------------------------------------------- statistics
+
+def cached_records(path: Path, meta: dict, evaluate: Callable[[], list[dict]]) -> list[dict]:
+    """The records cached at ``path`` for ``meta``, else ``evaluate()``'s, cached there first."""
+    records = load_cached(path, meta)
+    if records is None:
+        records = evaluate()
+        write_cached(path, meta, records)
+    return records
+
 def shared_episodes(reference: dict, set_name: str, where: str, records: list[dict]) -> np.ndarray:
     """The houses of a set's episodes, after checking that ``records`` play the same episodes as the others."""
     seeds = [r["episode_seed"] for r in records]
