@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from config_utils import load_config  # noqa: E402
 
 #: Schedules in recipes/configs/ that --preset accepts.
-PRESETS = ("bc_quick", "bc_long", "bc_row", "bc_homing")
+PRESETS = ("bc_quick", "bc_long", "bc_row", "bc_homing", "bc_pointer_long")
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -40,7 +40,7 @@ def main(argv: list[str] | None = None) -> dict:
         choices=PRESETS,
         default=None,
         help="a schedule from recipes/configs/: bc_quick (smoke run), bc_long (20,000 gradient steps on 8,000 "
-        "episodes), bc_row (5,000 gradient steps on 4,000 episodes, the other Table 1 rows) or bc_homing (bc_row on homing episodes)",
+        "episodes), bc_row (5,000 gradient steps on 4,000 episodes, the other Table 1 rows), bc_homing (bc_row on homing episodes) or bc_pointer_long (bc_long with RPF's pointer rule)",
     )
     parser.add_argument("overrides", nargs="*", help="key=value config overrides")
     args = parser.parse_args(argv)

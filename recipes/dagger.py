@@ -32,7 +32,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from config_utils import load_config  # noqa: E402
 
 #: Presets in recipes/configs/ that --preset accepts.
-PRESETS = ("dagger_quick", "dagger_control", "dagger_long", "dagger_rpf", "dagger_rpf_original", "dagger_spf_rpf_pointer")
+PRESETS = (
+    "dagger_quick", "dagger_control", "dagger_long", "dagger_rpf", "dagger_rpf_original", "dagger_spf_rpf_pointer",
+    "dagger_pointer_long",
+)
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -43,7 +46,7 @@ def main(argv: list[str] | None = None) -> dict:
         choices=PRESETS,
         default=None,
         help="dagger_quick (smoke run), dagger_control (the expert drives every step: the control at equal steps), "
-        "or the DAgger runs after Table 1's rows: dagger_long, dagger_rpf, dagger_rpf_original, dagger_spf_rpf_pointer",
+        "or the DAgger runs after Table 1's rows: dagger_long, dagger_rpf, dagger_rpf_original, dagger_spf_rpf_pointer, dagger_pointer_long",
     )
     parser.add_argument("overrides", nargs="*", help="key=value config overrides")
     args = parser.parse_args(argv)

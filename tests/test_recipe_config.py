@@ -119,3 +119,23 @@ def test_main_job_benchmark_compares_the_previous_and_current_budgets(tmp_path):
     assert report["wall_ratio_current_to_previous"] == current["wall_seconds"] / previous["wall_seconds"] > 0
     assert previous["validation_episodes"] == 6 * 4  # every epoch, 4 episodes (quick)
     assert current["validation_episodes"] == 4 * 4  # epochs 3, 6, 9 and 12
+
+
+@pytest.mark.parametrize("recipe", ["bc", "dagger"])
+def test_every_documented_preset_is_accepted(recipe):
+    """Each ``recipes/<recipe>.py --preset X`` in the README, docs/ or recipes/ is in the recipe's PRESETS and has a YAML."""
+    import importlib
+    import re
+
+    root = Path(__file__).resolve().parents[1]
+    texts = [root / "README.md", *sorted((root / "docs").glob("*.md")), *sorted((root / "recipes").glob("*.py"))]
+    documented = {
+        name
+        for path in texts
+        for name in re.findall(rf"recipes/{recipe}\.py[^`|\n]*?--preset (\w+)", path.read_text())
+    }
+    presets = importlib.import_module(recipe).PRESETS
+    assert documented, f"no documented --preset for recipes/{recipe}.py"
+    assert documented <= set(presets), f"documented but not accepted: {sorted(documented - set(presets))}"
+    for name in presets:
+        assert (root / "recipes" / "configs" / f"{name}.yaml").exists(), name
