@@ -5,6 +5,8 @@ Rows (``--rows`` names them; each is also the stem of its shipped checkpoint):
 * ``spf-s0.4``, ``spf-s0.6``, ``spf-s0.8``: SPF at sparsity 0.4 / 0.6 / 0.8;
 * ``rpf-s1``: SPF at sparsity 1 (RPF as SPF: full memory, SPF's network);
 * ``rpf_original-s1``: the original RPF (the RPF lab code's memory network);
+* ``spf_rpf_pointer-s0.8`` and ``spf_rpf_pointer_long-s0.8``: SPF 0.8 with RPF's pointer
+  rule, on the ``bc_row`` and the long schedule (beyond the paper);
 * ``action_only-s0``: RPF action only; ``open_loop``: open-loop replay (no training);
 * ``spf_random-s0.2-1``: one model trained with a random sparsity per episode in
   [0.2, 1], evaluated at each of :data:`RANDOM_EVAL_SPARSITIES` (one table line each).
@@ -16,15 +18,14 @@ steps), every other row with ``--preset bc_row`` (5,000 steps); run directories
 ``output_dir``; an interrupted run resumes). A finished run's ``best.pt`` (best by
 validation) is copied to ``checkpoints/table1/<row>-seed<S>.pt``, and the seed with
 the best validation success of each row to the row's shipped name
-``checkpoints/<row>.pt``. DAgger checkpoints (a DAgger column for ``spf-s0.8``, ``rpf-s1`` and
-``rpf_original-s1``) are never trained here: a finished run of the row's DAgger preset
-(``python recipes/dagger.py --preset dagger_long|dagger_rpf|dagger_rpf_original seed=S``) is copied
-to ``checkpoints/table1/dagger-<row>-seed<S>.pt`` (or put one there yourself), and its best
+``checkpoints/<row>.pt``. DAgger checkpoints (a DAgger column for the rows with a
+:attr:`RowSpec.dagger_preset`) are never trained here: a finished run of the row's DAgger
+preset (``python recipes/dagger.py --preset dagger_long|dagger_rpf|... seed=S``) is copied to
+``checkpoints/table1/dagger-<row>-seed<S>.pt`` (or put one there yourself), and its best
 seed by validation to ``checkpoints/dagger-<row>.pt``. ``--from-checkpoints`` trains
 nothing, but still copies and ships what finished runs left. A per-seed checkpoint
-whose run directory is gone (no ``results.json``) is scored on its run's own
-validation episodes (cached in ``results/eval/table1/val/``), so that shipping stays
-by validation.
+whose run directory is gone (no ``results.json``) is scored on its run's own validation
+episodes (cached in ``results/eval/table1/val/``), so that shipping stays by validation.
 
 Every checkpoint is scored on the same episodes: the ``test`` set (``bc_long``'s test
 config: 1,000 episodes of the 18 test houses, seed 2, ``paper`` noise) and the
@@ -96,6 +97,10 @@ ROWS = (
     RowSpec("spf_rpf_pointer-s0.8", "SPF 0.8 with RPF's pointer rule (beyond the paper)", "spf", 0.8, "bc_row",
             ("model=spf", "sparsity=0.8", "model.pointer_update=rpf",
              "output_dir=runs/ablation/spf_rpf_pointer-s0.8-seed${seed}"), dagger_preset="dagger_spf_rpf_pointer"),
+    RowSpec("spf_rpf_pointer_long-s0.8", "SPF 0.8 with RPF's pointer rule, long schedule (beyond the paper)", "spf", 0.8,
+            "bc_long", ("model=spf", "sparsity=0.8", "model.pointer_update=rpf",
+                        "output_dir=runs/ablation/spf_rpf_pointer_long-s0.8-seed${seed}"),
+            dagger_preset="dagger_pointer_long"),
     RowSpec("action_only-s0", "RPF action only", "action_only", 0.0, "bc_row", ("model=action_only",), (0.782, 0.648)),
     RowSpec("open_loop", "open-loop replay", "open_loop", 0.0, None),
     RowSpec("spf_random-s0.2-1", "SPF random sparsity 0.2-1", RANDOM_MODEL, 0.8, "bc_row", ("model=spf_random",),
@@ -115,6 +120,10 @@ CLAIMS = (
     ("dagger-rpf-s1", "rpf-s1", "DAgger improves SPF at sparsity 1"),
     ("dagger-rpf_original-s1", "rpf_original-s1", "DAgger improves the original RPF"),
     ("dagger-spf_rpf_pointer-s0.8", "spf_rpf_pointer-s0.8", "DAgger improves SPF 0.8 with RPF's pointer rule"),
+    ("spf_rpf_pointer_long-s0.8", "spf-s0.8", "RPF's pointer rule improves SPF 0.8 (both on the long schedule)"),
+    ("dagger-spf_rpf_pointer_long-s0.8", "spf_rpf_pointer_long-s0.8",
+     "DAgger improves SPF 0.8 with RPF's pointer rule (long schedule)"),
+    ("dagger-spf_rpf_pointer_long-s0.8", "dagger-spf-s0.8", "with DAgger, RPF's pointer rule improves SPF 0.8 (long schedule)"),
     # one model, one schedule, only the memory it is given changes: the sparsity order without confounders
     ("spf_random-s0.2-1@0.6", "spf_random-s0.2-1@0.4", "random sparsity: 0.6 beats 0.4"),
     ("spf_random-s0.2-1@0.8", "spf_random-s0.2-1@0.6", "random sparsity: 0.8 beats 0.6"),

@@ -315,8 +315,8 @@ def _sparsities_line(rows: list[dict]) -> str:
 
 
 def summary_markdown(table: dict) -> str:
-    """The README's results: test-set success and SPL per row (mean ± sd over seeds), the
-    DAgger column, the paper's numbers, then the ordering claims on test-set success.
+    """The README's results table: test-set success and SPL per row (mean ± sd over seeds), the
+    DAgger column and the paper's numbers (the ordering claims are in ``table1.md``).
 
     Examples:
         >>> stats = {"success": {"mean": 0.8, "sd": None}, "spl": {"mean": 0.75, "sd": None}}
@@ -356,16 +356,6 @@ def summary_markdown(table: dict) -> str:
         )
     if untrained:
         out += ["", f"Not scored yet (no checkpoint of this noise model): {', '.join(untrained.values())}."]
-    claims = [c for c in table["claims"] if "skipped" not in c and c["set"] == "test" and c["metric"] == "success"]
-    if claims:
-        out += ["", "| claim (test success, paired) | a - b [95% CI] | p (a > b) | holds |", "|---|---|---|---|"]
-        for claim in claims:
-            low, high = claim["ci"]
-            p = claim["p_greater"]
-            out.append(
-                f"| {claim['claim']} | {claim['difference']:+.3f} [{low:+.3f}, {high:+.3f}] "
-                f"| {'< 1e-4' if p < 1e-4 else f'{p:.4f}'} | {'yes' if claim['holds'] else 'no'} |"
-            )
     return "\n".join(out) + "\n"
 
 
