@@ -59,7 +59,7 @@ class OptimConfig:
         cosine_schedule: decay the learning rate to 0 over the run (cosine), which
             steadies the final checkpoints.
         amp: compute the loss under bf16 autocast (mixed precision; see
-            :mod:`spf_rl.device`). Off by default; on the CPU allowed but usually slower.
+            :mod:`spf_rl.device`). Off by default; on the CPU faster only with native bf16 (docs/performance.md).
     """
 
     lr: float = 1e-3
