@@ -18,6 +18,7 @@ SHIPPED = [
     "dagger-rpf_original-s1",
     "dagger-spf-s0.8",
     "dagger-spf_rpf_pointer-s0.8",
+    "dagger-spf_rpf_pointer_long-s0.8",
     "homing-spf-s0.8",
     "lengths-spf-s0.8",
     "ppo-spf-s0.8",
@@ -28,6 +29,7 @@ SHIPPED = [
     "spf-s0.8",
     "spf_random-s0.2-1",
     "spf_rpf_pointer-s0.8",
+    "spf_rpf_pointer_long-s0.8",
 ]
 
 
@@ -49,7 +51,7 @@ def test_config_has_the_memory_of_the_model_type():
     original = spf_rl.load_policy("rpf_original-s1").config
     assert original.memory_mode == "full" and original.pointer_update == "rpf"
     assert spf_rl.load_policy("dagger-rpf_original-s1")[1] == original
-    for name in ("spf_rpf_pointer-s0.8", "dagger-spf_rpf_pointer-s0.8"):
+    for name in ("spf_rpf_pointer-s0.8", "dagger-spf_rpf_pointer-s0.8", "spf_rpf_pointer_long-s0.8"):
         pointer = spf_rl.load_policy(name)[1]
         assert (pointer.memory_mode, pointer.sparsity, pointer.pointer_update) == ("sparse", 0.8, "rpf")
     assert spf_rl.load_policy("action_only-s0").config.memory_length == 0
