@@ -80,6 +80,30 @@ def test_pointer_rule_long_presets_chain_bc_into_dagger():
     assert dagger.output_dir != load_config(DAggerConfig, "dagger", ["seed=1"], preset="dagger_long").output_dir
 
 
+@pytest.mark.parametrize("preset", [None, "dagger_quick", "dagger_control", "dagger_pointer_long"])
+def test_dagger_validates_on_episodes_its_start_was_not_picked_on(preset):
+    """The BC run picked DAgger's start on the val split at BC's val seed; DAgger scores its rounds
+    (round 0 included) on another seed's episodes, else round 0's selected maximum is favoured."""
+    from spf_rl.train.dagger import DAggerConfig
+
+    bc_val = load_config(BCConfig, "bc", [], preset="bc_long").val
+    assert bc_val.seed == BCConfig().val.seed
+    dagger = load_config(DAggerConfig, "dagger", [], preset=preset)
+    assert dagger.val.split == bc_val.split and dagger.val.seed != bc_val.seed
+    assert dagger.val.seed == DAggerConfig().val.seed
+    if preset == "dagger_pointer_long":
+        assert dagger.val.num_episodes == bc_val.num_episodes
+
+
+@pytest.mark.parametrize("preset", ["dagger_long", "dagger_rpf", "dagger_rpf_original", "dagger_spf_rpf_pointer"])
+def test_finished_dagger_rows_keep_the_validation_they_ran_with(preset):
+    """Table 1's finished DAgger rows were validated on BC's val episodes; their presets still say so."""
+    from spf_rl.train.bc import default_val_config
+    from spf_rl.train.dagger import DAggerConfig
+
+    assert load_config(DAggerConfig, "dagger", [], preset=preset).val == default_val_config()
+
+
 def test_the_recipe_trains_the_dataclass_defaults():
     """One home for every default: bc.yaml only names the run."""
     from dataclasses import asdict
