@@ -68,6 +68,9 @@ def test_resume_refuses_another_model_type(tmp_path):
     train_bc(tiny_config(tmp_path, epochs=1, model="action_only"))
     from spf_rl.checkpoint import CheckpointError
 
+    with pytest.raises(ValueError, match="model.name: 'action_only' -> 'spf'"):  # the run's config.json, first
+        train_bc(dataclasses.replace(tiny_config(tmp_path, epochs=2, model="spf")))
+    (tmp_path / "run" / "config.json").unlink()  # a run without its config: last.pt's header still refuses
     with pytest.raises(CheckpointError, match="'action_only' model, but a 'spf' model"):
         train_bc(dataclasses.replace(tiny_config(tmp_path, epochs=2, model="spf")))
 

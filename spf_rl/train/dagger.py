@@ -64,6 +64,7 @@ from spf_rl.train.dagger_rounds import (
 )
 from spf_rl.train.evaluation import EvalConfig, FramesFromStore, evaluate_policy, with_episode_sizes
 from spf_rl.train.models import build_policy
+from spf_rl.train.run_config import write_run_config
 from spf_rl.viz import plot_if_available, pyplot
 
 logger = logging.getLogger(__name__)
@@ -71,6 +72,8 @@ logger = logging.getLogger(__name__)
 #: Mixed into the episode seed so the mixing coin is independent of the actuation noise.
 MIXING_STREAM_SALT = 0x5DA66E4
 DAGGER_VAL_SEED = 3  # not the BC val seed (1), on which the starting checkpoint was picked
+#: Settings a resumed DAgger run may change (beyond how it executes): more rounds, test scoring, collection layout.
+DAGGER_RESUME_FREE = ("rounds", "test_every_round", "collector", "bc_data_dir", "bc_data.chunk_size")
 
 
 def default_dagger_val_config() -> EvalConfig:
@@ -233,7 +236,8 @@ def train_dagger(config: DAggerConfig) -> dict:
     """Run (or resume) DAgger and return its results (also written to ``results.json``).
 
     Raises:
-        ValueError: ``config.device`` names a device this machine does not have (before any work).
+        ValueError: ``config.device`` names a device this machine does not have, or ``output_dir``
+            holds a run started with other settings (before any work).
     """
     device = collection_device(config.device, config.collector)
     with exact_float32(device, enabled=not config.optim.amp):
@@ -243,8 +247,8 @@ def train_dagger(config: DAggerConfig) -> dict:
 def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
     start_time = time.time()
     output = Path(config.output_dir)
+    write_run_config(output, config, free=DAGGER_RESUME_FREE)
     (output / "rounds").mkdir(parents=True, exist_ok=True)
-    (output / "config.json").write_text(json.dumps(asdict(config), indent=2, default=str))
     payload = load_checkpoint(config.checkpoint)
     model_type, policy_config = payload["model_type"], payload["model_config"]
     env = config.env

@@ -66,7 +66,7 @@ from spf_rl.train.bc import atomic_json
 from spf_rl.train.collection import collection_device, make_collector
 from spf_rl.train.evaluation import FramesFromStore, evaluate_policy, frames_lookup, with_episode_sizes
 from spf_rl.train.models import build_policy
-from spf_rl.train.ppo_config import PPOConfig, checked_env_config, training_demo_store
+from spf_rl.train.ppo_config import PPO_RESUME_FREE, PPOConfig, checked_env_config, training_demo_store
 from spf_rl.train.ppo_loss import (
     AMP_RATIO_SYNC_TOLERANCE,
     EXPERT_KEY,
@@ -81,6 +81,7 @@ from spf_rl.train.ppo_loss import (
     make_ppo_modules,
     recompute_log_prob,
 )
+from spf_rl.train.run_config import write_run_config
 from spf_rl.viz import plot_if_available, pyplot
 
 logger = logging.getLogger(__name__)
@@ -110,8 +111,9 @@ def train_ppo(config: PPOConfig, callback: Callable[[dict], None] | None = None)
         ``frames`` and ``config``.
 
     Raises:
-        ValueError: the env's sizes do not match the checkpoint's, or ``last.pt``
-            was written with another ``frames_per_batch`` / collector layout.
+        ValueError: the env's sizes do not match the checkpoint's, ``output_dir`` holds a run
+            started with other settings, or ``last.pt`` was written with another
+            ``frames_per_batch`` / collector layout.
 
     Examples:
         >>> results = train_ppo(PPOConfig(output_dir="runs/ppo-example"))  # doctest: +SKIP
@@ -136,8 +138,7 @@ class _PPORun:
         self.config = config
         self.device = collection_device(config.device, config.collector)  # first: a missing GPU fails here
         self.output = Path(config.output_dir)
-        self.output.mkdir(parents=True, exist_ok=True)
-        atomic_json(self.output / "config.json", asdict(config))
+        write_run_config(self.output, config, free=PPO_RESUME_FREE)  # a resume under other settings fails here
         self.last_path, self.best_path = self.output / "last.pt", self.output / "best.pt"
 
         payload = load_checkpoint(config.checkpoint)

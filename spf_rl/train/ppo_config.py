@@ -23,6 +23,11 @@ TRAIN_STORE_SEED = 0
 __all__ = ["TRAIN_STORE_SEED", "PPOConfig", "checked_env_config", "training_demo_store"]
 
 
+#: Settings a resumed PPO run may change (beyond how it executes): more frames, threads, where the demo store lives,
+#: the collector (its layout is checked against ``last.pt`` separately).
+PPO_RESUME_FREE = ("total_frames", "num_threads", "store_root", "collector")
+
+
 @dataclass
 class PPOConfig:
     """A PPO fine-tuning run.
