@@ -41,7 +41,7 @@ from spf_rl.modules.memory import memory_bytes
 from spf_rl.modules.policy import SPFPolicy
 from spf_rl.train.evaluation import EvalConfig, episode_store_root, evaluate_policy
 from spf_rl.train.models import ModelConfig, build_policy, spf_config
-from spf_rl.train.run_config import write_run_config
+from spf_rl.train.run_config import BC_RESUME_FREE, write_run_config
 
 logger = logging.getLogger(__name__)
 
@@ -351,9 +351,6 @@ class TrainingRun:
 
 #: Where a run with ``keep_epochs`` keeps every epoch's weights.
 EPOCHS_DIR = "epochs"
-#: Settings a resumed BC run may change (beyond how it executes): more epochs, where and how the data is stored,
-#: kept epoch copies.
-BC_RESUME_FREE = ("optim.epochs", "data_dir", "data.chunk_size", "keep_epochs")
 
 
 def epoch_checkpoint(run_dir: str | os.PathLike, epoch: int) -> Path:
@@ -370,8 +367,7 @@ def run_on_device(train, config) -> dict:
 
 
 def start_run(config) -> Path:
-    """Create ``config.output_dir``, write its ``config.json`` (refusing a resume under changed settings:
-    :func:`~spf_rl.train.run_config.write_run_config`) and seed torch with ``config.seed``."""
+    """Create ``config.output_dir``, write its ``config.json`` (:func:`write_run_config`), seed torch."""
     output = Path(config.output_dir)
     write_run_config(output, config, free=BC_RESUME_FREE)
     torch.manual_seed(config.seed)
@@ -382,8 +378,7 @@ def train_bc(config: BCConfig) -> dict:
     """Run (or resume) a behaviour-cloning run and return its results dict (also written to ``results.json``).
 
     Raises:
-        ValueError: ``config.device`` names a device this machine does not have, or ``output_dir``
-            holds a run started with other settings (before any work).
+        ValueError: an unknown ``config.device``, or a run in ``output_dir`` with other settings (before any work).
     """
     return run_on_device(_train_bc, config)
 

@@ -64,7 +64,7 @@ from spf_rl.train.dagger_rounds import (
 )
 from spf_rl.train.evaluation import EvalConfig, FramesFromStore, evaluate_policy, with_episode_sizes
 from spf_rl.train.models import build_policy
-from spf_rl.train.run_config import write_run_config
+from spf_rl.train.run_config import DAGGER_RESUME_FREE, write_run_config
 from spf_rl.viz import plot_if_available, pyplot
 
 logger = logging.getLogger(__name__)
@@ -72,8 +72,6 @@ logger = logging.getLogger(__name__)
 #: Mixed into the episode seed so the mixing coin is independent of the actuation noise.
 MIXING_STREAM_SALT = 0x5DA66E4
 DAGGER_VAL_SEED = 3  # not the BC val seed (1), on which the starting checkpoint was picked
-#: Settings a resumed DAgger run may change (beyond how it executes): more rounds, test scoring, collection layout.
-DAGGER_RESUME_FREE = ("rounds", "test_every_round", "collector", "bc_data_dir", "bc_data.chunk_size")
 
 
 def default_dagger_val_config() -> EvalConfig:

@@ -111,9 +111,8 @@ def train_ppo(config: PPOConfig, callback: Callable[[dict], None] | None = None)
         ``frames`` and ``config``.
 
     Raises:
-        ValueError: the env's sizes do not match the checkpoint's, ``output_dir`` holds a run
-            started with other settings, or ``last.pt`` was written with another
-            ``frames_per_batch`` / collector layout.
+        ValueError: the env's sizes do not match the checkpoint's, ``output_dir`` holds a run started
+            with other settings, or another ``frames_per_batch`` / collector layout than ``last.pt``.
 
     Examples:
         >>> results = train_ppo(PPOConfig(output_dir="runs/ppo-example"))  # doctest: +SKIP

@@ -27,6 +27,11 @@ CONFIG_FILE = "config.json"
 #: Settings that may change between a run and its resume in every recipe: they change how it runs, not what
 #: (``store_root``: where evaluation episodes are cached).
 EXECUTION_KEYS = ("output_dir", "device", "num_workers", "logger", "progress", "val.store_root", "test.store_root")
+#: Settings a resumed BC run may change (beyond how it executes): more epochs, where and how the data is stored,
+#: kept epoch copies.
+BC_RESUME_FREE = ("optim.epochs", "data_dir", "data.chunk_size", "keep_epochs")
+#: Settings a resumed DAgger run may change (beyond how it executes): more rounds, test scoring, collection layout.
+DAGGER_RESUME_FREE = ("rounds", "test_every_round", "collector", "bc_data_dir", "bc_data.chunk_size")
 
 
 def config_dict(config: Any) -> dict:
