@@ -41,7 +41,7 @@ from envs.episode_numbering import episode_seed, seed_entropy
 from envs.follow import episode_for_seed
 from envs.geometry import DistanceField
 from envs.homing import FOLLOW, check_task, task_demonstration
-from envs.house_grid import check_grid_size, default_grid_size_cells
+from envs.house_grid import check_demo_length, check_grid_size, default_grid_size_cells
 from envs.render import FirstPersonRenderer
 from envs.scenes import build_house, split_seeds
 from envs.specs import NUM_RGB_CHANNELS
@@ -105,7 +105,8 @@ class DemoStoreConfig:
         check_task(self.task, "DemoStoreConfig.task")
         if self.grid_size_cells is not None:
             check_grid_size(self.grid_size_cells, "DemoStoreConfig.grid_size_cells")
-        for name in ("num_demos", "demo_length", "image_size"):
+        check_demo_length(self.demo_length)
+        for name in ("num_demos", "image_size"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
                 raise ValueError(f"{name} must be a positive int, got {value!r}.")

@@ -82,19 +82,29 @@ try:
 except RendererUnavailableError as error:  # rendering will raise the same advice
     logger.warning("envs.dmc: %s", error)
 
-from dm_control.rl import control  # noqa: E402
-from dm_env import specs  # noqa: E402
+from dm_control.rl import control
+from dm_env import specs
 
+from envs.checks import check_positive_int
 from envs.demos import DEFAULT_DEMO_LENGTH, Demonstration, apply_motion, default_min_route_length_m, nominal_motion
+from envs.dmc_physics import AGENT_JOINTS, EYE_CAMERA, HousePhysics  # noqa: F401  (re-exported)
 from envs.expert import ACTION_NAMES, GeodesicExpert
-from envs.follow import MAX_EPISODE_SEED, FollowRules, StepOutcome, episode_for_seed
-from envs.follow import PROGRESS_REWARD_PER_M, STEP_PENALTY, SUCCESS_FRACTION, SUCCESS_RADIUS_M, SUCCESS_REWARD
-from envs.follow import default_max_steps
+from envs.follow import (
+    MAX_EPISODE_SEED,
+    PROGRESS_REWARD_PER_M,
+    STEP_PENALTY,
+    SUCCESS_FRACTION,
+    SUCCESS_RADIUS_M,
+    SUCCESS_REWARD,
+    FollowRules,
+    StepOutcome,
+    default_max_steps,
+    episode_for_seed,
+)
+from envs.house_grid import check_demo_length
 from envs.nav_env import DEFAULT_IMAGE_SIZE
-from envs.checks import check_positive_int  # noqa: E402
-from envs.dmc_physics import AGENT_JOINTS, EYE_CAMERA, HousePhysics  # noqa: E402,F401  (re-exported)
-from envs.specs import NUM_DEMO_ACTIONS, NUM_RGB_CHANNELS
 from envs.scenes import build_house, split_seeds
+from envs.specs import NUM_DEMO_ACTIONS, NUM_RGB_CHANNELS
 from envs.transforms import NoiseModel, make_noise_model
 
 #: Observations a policy may read, and privileged ones (metrics, plots, labels).
@@ -155,7 +165,7 @@ class PathFollowTask(control.Task):
         success_fraction: float = SUCCESS_FRACTION,
         random: np.random.RandomState | int | None = None,
     ) -> None:
-        check_positive_int("demo_length", demo_length)
+        check_demo_length(demo_length)
         max_steps = default_max_steps(demo_length) if max_steps is None else max_steps
         for name, value in (("max_steps", max_steps), ("image_size", image_size)):
             check_positive_int(name, value)

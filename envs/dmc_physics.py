@@ -11,9 +11,9 @@ are compiled once per process (:data:`MODEL_CACHE_SIZE` houses kept). Used by
 """
 from __future__ import annotations
 
-import collections
 import functools
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import mujoco
@@ -21,7 +21,6 @@ import numpy as np
 from dm_control.mujoco import Physics
 from dm_control.mujoco.wrapper import MjModel
 
-from envs.render import FirstPersonRenderer
 from envs.scenes import House, build_house, house_mjcf
 
 logger = logging.getLogger(__name__)

@@ -108,6 +108,31 @@ def split_house_seed(seed: int) -> tuple[int, int]:
     return base, grid
 
 
+#: The longest demonstration, steps: the largest grid holds routes of this many steps
+#: (:func:`default_grid_size_cells`).
+MAX_DEMO_LENGTH = int(MAX_GRID_SIZE_CELLS / GRID_CELLS_PER_DEMO_STEP)
+
+
+def check_demo_length(demo_length: object, name: str = "demo_length") -> int:
+    """``demo_length`` as an int, or a ``ValueError`` naming ``name`` and the allowed range.
+
+    Examples:
+        >>> check_demo_length(30)
+        30
+        >>> check_demo_length(1000)
+        Traceback (most recent call last):
+        ...
+        ValueError: demo_length must be an int in [1, 198] (steps), got 1000.
+    """
+    if (
+        isinstance(demo_length, bool)
+        or not isinstance(demo_length, (int, np.integer))
+        or not 1 <= demo_length <= MAX_DEMO_LENGTH
+    ):
+        raise ValueError(f"{name} must be an int in [1, {MAX_DEMO_LENGTH}] (steps), got {demo_length!r}.")
+    return int(demo_length)
+
+
 def default_grid_size_cells(demo_length: int) -> int:
     """The grid (cells) of the houses demonstrations of ``demo_length`` steps are sampled in.
 

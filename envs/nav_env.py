@@ -46,10 +46,10 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 
 from envs.checks import check_action, check_actuation_noise, check_positive_int, resolve_houses
-from envs.demos import DEFAULT_DEMO_LENGTH, Demonstration, default_min_route_length_m, move_agents, nominal_motion
 from envs.demo_store import DemoStore
-from envs.expert import GeodesicExpert
+from envs.demos import DEFAULT_DEMO_LENGTH, Demonstration, default_min_route_length_m, move_agents, nominal_motion
 from envs.episode_numbering import EpisodeNumbering
+from envs.expert import GeodesicExpert
 from envs.follow import (  # noqa: F401  (the protocol's constants, re-exported)
     MAX_EPISODE_SEED,
     PROGRESS_REWARD_PER_M,
@@ -62,6 +62,7 @@ from envs.follow import (  # noqa: F401  (the protocol's constants, re-exported)
     lab_success,
 )
 from envs.homing import FOLLOW, check_task
+from envs.house_grid import check_demo_length
 from envs.playlist import DISTANCE_FIELD_CACHE_SIZE, DemonstrationPlaylist, EpisodeSource  # noqa: F401
 from envs.render import FirstPersonRenderer
 from envs.scenes import House
@@ -156,7 +157,7 @@ class PathFollowEnv(EnvBase):
         seed: int | None = None,
         device: torch.device | str = "cpu",
     ) -> None:
-        check_positive_int("demo_length", demo_length)
+        check_demo_length(demo_length)
         max_steps = default_max_steps(demo_length) if max_steps is None else max_steps
         check_positive_int("max_steps", max_steps)
         check_positive_int("image_size", image_size)

@@ -297,7 +297,7 @@ class TensorStore:
             "config": config_dict,
             "checksums": tensor_checksums(data),
         }
-        del data
+        data = None  # closes the memory-mapped files before the directory moves
         atomic_write_json(partial / "meta.json", meta)
         (partial / "progress.json").unlink()
         if root.exists():  # an empty directory the caller created

@@ -21,12 +21,8 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from config_utils import load_config  # noqa: E402
+from spf_rl.config import config_or_exit, load_config
 
 #: Schedules in recipes/configs/ that --preset accepts.
 PRESETS = ("bc_quick", "bc_long", "bc_row", "bc_homing", "bc_pointer_long")
@@ -51,7 +47,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     if args.quick and args.preset not in (None, "bc_quick"):
         parser.error(f"--quick is --preset bc_quick; it cannot be combined with --preset {args.preset}")
-    config = load_config(BCConfig, "bc", args.overrides, preset="bc_quick" if args.quick else args.preset)
+    config = config_or_exit(parser, load_config, BCConfig, "bc", args.overrides, preset="bc_quick" if args.quick else args.preset)
     results = train_bc(config)
     test = results["test"]
     summary = {

@@ -21,12 +21,8 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from config_utils import load_config  # noqa: E402
+from spf_rl.config import config_or_exit, load_config
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -39,10 +35,8 @@ def main(argv: list[str] | None = None) -> dict:
     import envs  # noqa: F401  (selects the headless GL back-end first)
     from spf_rl.train.lengths import MixedLengthConfig, train_bc_mixed
 
-    try:
-        config = load_config(MixedLengthConfig, "bc_lengths", args.overrides, preset="bc_lengths_quick" if args.quick else None)
-    except ValueError as err:
-        parser.error(str(err))
+    preset = "bc_lengths_quick" if args.quick else None
+    config = config_or_exit(parser, load_config, MixedLengthConfig, "bc_lengths", args.overrides, preset=preset)
     results = train_bc_mixed(config)
     summary = {
         "model": results["model"],

@@ -69,9 +69,9 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error(f"--variants: unknown {unknown}; allowed: {', '.join(VARIANTS)}")
     variants = {name: VARIANTS[name] for name in VARIANTS if name in chosen or name == REFERENCE}
 
-    import envs  # noqa: F401  (selects the headless GL back-end first)
     import torch
 
+    import envs  # noqa: F401  (selects the headless GL back-end first)
     from spf_rl.data import DatasetConfig, EpisodeDataset
     from spf_rl.modules.encoder import ImageEncoder
     from spf_rl.train.bc import bc_loss

@@ -47,10 +47,10 @@ if __package__ in (None, ""):  # run as a script: make the repository and siblin
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from torchrl.envs import DMControlWrapper  # noqa: E402
-
 from bench_env_paths import median_fps  # noqa: E402
 from bench_env_report import machine_info, other_processes_cpu_seconds  # noqa: E402
+from torchrl.envs import DMControlWrapper  # noqa: E402
+
 from envs.demos import apply_motion, nominal_motion  # noqa: E402
 from envs.dmc import load  # noqa: E402
 from envs.dmc_physics import HousePhysics, agent_house_model  # noqa: E402

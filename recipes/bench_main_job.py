@@ -32,7 +32,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from config_utils import load_config  # noqa: E402
+from spf_rl.config import load_config  # noqa: E402
 
 #: The main job before its budget was raised (commit 1bca04c and earlier), as overrides of today's.
 PREVIOUS_MAIN_JOB = ["optim.epochs=6", "val.num_episodes=100", "val_every=1"]
@@ -86,9 +86,9 @@ def main(argv: list[str] | None = None) -> dict:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
 
-    import envs  # noqa: F401  (selects the headless GL back-end first)
     import torch
 
+    import envs  # noqa: F401  (selects the headless GL back-end first)
     from spf_rl.train.bc import BCConfig
 
     workdir = Path(args.workdir)

@@ -58,7 +58,6 @@ from functools import partial
 from pathlib import Path
 from typing import Any, Callable
 
-
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the working tree's recipes, whatever the PYTHONPATH
 
 from bench_pipeline import MEASURES, UNITS, Sizes  # noqa: E402
@@ -261,9 +260,9 @@ def measure_collection(sizes: Sizes, scratch: Path, branches: dict) -> dict:
     """Frames/s of collection as the pipelines run it (the learner in ``make_collector``, with the
     expert's labels and ``paper`` noise), and the raw render loop's frames/s in the same process."""
     import torch
+    from bench_env_paths import WARMUP_FRAMES, bench_collector, bench_raw
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-    from bench_env_paths import WARMUP_FRAMES, bench_collector, bench_raw
     from envs.scenes import split_seeds
     from spf_rl.train.collection import make_collector
     from spf_rl.train.dagger import DAggerConfig, ExpertMixturePolicy
@@ -314,8 +313,9 @@ MEASURE_FUNCTIONS: dict[str, Callable[[Sizes, Path, dict], dict]] = {
 
 def run_measures(names: list[str], sizes: Sizes, scratch: Path, threads: int | None = None) -> dict:
     """Run ``names`` in order in this process; the worker's output (one JSON object)."""
-    import envs  # noqa: F401  (selects the headless GL back-end before any renderer)
     import torch
+
+    import envs  # noqa: F401  (selects the headless GL back-end before any renderer)
 
     if threads is not None:
         torch.set_num_threads(threads)

@@ -108,9 +108,9 @@ def main(argv: list[str] | None = None) -> dict:
     except ValueError as err:
         parser.error(str(err))
 
-    import envs  # noqa: F401
     import torch
 
+    import envs  # noqa: F401
     from spf_rl.data import DatasetConfig, EpisodeDataset
     from spf_rl.train.bc import model_memory_bytes
 

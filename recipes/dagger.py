@@ -24,12 +24,8 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from config_utils import load_config  # noqa: E402
+from spf_rl.config import config_or_exit, load_config
 
 #: Presets in recipes/configs/ that --preset accepts.
 PRESETS = (
@@ -57,7 +53,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     if args.quick and args.preset not in (None, "dagger_quick"):
         parser.error(f"--quick is --preset dagger_quick; it cannot be combined with --preset {args.preset}")
-    config = load_config(DAggerConfig, "dagger", args.overrides, preset="dagger_quick" if args.quick else args.preset)
+    config = config_or_exit(parser, load_config, DAggerConfig, "dagger", args.overrides, preset="dagger_quick" if args.quick else args.preset)
     results = train_dagger(config)
 
     def scores(record: dict) -> dict:

@@ -29,10 +29,10 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script: make the repository importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import envs  # noqa: E402,F401
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+import envs  # noqa: E402,F401
 from envs.demos import DEFAULT_DEMO_LENGTH  # noqa: E402
 from envs.factory import make_path_follow_env  # noqa: E402
 from envs.homing import FOLLOW, TASKS  # noqa: E402

@@ -14,12 +14,8 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from config_utils import load_config  # noqa: E402
+from spf_rl.config import config_or_exit, load_config
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -33,7 +29,7 @@ def main(argv: list[str] | None = None) -> dict:
     from spf_rl.data import EpisodeDataset
     from spf_rl.train.bc import BCConfig
 
-    config = load_config(BCConfig, "bc", args.overrides, preset="bc_quick" if args.quick else None)
+    config = config_or_exit(parser, load_config, BCConfig, "bc", args.overrides, preset="bc_quick" if args.quick else None)
     root = config.resolved_data_dir()
     dataset = EpisodeDataset.build(root, config.data, num_workers=config.num_workers, progress=config.progress)
     dataset.verify()

@@ -18,16 +18,11 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from config_utils import load_config  # noqa: E402
-
 from envs.demo_store import DemoStoreConfig  # noqa: E402
+from spf_rl.config import config_or_exit, load_config
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -64,7 +59,7 @@ def main(argv: list[str] | None = None) -> dict:
     import envs  # noqa: F401  (selects the GL back-end)
     from envs.demo_store import DemoStore
 
-    config = load_config(MakeDemoStoreConfig, "demo_store", args.overrides)
+    config = config_or_exit(parser, load_config, MakeDemoStoreConfig, "demo_store", args.overrides)
     root = config.resolved_root()
     store = DemoStore.build(root, config.store, progress=config.progress)
     store.verify()

@@ -22,14 +22,10 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+from spf_rl.config import config_or_exit, load_config
 
-from config_utils import load_config  # noqa: E402
-
-#: Shorthands of this recipe, expanded before the generic ones of ``config_utils``.
+#: Shorthands of this recipe, expanded before the generic ones of ``spf_rl.config``.
 PPO_SHORTHANDS = {"noise": ["env.noise", "val.noise", "test.noise"], "epochs": ["ppo_epochs"]}
 
 
@@ -58,7 +54,7 @@ def main(argv: list[str] | None = None) -> dict:
     import envs  # noqa: F401  (selects the headless GL back-end first)
     from spf_rl.train.ppo import PPOConfig, train_ppo
 
-    config = load_config(PPOConfig, "ppo", expand_shorthands(args.overrides), preset="ppo_quick" if args.quick else None)
+    config = config_or_exit(parser, load_config, PPOConfig, "ppo", expand_shorthands(args.overrides), preset="ppo_quick" if args.quick else None)
     results = train_ppo(config)
 
     def scores(split_summary: dict) -> dict:

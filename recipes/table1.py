@@ -60,8 +60,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from config_utils import load_config  # noqa: E402
 from table1_report import Line, build_table, cache_entry, cached_records, write_reports  # noqa: E402
+
+from spf_rl.config import load_config  # noqa: E402
 
 logger = logging.getLogger("table1")
 

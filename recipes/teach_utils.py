@@ -38,7 +38,8 @@ from envs.transforms import ActuationNoise
 from envs.user_demos import ACTION_LETTERS
 from spf_rl.metrics import summarize
 from spf_rl.train.evaluation import greedy_on_device
-from spf_rl.viz import figure_to_array, pyplot, write_video as write_frames
+from spf_rl.viz import figure_to_array, pyplot
+from spf_rl.viz import write_video as write_frames
 
 logger = logging.getLogger(__name__)
 

@@ -1,10 +1,10 @@
 #!/usr/bin/env bash
-# Install the package with its figures extra (torch==2.13.0 from the configured package
-# index) and run the main job: behaviour cloning of SPF (sparsity 0.8) on the default
-# config (1,500 gradient steps on 2,000 episodes), then test-split evaluation.
+# Install the package with its figures extra, at the lock's exact versions (scripts/install.sh,
+# constraints.txt), and run the main job: behaviour cloning of SPF (sparsity 0.8) on the
+# default config (1,500 gradient steps on 2,000 episodes), then test-split evaluation.
 # Arguments are passed to recipes/bc.py.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-python -m pip install --quiet --disable-pip-version-check -e ".[viz]"
+bash scripts/install.sh viz
 export MUJOCO_GL="${MUJOCO_GL:-egl}"
 python recipes/bc.py "$@"

@@ -1,12 +1,14 @@
 #!/usr/bin/env bash
-# Install the package with the extras the tests need (torch==2.13.0 from the configured
-# package index) and run the test suite, then the examples in the docstrings of envs/ and
-# spf_rl/. Exits non-zero if either fails.
+# Install the package with the extras the tests need, at the lock's exact versions
+# (scripts/install.sh, constraints.txt), then lint it (ruff) and run the test suite and the
+# examples in the docstrings of envs/ and spf_rl/ in one pytest run, on one worker per core
+# (pytest-xdist). Exits non-zero if any of them fails.
+# Arguments are passed to pytest, e.g. --full-samples (docs/reproducing.md).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-python -m pip install --quiet --disable-pip-version-check -e ".[dev,distributed,viz]"
+bash scripts/install.sh dev,distributed,viz
 export MUJOCO_GL="${MUJOCO_GL:-egl}"
 status=0
-python -m pytest tests -q || status=$?
-python -m pytest --doctest-modules envs spf_rl -q || status=$?
+python -m ruff check . || status=$?
+python -m pytest --numprocesses auto --doctest-modules tests envs spf_rl -q "$@" || status=$?
 exit "$status"

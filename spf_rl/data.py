@@ -42,9 +42,10 @@ from torchrl.data.replay_buffers import ImmutableDatasetWriter
 from envs.checks import check_episode_source, check_positive_ints
 from envs.demo_store import DemoStore, DemoStoreConfig
 from envs.homing import FOLLOW, check_task
+from envs.house_grid import check_demo_length
 from envs.specs import NUM_RGB_CHANNELS
-from envs.transforms import DEFAULT_NOISE
 from envs.tensor_store import StoreError, TensorStore
+from envs.transforms import DEFAULT_NOISE
 from envs.version import ENV_VERSION
 
 logger = logging.getLogger(__name__)
@@ -100,7 +101,8 @@ class DatasetConfig:
     def __post_init__(self) -> None:
         check_task(self.task, "data.task")
         check_episode_source(self.split, self.num_houses, self.noise)
-        check_positive_ints(self, ("num_episodes", "demo_length", "max_steps", "image_size", "chunk_size", "num_agents"))
+        check_positive_ints(self, ("num_episodes", "max_steps", "image_size", "chunk_size", "num_agents"))
+        check_demo_length(self.demo_length)
         if not 0.0 <= self.random_action_prob <= 1.0:
             raise ValueError(f"random_action_prob must be in [0, 1], got {self.random_action_prob!r}.")
 

@@ -7,13 +7,45 @@ import matplotlib
 
 matplotlib.use("Agg")
 
-import envs  # noqa: E402,F401  (selects the GL back-end before mujoco opens a context)
+import pytest  # noqa: E402
+import torch  # noqa: E402
 from torch import nn  # noqa: E402
 
-import pytest  # noqa: E402
-
+import envs  # noqa: E402,F401  (selects the GL back-end before mujoco opens a context)
 from spf_rl.modules.encoder import ImageEncoder  # noqa: E402
 from spf_rl.train.evaluation import EPISODE_STORE_ROOT_ENV  # noqa: E402
+
+
+#: Scripts that made the committed test data: run by hand, never collected (``--doctest-modules``).
+collect_ignore_glob = ["data/*.py"]
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        "--full-samples",
+        action="store_true",
+        default=False,
+        help="run the property tests on their full samples (1,000 houses, 500 expert episodes per rate)",
+    )
+
+
+@pytest.fixture(scope="session")
+def full_samples(request: pytest.FixtureRequest) -> bool:
+    """Whether the property tests take their full samples (``pytest --full-samples``)."""
+    return bool(request.config.getoption("--full-samples"))
+
+
+@pytest.fixture
+def tf32_flags():
+    """Saves the two TF32 flags of CUDA and restores them after the test.
+
+    ``monkeypatch.setattr`` cannot undo them: ``torch.backends.cuda.matmul.allow_tf32``
+    is served by the module object's ``__getattr__`` (torch 2.13), so monkeypatch finds
+    no attribute to restore and its teardown raises ``AttributeError``.
+    """
+    saved = torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32
+    yield
+    torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = saved
 
 
 @pytest.fixture(autouse=True, scope="session")

@@ -6,13 +6,12 @@ import importlib.util
 import numpy as np
 import pytest
 import torch
-from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 
-from spf_rl.modules import SPFConfig, make_spf_policy
 from envs.demo_store import DemoStore, DemoStoreConfig
 from envs.scripted import gather_episode_steps
 from spf_rl.data import STEP_KEYS
+from spf_rl.modules import SPFConfig, make_spf_policy
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig, make_collection_env, make_collector
 from spf_rl.train.dagger import ExpertMixturePolicy
 from spf_rl.train.evaluation import FramesFromStore

@@ -247,7 +247,7 @@ def test_recipe_configs_load_and_refuse_unknown_keys():
     from pathlib import Path
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
-    from config_utils import load_config
+    from spf_rl.config import load_config
 
     default = load_config(DAggerConfig, "dagger", [])
     quick = load_config(DAggerConfig, "dagger", ["collector.backend=ray"], preset="dagger_quick")

@@ -10,7 +10,6 @@ import torch
 
 from envs.demo_store import DemoStoreError
 from envs.version import ENV_VERSION
-
 from spf_rl.data import DatasetConfig, DatasetError, EpisodeDataset, demos_root, generate_chunk
 
 TINY = dict(num_episodes=6, num_houses=1, demo_length=5, max_steps=8, image_size=32, chunk_size=2)

@@ -10,8 +10,6 @@ from functools import partial
 import numpy as np
 import pytest
 import torch
-
-from envs.version import ENV_VERSION
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.collectors import Collector
@@ -23,6 +21,7 @@ from envs.factory import make_path_follow_env
 from envs.nav_env import PathFollowEnv
 from envs.render import FirstPersonRenderer
 from envs.scenes import build_house, split_seeds
+from envs.version import ENV_VERSION
 from spf_rl.modules import SPFConfig, make_actor, make_spf_policy
 
 # K = 20 so that two env seeds drawing the same sequence of demo ids is unlikely

@@ -38,7 +38,7 @@ from spf_rl.train.ppo_loss import AMP_RATIO_SYNC_TOLERANCE, Autocast, make_ppo_m
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
 
-from config_utils import load_config  # noqa: E402
+from spf_rl.config import load_config  # noqa: E402
 
 META = torch.device("meta")
 POLICY = SPFConfig(demo_length=5, sparsity=0.4, feature_dim=16, hidden_size=16, image_size=(32, 32))
@@ -102,9 +102,8 @@ def test_auto_stays_on_the_cpu_for_ray_collection(monkeypatch):
     assert collection_device("cuda", CollectorConfig(backend="ray")) == torch.device("cuda")  # refused later, clearly
 
 
-def test_full_float32_on_cuda_unless_amp(monkeypatch):
-    monkeypatch.setattr(torch.backends.cudnn, "allow_tf32", True)
-    monkeypatch.setattr(torch.backends.cuda.matmul, "allow_tf32", True)
+def test_full_float32_on_cuda_unless_amp(tf32_flags):
+    torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = True
     with exact_float32("cuda"):
         assert not torch.backends.cudnn.allow_tf32 and not torch.backends.cuda.matmul.allow_tf32
     with exact_float32("cuda", enabled=False), exact_float32("cpu"):

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from test_device import amp_tolerance, random_sequence, step_and_sequence_logits, tiny_ppo_config
 
 import spf_rl
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
@@ -23,7 +24,6 @@ from spf_rl.train.evaluation import EvalConfig, evaluate_policy
 from spf_rl.train.models import ModelConfig, build_policy
 from spf_rl.train.ppo import train_ppo
 from spf_rl.train.ppo_loss import AMP_RATIO_SYNC_TOLERANCE, RATIO_SYNC_TOLERANCE, make_ppo_modules, recompute_log_prob
-from test_device import amp_tolerance, random_sequence, step_and_sequence_logits, tiny_ppo_config
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (torch.cuda.is_available() is False)")
 
@@ -34,10 +34,9 @@ EVALUATION = dict(num_episodes=2, num_agents=2, num_houses=1)
 
 
 @pytest.fixture
-def no_tf32(monkeypatch):
+def no_tf32(tf32_flags):
     """Full float32 convolutions and matmuls, so that CUDA and CPU float32 agree closely."""
-    monkeypatch.setattr(torch.backends.cudnn, "allow_tf32", False)
-    monkeypatch.setattr(torch.backends.cuda.matmul, "allow_tf32", False)
+    torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False
 
 
 def tensors(value):

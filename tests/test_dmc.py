@@ -225,7 +225,8 @@ def test_dmcontrol_wrapper_passes_check_env_specs_and_rolls_out():
     [
         ({"split": "training"}, r"split must be one of \['test', 'train', 'val'\]"),
         ({"num_houses": 0}, r"num_houses must be an int in \[1, "),
-        ({"demo_length": 0}, "demo_length must be a positive int"),
+        ({"demo_length": 0}, r"demo_length must be an int in \[1, 198\] \(steps\), got 0"),
+        ({"demo_length": 199}, r"demo_length must be an int in \[1, 198\] \(steps\), got 199"),
         ({"image_size": 1.5}, "image_size must be a positive int"),
         ({"max_steps": True}, "max_steps must be a positive int"),
         ({"noise": "loud"}, r"noise must be one of \['locobot', 'none', 'paper'"),

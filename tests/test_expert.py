@@ -12,13 +12,15 @@ from envs.scenes import build_house
 from envs.scripted import ExpertPolicy, OpenLoopReplay, run_episodes
 from envs.transforms import ActuationNoise
 
-NUM_EPISODES = 500
+#: Episodes per rate: ``pytest --full-samples`` plays the full sample, by default a smaller one.
+FULL_EPISODES = 500
+SAMPLE_EPISODES = 150
 
 
-def _rate(noise: str, policy, seed: int = 0) -> tuple[float, float]:
+def _rate(noise: str, policy, episodes: int, seed: int = 0) -> tuple[float, float]:
     env = TransformedEnv(PathFollowEnv("train", num_agents=50, with_expert=True, render=False, emit_demo_frames=False), ActuationNoise(noise))
     env.set_seed(seed)
-    records = run_episodes(env, policy, NUM_EPISODES)
+    records = run_episodes(env, policy, episodes)
     return float(np.mean([r["success"] for r in records])), float(np.mean([r["spl"] for r in records]))
 
 
@@ -48,10 +50,11 @@ def test_expert_turns_towards_the_goal_and_moves_when_facing_it():
     assert expert.action(np.array([*position, towards - np.pi / 2])) == TURN_LEFT
 
 
-def test_expert_success_noise_free_and_under_paper_noise():
-    noise_free, _ = _rate("none", ExpertPolicy())
-    paper, _ = _rate("paper", ExpertPolicy())
-    open_loop, _ = _rate("paper", OpenLoopReplay())
+def test_expert_success_noise_free_and_under_paper_noise(full_samples):
+    episodes = FULL_EPISODES if full_samples else SAMPLE_EPISODES
+    noise_free, _ = _rate("none", ExpertPolicy(), episodes)
+    paper, _ = _rate("paper", ExpertPolicy(), episodes)
+    open_loop, _ = _rate("paper", OpenLoopReplay(), episodes)
     assert noise_free >= 0.99
     assert paper >= 0.95
     assert open_loop < paper - 0.2  # replaying the demo blindly fails clearly more often

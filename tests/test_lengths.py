@@ -20,7 +20,8 @@ from spf_rl.train.models import ModelConfig, build_policy, spf_config
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
 
 import success_by_length  # noqa: E402
-from config_utils import load_config  # noqa: E402
+
+from spf_rl.config import load_config  # noqa: E402
 
 TINY_MODEL = ModelConfig(sparsity=0.5, feature_dim=16, hidden_size=16)
 
@@ -53,7 +54,7 @@ def test_policy_for_length_shares_the_weights():
     with torch.no_grad():
         policy.cell.gru.weight_hh.add_(1.0)
     assert torch.equal(view.cell.gru.weight_hh, policy.cell.gru.weight_hh)
-    with pytest.raises(ValueError, match="demo_length must be a positive int"):
+    with pytest.raises(ValueError, match=r"demo_length must be an int in \[1, 198\] \(steps\)"):
         policy_for_length(policy, 0)
 
 
@@ -78,7 +79,7 @@ def test_policy_for_length_refuses_a_custom_encoder():
     [
         (dict(lengths=[]), "lengths must be distinct"),
         (dict(lengths=[30, 30], episodes=[1, 1]), "lengths must be distinct"),
-        (dict(lengths=[30, 0], episodes=[1, 1]), r"lengths\[i\] must be a positive int"),
+        (dict(lengths=[30, 0], episodes=[1, 1]), r"lengths\[i\] must be an int in \[1, 198\]"),
         (dict(lengths=[30], episodes=[0]), r"episodes\[i\] must be a positive int"),
         (dict(device="gpu"), "device must be one of"),
     ],

@@ -9,7 +9,7 @@ import torch
 from torchrl.collectors import Collector
 from torchrl.envs import ParallelEnv, SerialEnv, TransformedEnv, check_env_specs
 
-from envs.expert import FORWARD, STOP, TURN_LEFT
+from envs.expert import STOP, TURN_LEFT
 from envs.nav_env import PathFollowEnv
 from envs.scripted import ExpertPolicy
 from envs.transforms import ActuationNoise
@@ -121,7 +121,8 @@ def test_stop_action_ends_the_episode():
     "kwargs, match",
     [
         (dict(split="validation"), "split must be one of"),
-        (dict(demo_length=0), "demo_length must be a positive int"),
+        (dict(demo_length=0), r"demo_length must be an int in \[1, 198\] \(steps\), got 0"),
+        (dict(demo_length=1000), r"demo_length must be an int in \[1, 198\] \(steps\), got 1000"),  # refused at construction, not at reset()
         (dict(max_steps=-1), "max_steps must be a positive int"),
         (dict(image_size=0), "image_size must be a positive int"),
         (dict(num_agents=0), "num_agents must be a positive int"),

@@ -6,8 +6,8 @@ import dataclasses
 import pytest
 import torch
 import torch.nn.functional as F
+from conftest import CountingEncoder
 from tensordict import TensorDict
-from torch import nn
 from torchrl.collectors import Collector
 from torchrl.data import Bounded, Categorical, Composite
 from torchrl.envs import Compose, EnvBase, InitTracker, SerialEnv, TransformedEnv
@@ -15,7 +15,6 @@ from torchrl.envs.utils import ExplorationType, check_env_specs, set_exploration
 from torchrl.modules import set_recurrent_mode
 from torchrl.modules.utils import get_primers_from_module
 
-from conftest import CountingEncoder
 from spf_rl.modules import (
     ImageEncoder,
     OpenLoopPolicy,
@@ -500,7 +499,8 @@ def test_initial_pointer_step_sets_the_untrained_increment():
 
     import pytest as _pytest
 
-    from spf_rl.modules.policy import SPFConfig as _Config, SPFPolicy as _Policy
+    from spf_rl.modules.policy import SPFConfig as _Config
+    from spf_rl.modules.policy import SPFPolicy as _Policy
 
     policy = _Policy(_Config(demo_length=6, feature_dim=8, hidden_size=8, image_size=(16, 16), initial_pointer_step=0.9))
     hidden = torch.randn(4, 8)

@@ -6,20 +6,17 @@ module-level (``functools.partial`` of :func:`envs.factory.make_path_follow_env`
 """
 from __future__ import annotations
 
-import dataclasses
 from functools import partial
 
 import pytest
 import torch
-from tensordict import TensorDict
-from torch import nn
+from conftest import CountingEncoder
 from torchrl.collectors import Collector
 from torchrl.envs import ParallelEnv, TransformedEnv
 from torchrl.envs.utils import check_env_specs
 from torchrl.modules import set_recurrent_mode
 
 from envs.factory import make_path_follow_env
-from conftest import CountingEncoder
 from spf_rl.modules import (
     ImageEncoder,
     OpenLoopPolicy,

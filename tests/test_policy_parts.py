@@ -10,8 +10,15 @@ from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.modules import set_recurrent_mode
 
-from spf_rl.modules import MemoryAttention, SparseMemory, SPFCell, SPFConfig, SPFPolicy
-from spf_rl.modules import make_action_only_policy, make_rpf_original_policy, make_rpf_policy
+from spf_rl.modules import (
+    MemoryAttention,
+    SPFCell,
+    SPFConfig,
+    SPFPolicy,
+    make_action_only_policy,
+    make_rpf_original_policy,
+    make_rpf_policy,
+)
 
 CFG = SPFConfig(demo_length=6, sparsity=0.5, feature_dim=16, hidden_size=16, image_size=(16, 16))
 

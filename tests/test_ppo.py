@@ -31,8 +31,9 @@ from spf_rl.train.ppo import (
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
 
-from config_utils import load_config  # noqa: E402
 from ppo_finetune import expand_shorthands  # noqa: E402
+
+from spf_rl.config import load_config  # noqa: E402
 
 POLICY = SPFConfig(demo_length=5, sparsity=0.4, feature_dim=16, hidden_size=16, image_size=(32, 32))
 ENV = CollectionEnvConfig(num_houses=1, demo_length=5, max_steps=8, image_size=32, with_expert=False)
@@ -332,8 +333,7 @@ def test_the_recipe_trains_the_dataclass_defaults():
     from pathlib import Path
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
-    from config_utils import load_config
-
+    from spf_rl.config import load_config
     from spf_rl.train.ppo_config import PPOConfig
 
     recipe, library = asdict(load_config(PPOConfig, "ppo", [])), asdict(PPOConfig())

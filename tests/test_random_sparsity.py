@@ -8,20 +8,21 @@ from pathlib import Path
 
 import pytest
 import torch
+from test_policy import CFG as FIXED_CFG
+from test_policy import DemoEnv, N, _make_trajectory, _random_td, _run_steps
 from torchrl.envs import Compose, InitTracker, TransformedEnv
 from torchrl.modules import set_recurrent_mode
 
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
-from spf_rl.modules import SPFConfig, SPFPolicy, make_rpf_policy, make_spf_policy, memory_length, memory_mask
+from spf_rl.modules import SPFConfig, SPFPolicy, make_rpf_policy, memory_length, memory_mask
 from spf_rl.train.bc import BCConfig, model_memory_bytes
 from spf_rl.train.models import MODEL_NAMES, ModelConfig, build_policy, spf_config
-from test_policy import CFG as FIXED_CFG
-from test_policy import N, DemoEnv, _make_trajectory, _random_td, _run_steps
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
 
-from config_utils import load_config  # noqa: E402
 from table1 import RANDOM_EVAL_SPARSITIES, RANDOM_MODEL, ROW_BY_NAME, checkpoint_name, table_lines  # noqa: E402
+
+from spf_rl.config import load_config  # noqa: E402
 
 RANGE = (0.2, 1.0)
 CFG = dataclasses.replace(FIXED_CFG, sparsity_range=RANGE)  # n = 6, 16x16 frames, D = 16

@@ -2,16 +2,17 @@
 from __future__ import annotations
 
 import json
+import re
+import runpy
 import sys
 from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
+from spf_rl.config import load_config
+from spf_rl.train.bc import BCConfig
 
-from config_utils import load_config  # noqa: E402
-
-from spf_rl.train.bc import BCConfig  # noqa: E402
+RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 
 
 def test_default_and_quick_presets_load():
@@ -48,12 +49,13 @@ def test_bad_overrides_are_refused(override, match):
         ("val.num_agents=0", "num_agents must be a positive int"),
     ],
 )
-def test_bad_values_are_refused_before_any_work(override, match, tmp_path, monkeypatch):
+def test_bad_values_are_refused_before_any_work(override, match, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
-    import bc as bc_recipe
-
-    with pytest.raises(ValueError, match=match):
-        bc_recipe.main([override])
+    monkeypatch.setattr(sys, "argv", ["bc.py", override])
+    with pytest.raises(SystemExit) as exit_info:
+        runpy.run_path(str(RECIPES / "bc.py"), run_name="__main__")
+    assert exit_info.value.code == 2
+    assert re.fullmatch(f"bc.py: error: invalid configuration: {match}.*\n", capsys.readouterr().err)
     assert list(tmp_path.iterdir()) == []  # no dataset, no run directory
 
 
@@ -115,14 +117,14 @@ def test_the_recipe_trains_the_dataclass_defaults():
 
 
 def test_a_preset_builds_on_its_base(tmp_path, monkeypatch):
-    import config_utils
+    from spf_rl import config as config_module
 
     (tmp_path / "bc.yaml").write_text("output_dir: runs/x\n")
     (tmp_path / "parent.yaml").write_text("optim:\n  epochs: 7\ndata:\n  num_episodes: 64\n")
     (tmp_path / "child.yaml").write_text("base: parent\ndata:\n  num_episodes: 32\n")
     (tmp_path / "loop_a.yaml").write_text("base: loop_b\n")
     (tmp_path / "loop_b.yaml").write_text("base: loop_a\n")
-    monkeypatch.setattr(config_utils, "CONFIG_DIR", tmp_path)
+    monkeypatch.setattr(config_module, "CONFIG_DIR", tmp_path)
     child = load_config(BCConfig, "bc", [], preset="child")
     assert child.optim.epochs == 7 and child.data.num_episodes == 32  # the child's keys win over its base's
     with pytest.raises(ValueError, match="cycle"):
@@ -163,3 +165,29 @@ def test_every_documented_preset_is_accepted(recipe):
     assert documented <= set(presets), f"documented but not accepted: {sorted(documented - set(presets))}"
     for name in presets:
         assert (root / "recipes" / "configs" / f"{name}.yaml").exists(), name
+
+
+@pytest.mark.parametrize(
+    "recipe, schema",
+    [
+        ("bc.py", "BCConfig"),
+        ("dagger.py", "DAggerConfig"),
+        ("make_dataset.py", "BCConfig"),
+        ("make_demo_store.py", "MakeDemoStoreConfig"),
+        ("ppo_finetune.py", "PPOConfig"),
+        ("bc_lengths.py", "MixedLengthConfig"),
+    ],
+)
+def test_a_config_typo_prints_the_message_alone_and_exits_2(recipe, schema, tmp_path, monkeypatch, capsys):
+    """``python recipes/bc.py modle=spf``: one line naming the key and the near miss, status 2, nothing written."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", [recipe, "modle=spf"])
+    with pytest.raises(SystemExit) as exit_info:
+        runpy.run_path(str(RECIPES / recipe), run_name="__main__")
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"{recipe}: error: invalid configuration: Key 'modle' not in '{schema}'")
+    assert err.count("\n") == 1 and "Traceback" not in err
+    if schema in ("BCConfig", "MixedLengthConfig"):
+        assert err.endswith("Did you mean: 'model'?\n")
+    assert list(tmp_path.iterdir()) == []

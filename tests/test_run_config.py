@@ -17,7 +17,7 @@ from spf_rl.train.run_config import EXECUTION_KEYS, changed_settings, config_dic
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "recipes"))
 
-from config_utils import load_config  # noqa: E402
+from spf_rl.config import load_config  # noqa: E402
 
 
 def started_run(directory: Path, config) -> Path:

@@ -13,8 +13,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
 
 import table1  # noqa: E402
 import table1_report  # noqa: E402
-from config_utils import load_config  # noqa: E402
 from table1_report import build_table, load_cached, write_cached  # noqa: E402
+
+from spf_rl.config import load_config  # noqa: E402
 
 ROWS = "spf-s0.8,action_only-s0,open_loop"
 HOUSES = np.repeat(np.arange(12), 10) + 400  # 120 episodes in 12 houses
@@ -322,7 +323,6 @@ def test_a_seed_without_run_results_is_scored_on_its_runs_validation_episodes(
 def test_cached_validation_scores_once_and_rereads_the_cache(tmp_path, monkeypatch):
     import spf_rl.hub
     import spf_rl.train.evaluation
-
     from spf_rl.train.bc import default_val_config
 
     checkpoint = tmp_path / "ckpt.pt"

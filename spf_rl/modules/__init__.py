@@ -11,6 +11,13 @@ from spf_rl.modules.attention import (
 from spf_rl.modules.cell import SPFCell
 from spf_rl.modules.config import SPFConfig
 from spf_rl.modules.encoder import ImageEncoder
+from spf_rl.modules.factories import (
+    make_action_only_policy,
+    make_actor,
+    make_rpf_original_policy,
+    make_rpf_policy,
+    make_spf_policy,
+)
 from spf_rl.modules.memory import (
     MemoryEncoder,
     memory_bytes,
@@ -21,16 +28,9 @@ from spf_rl.modules.memory import (
     validate_sparsity_range,
 )
 from spf_rl.modules.open_loop import OpenLoopPolicy
-from spf_rl.modules.sparse_memory import SparseMemory
-from spf_rl.modules.factories import (
-    make_action_only_policy,
-    make_actor,
-    make_rpf_original_policy,
-    make_rpf_policy,
-    make_spf_policy,
-)
 from spf_rl.modules.policy import SPFPolicy
 from spf_rl.modules.rpf import RPFAttention, SlotMLP
+from spf_rl.modules.sparse_memory import SparseMemory
 
 __all__ = [
     "ImageEncoder",

@@ -37,8 +37,8 @@ from spf_rl.modules.config import SPFConfig
 from spf_rl.modules.encoder import ImageEncoder
 from spf_rl.modules.open_loop import OpenLoopPolicy  # noqa: F401  (re-exported)
 from spf_rl.modules.rpf import RPF_HEAD_HIDDEN, RPFAttention, SlotMLP
-from spf_rl.modules.sparse_memory import SparseMemory
 from spf_rl.modules.sequence import unroll_sequence
+from spf_rl.modules.sparse_memory import SparseMemory
 from spf_rl.modules.td_utils import next_key, with_batch_dim
 
 logger = logging.getLogger(__name__)

@@ -32,9 +32,9 @@ from torchrl.modules import set_recurrent_mode
 from torchrl.record.loggers import get_logger
 from tqdm.auto import tqdm
 
-from spf_rl.checkpoint import load_checkpoint, save_checkpoint
-from envs.homing import FOLLOW
 from envs.checks import check_positive_ints
+from envs.homing import FOLLOW
+from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.data import DatasetConfig, EpisodeDataset, format_tag
 from spf_rl.device import DEFAULT_DEVICE, autocast, check_device, exact_float32, module_device, resolve_device, to_device
 from spf_rl.modules.memory import memory_bytes

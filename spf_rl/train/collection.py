@@ -31,14 +31,14 @@ from dataclasses import dataclass
 from typing import Literal
 
 import torch
-from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import Collector
 from torchrl.envs import Compose, EnvBase, InitTracker, ParallelEnv, TensorDictPrimer, TransformedEnv
 from torchrl.modules.utils import get_primers_from_module
 
-from envs.demo_store import DemoStore
-from envs.nav_env import PathFollowEnv
 from envs.checks import check_episode_source, check_positive_ints
+from envs.demo_store import DemoStore
+from envs.house_grid import check_demo_length
+from envs.nav_env import PathFollowEnv
 from envs.transforms import DEFAULT_NOISE, ActuationNoise
 from spf_rl.device import DEFAULT_DEVICE, resolve_device
 
@@ -75,7 +75,8 @@ class CollectionEnvConfig:
 
     def __post_init__(self) -> None:
         check_episode_source(self.split, self.num_houses, self.noise)
-        check_positive_ints(self, ("demo_length", "max_steps", "image_size"))
+        check_positive_ints(self, ("max_steps", "image_size"))
+        check_demo_length(self.demo_length)
 
 
 @dataclass

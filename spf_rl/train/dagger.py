@@ -32,7 +32,6 @@ computes the retraining loss under bf16 autocast; collection and scoring stay fl
 """
 from __future__ import annotations
 
-import json
 import logging
 import time
 from dataclasses import asdict, dataclass, field, replace

@@ -27,6 +27,7 @@ from tensordict import TensorDict, TensorDictBase
 from envs.checks import check_episode_source, check_positive_ints
 from envs.demo_store import DemoStore, DemoStoreConfig
 from envs.homing import FOLLOW
+from envs.house_grid import check_demo_length
 from envs.tensor_store import StoreError, TensorStore
 from envs.transforms import DEFAULT_NOISE
 from spf_rl.data import DatasetConfig, EpisodeDataset, attach_demonstrations, demos_root
@@ -70,7 +71,8 @@ class RoundConfig:
     noise: str = DEFAULT_NOISE
 
     def __post_init__(self) -> None:
-        check_positive_ints(self, ("round_index", "num_episodes", "demo_length", "max_steps", "image_size"))
+        check_positive_ints(self, ("round_index", "num_episodes", "max_steps", "image_size"))
+        check_demo_length(self.demo_length)
         check_episode_source(self.split, self.num_houses, self.noise)
         if not 0.0 <= self.beta <= 1.0:
             raise ValueError(f"beta must be in [0, 1], got {self.beta!r}.")

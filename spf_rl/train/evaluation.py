@@ -42,13 +42,14 @@ from torchrl.envs import Compose, InitTracker, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules.utils import get_primers_from_module
 
-from envs.demo_store import DemoStore, DemoStoreConfig
-from envs.nav_env import PathFollowEnv
-from envs.version import ENV_VERSION
-from envs.scripted import STEPS_PER_BATCH, record_episodes, run_episodes
 from envs.checks import check_episode_source, check_positive_ints
+from envs.demo_store import DemoStore, DemoStoreConfig
 from envs.homing import FOLLOW, check_task
+from envs.house_grid import check_demo_length
+from envs.nav_env import PathFollowEnv
+from envs.scripted import STEPS_PER_BATCH, record_episodes, run_episodes
 from envs.transforms import DEFAULT_NOISE, ActuationNoise
+from envs.version import ENV_VERSION
 from spf_rl.device import act_on_device, module_device
 from spf_rl.metrics import summarize
 
@@ -99,7 +100,8 @@ class EvalConfig:
     def __post_init__(self) -> None:
         check_task(self.task, "task")
         check_episode_source(self.split, self.num_houses, self.noise)
-        check_positive_ints(self, ("num_episodes", "num_agents", "demo_length", "max_steps", "image_size", "num_collectors"))
+        check_positive_ints(self, ("num_episodes", "num_agents", "max_steps", "image_size", "num_collectors"))
+        check_demo_length(self.demo_length)
 
 
 #: Fields of :class:`EvalConfig` that choose how episodes are played, never which.

@@ -29,7 +29,7 @@ from tensordict import TensorDict
 
 from envs.checks import check_positive_int
 from envs.follow import default_max_steps
-from envs.house_grid import default_grid_size_cells
+from envs.house_grid import check_demo_length, default_grid_size_cells
 from spf_rl.data import DatasetConfig, EpisodeDataset, format_tag
 from spf_rl.device import DEFAULT_DEVICE, check_device
 from spf_rl.modules.policy import SPFPolicy
@@ -74,7 +74,7 @@ def policy_for_length(policy: SPFPolicy, demo_length: int) -> SPFPolicy:
         >>> long.config.demo_length, long.memory_length, long.cell.gru.weight_hh is policy.cell.gru.weight_hh
         (100, 80, True)
     """
-    check_positive_int("demo_length", demo_length)
+    check_demo_length(demo_length)
     if demo_length == policy.config.demo_length:
         return policy
     parameters = policy.state_dict(keep_vars=True)
@@ -189,7 +189,7 @@ class MixedLengthConfig:
         if not self.lengths or len(set(self.lengths)) != len(self.lengths):
             raise ValueError(f"lengths must be distinct demonstration lengths (steps), got {list(self.lengths)}.")
         for length in self.lengths:
-            check_positive_int("lengths[i]", length)
+            check_demo_length(length, "lengths[i]")
         if len(self.episodes) != len(self.lengths):
             raise ValueError(
                 f"episodes must give one count per length (lengths={list(self.lengths)}), got {list(self.episodes)}."

@@ -4,7 +4,6 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
-from spf_rl.modules.memory import validate_sparsity_range
 from spf_rl.modules import (
     SPFConfig,
     SPFPolicy,
@@ -13,6 +12,7 @@ from spf_rl.modules import (
     make_rpf_policy,
     make_spf_policy,
 )
+from spf_rl.modules.memory import validate_sparsity_range
 
 #: Model names the recipes accept.
 MODEL_NAMES = ("spf", "rpf", "rpf_original", "action_only", "spf_random")

@@ -1,17 +1,24 @@
-"""Config loading for the recipes: YAML defaults + a preset + ``key=value`` overrides.
+"""Configs of the recipes: YAML defaults + a preset + ``key=value`` overrides.
 
 Built on OmegaConf: the YAML is merged into the dataclass schema (so unknown keys
 and wrong types are refused), then command-line ``dotted.key=value`` overrides are
 applied. Shorthands: ``model=NAME``, ``sparsity=X``, ``noise=PRESET`` and
 ``task=follow|homing`` (training data, validation and test), ``epochs=N``.
+
+The YAML files live in ``recipes/configs/`` of a clone, beside the recipes that read
+them (:data:`CONFIG_DIR`).
 """
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
+from typing import Any, TypeVar
 
 from omegaconf import OmegaConf
 
-CONFIG_DIR = Path(__file__).resolve().parent / "configs"
+#: The YAML defaults and presets of the recipes.
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "recipes" / "configs"
+#: Command-line shorthands: one key that sets several config keys.
 SHORTHANDS = {
     "model": ["model.name"],
     "sparsity": ["model.sparsity"],
@@ -20,6 +27,8 @@ SHORTHANDS = {
     "epochs": ["optim.epochs"],
     "task": ["data.task", "val.task", "test.task"],
 }
+
+Config = TypeVar("Config")
 
 
 def preset_layers(preset: str, _seen: tuple[str, ...] = ()) -> list:
@@ -41,8 +50,17 @@ def preset_layers(preset: str, _seen: tuple[str, ...] = ()) -> list:
     return (preset_layers(str(base), (*_seen, preset)) if base else []) + [layer]
 
 
-def load_config(schema_cls, name: str, overrides: list[str], preset: str | None = None):
+def load_config(schema_cls: type[Config], name: str, overrides: list[str], preset: str | None = None) -> Config:
     """Merge ``configs/<name>.yaml`` (+ ``configs/<preset>.yaml``) and overrides into ``schema_cls``.
+
+    Examples:
+        >>> from spf_rl.train.bc import BCConfig
+        >>> load_config(BCConfig, "bc", ["sparsity=0.4"]).model.sparsity
+        0.4
+        >>> load_config(BCConfig, "bc", ["modle=spf"])
+        Traceback (most recent call last):
+        ...
+        ValueError: invalid configuration: Key 'modle' not in 'BCConfig'. Did you mean: 'model'?
 
     Raises:
         ValueError: for an override that is not ``key=value`` or names an unknown key.
@@ -63,4 +81,27 @@ def load_config(schema_cls, name: str, overrides: list[str], preset: str | None 
         OmegaConf.resolve(merged)
         return OmegaConf.to_object(merged)
     except Exception as err:  # omegaconf raises several error types; report them uniformly
-        raise ValueError(f"invalid configuration: {err}") from err
+        # omegaconf appends full_key / object_type lines: keep the first, led by the key it names
+        message, key = str(err).splitlines()[0], getattr(err, "full_key", None)
+        if key and f"'{key}'" not in message:
+            message = f"{key}: {message}"
+        raise ValueError(f"invalid configuration: {message}") from err
+
+
+def config_or_exit(parser: argparse.ArgumentParser, load: Any, *args: Any, **kwargs: Any) -> Any:
+    """``load(*args, **kwargs)``, or the command line's error: ``prog: error: <message>`` alone
+    on standard error and exit status 2, as argparse does for its own arguments.
+
+    A recipe builds its config with it before any work, so a typo writes nothing.
+
+    Examples:
+        >>> import argparse
+        >>> from spf_rl.train.bc import BCConfig
+        >>> parser = argparse.ArgumentParser(prog="bc.py")
+        >>> config_or_exit(parser, load_config, BCConfig, "bc", ["epochs=2"]).optim.epochs
+        2
+    """
+    try:
+        return load(*args, **kwargs)
+    except ValueError as err:
+        parser.exit(2, f"{parser.prog}: error: {err}\n")
