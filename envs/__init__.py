@@ -15,15 +15,10 @@ from __future__ import annotations
 from envs.demo_store import DemoStore, DemoStoreConfig
 from envs.factory import make_parallel_path_follow_env, make_path_follow_env
 from envs.nav_env import PathFollowEnv
+from envs.playlist import DemonstrationPlaylist
 from envs.specs import PRIVILEGED_KEYS, HidePrivileged
 from envs.transforms import NOISE_PRESETS, ActuationNoise, NoiseModel
-from envs.user_demos import (
-    DemonstrationPlaylist,
-    RouteError,
-    RouteRecorder,
-    demonstration_from_actions,
-    demonstration_from_waypoints,
-)
+from envs.user_demos import RouteError, RouteRecorder, demonstration_from_actions, demonstration_from_waypoints
 from envs.version import ENV_VERSION
 
 __all__ = [

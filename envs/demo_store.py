@@ -39,7 +39,7 @@ from tensordict.nn import TensorDictModule
 from envs.demos import Demonstration, default_min_route_length_m, sample_demonstration
 from envs.episode_numbering import episode_seed, seed_entropy
 from envs.follow import episode_for_seed
-from envs.geometry import DistanceField
+from envs.geodesic import DistanceField
 from envs.homing import FOLLOW, check_task, task_demonstration
 from envs.house_grid import check_demo_length, check_grid_size, default_grid_size_cells
 from envs.render import FirstPersonRenderer

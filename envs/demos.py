@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from envs.expert import FORWARD_STEP_M, TURN_ANGLE_DEG, GeodesicExpert
-from envs.geometry import DistanceField
+from envs.geodesic import DistanceField
 from envs.scenes import House
 
 #: Default demonstration length (the paper crops demonstrations to 30 steps).

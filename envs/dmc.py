@@ -6,7 +6,7 @@ motion, success, SPL and reward, see :mod:`envs.follow`), offered as a
 and for TorchRL through :class:`torchrl.envs.DMControlWrapper`.
 
 * :class:`~envs.dmc_physics.HousePhysics`: a :class:`dm_control.mujoco.Physics` of a house model
-  (:func:`~envs.scenes.house_mjcf`) with a kinematic agent added: a body with two
+  (:func:`~envs.house_mesh.house_mjcf`) with a kinematic agent added: a body with two
   slide joints and a hinge, so ``qpos`` = (x m, y m, heading rad) is the agent's
   pose and part of ``physics.get_state()``; the house's ``"eye"`` camera rides on
   it, so ``physics.render(camera_id="eye")`` shows the agent's view. Nothing
@@ -87,7 +87,7 @@ from dm_env import specs
 
 from envs.checks import check_positive_int
 from envs.demos import DEFAULT_DEMO_LENGTH, Demonstration, apply_motion, default_min_route_length_m, nominal_motion
-from envs.dmc_physics import AGENT_JOINTS, EYE_CAMERA, HousePhysics  # noqa: F401  (re-exported)
+from envs.dmc_physics import HousePhysics
 from envs.expert import ACTION_NAMES, GeodesicExpert
 from envs.follow import (
     MAX_EPISODE_SEED,

@@ -1,7 +1,7 @@
 """The dm_control ``Physics`` of the path-following task: a house model with a kinematic agent.
 
 :class:`HousePhysics` is a :class:`dm_control.mujoco.Physics` of a house model
-(:func:`~envs.scenes.house_mjcf`) with a kinematic agent added: a body with two
+(:func:`~envs.house_mesh.house_mjcf`) with a kinematic agent added: a body with two
 slide joints and a hinge, so ``qpos`` = (x m, y m, heading rad) is the agent's pose
 and part of ``physics.get_state()``; the house's ``"eye"`` camera rides on it, so
 ``physics.render(camera_id="eye")`` shows the agent's view. Nothing collides and
@@ -14,14 +14,15 @@ from __future__ import annotations
 import functools
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import mujoco
 import numpy as np
 from dm_control.mujoco import Physics
 from dm_control.mujoco.wrapper import MjModel
 
-from envs.scenes import House, build_house, house_mjcf
+from envs.house_mesh import house_mjcf
+from envs.render import FirstPersonView
+from envs.scenes import House, build_house
 
 logger = logging.getLogger(__name__)
 
@@ -41,7 +42,7 @@ MODEL_CACHE_SIZE = 128
 def agent_house_model(house_seed: int) -> mujoco.MjModel:
     """The model of house ``house_seed`` with the kinematic agent carrying the ``"eye"`` camera.
 
-    Built from :func:`~envs.scenes.house_mjcf`: the house's fixed camera is moved
+    Built from :func:`~envs.house_mesh.house_mjcf`: the house's fixed camera is moved
     onto an ``"agent"`` body with joints ``agent_x``, ``agent_y`` (slides, metres)
     and ``agent_heading`` (hinge about z, radians); gravity is off. Cached per
     process and shared by every :class:`HousePhysics` of that house: treat it as
@@ -72,14 +73,6 @@ def agent_house_model(house_seed: int) -> mujoco.MjModel:
     eye.alt.type = mujoco.mjtOrientation.mjORIENTATION_XYAXES
     eye.alt.xyaxes = list(EYE_XYAXES)
     return spec.compile()
-
-
-@dataclass(frozen=True)
-class FirstPersonView:
-    """What :class:`~envs.render.FirstPersonRenderer` draws: a house model and its eye height (metres)."""
-
-    model: mujoco.MjModel
-    eye_height_m: float
 
 
 class HousePhysics(Physics):

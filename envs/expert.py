@@ -16,7 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from envs.geometry import DistanceField, OccupancyMap
+from envs.geodesic import DistanceField
+from envs.geometry import OccupancyMap
 
 #: Action indices shared by the environment, the expert and the policies.
 FORWARD, TURN_LEFT, TURN_RIGHT, STOP = 0, 1, 2, 3
@@ -37,7 +38,7 @@ class GeodesicExpert:
 
     Args:
         occupancy: the house's :class:`~envs.geometry.OccupancyMap` (collisions).
-        field: distances to the route's end (:class:`~envs.geometry.DistanceField`).
+        field: distances to the route's end (:class:`~envs.geodesic.DistanceField`).
         forward_step_m: nominal forward step, metres.
         turn_angle_rad: nominal turn, radians.
         stop_radius_m: if given, :data:`STOP` is returned within this distance of the goal.

@@ -11,8 +11,7 @@ Everything here works on a house's 2-D free-space map:
   sub-steps and slides along walls: a blocked sub-step is retried along x alone,
   then y alone, so the agent never ends up inside an obstacle.
 
-The geodesic graph and distance fields (:class:`~envs.geodesic.GeodesicGraph`,
-:class:`~envs.geodesic.DistanceField`) are re-exported here.
+The geodesic graph and distance fields over this map are in :mod:`envs.geodesic`.
 """
 from __future__ import annotations
 
@@ -158,14 +157,3 @@ def clearance_grid(occupied: np.ndarray, resolution_m: float) -> np.ndarray:
     (conservative): :attr:`OccupancyMap.clearance_m`.
     """
     return (ndimage.distance_transform_edt(~occupied) * resolution_m - 0.5 * resolution_m).astype(np.float32)
-
-
-# re-exported: the geodesic graph was defined here before it got its own module
-from envs.geodesic import (  # noqa: E402,F401
-    DistanceField,
-    GeodesicGraph,
-    count_components,
-    grid_graph,
-    navigable_beside,
-    node_centre_cells,
-)

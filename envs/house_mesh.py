@@ -12,14 +12,16 @@
    textures lie exactly as ``GL_REPEAT`` would put them with one tile per
    ``TEXTURE_TILE_M`` metres. Landmarks sample one colour square of a palette cell.
 
-:attr:`House.model <envs.scenes.House.model>` compiles the same model lazily
-with :func:`compile_house`, which copies the atlas in without a PNG round trip.
+The layout never sees MuJoCo: this module takes the layout. :func:`house_model`
+compiles a house's model once (:func:`compile_house`, which copies the atlas in
+without a PNG round trip).
 """
 from __future__ import annotations
 
 import functools
 import io
 import math
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -63,7 +65,7 @@ def house_mjcf(house: House, framebuffer_px: int = DEFAULT_FRAMEBUFFER_PX) -> tu
 
     Returns:
         ``(xml, assets)`` for :meth:`mujoco.MjModel.from_xml_string`; the atlas is
-        the PNG ``assets["atlas.png"]``. :attr:`~envs.scenes.House.model` compiles the same model
+        the PNG ``assets["atlas.png"]``. :func:`house_model` compiles the same model
         without the PNG round trip.
 
     Examples:
@@ -91,6 +93,31 @@ def compile_house(house: House, framebuffer_px: int = DEFAULT_FRAMEBUFFER_PX):
     placeholder = f'<texture name="atlas" type="2d" builtin="flat" width="{width}" height="{height}" rgb1="0 0 0"/>'
     model = mujoco.MjModel.from_xml_string(_house_xml(house, atlas, placeholder, framebuffer_px))
     model.tex_data[:] = atlas.pixels.reshape(-1)
+    return model
+
+
+#: Compiled models of the live houses, by ``id(house)``; an entry goes with its house.
+_COMPILED: dict[int, object] = {}
+
+
+def house_model(house: House):
+    """The compiled :class:`mujoco.MjModel` of a layout (:func:`compile_house`), compiled once
+    per :class:`~envs.scenes.House` object and freed with it.
+
+    :func:`envs.scenes.build_house` caches houses by seed, so a seed's model is compiled
+    once while its house is cached.
+
+    Examples:
+        >>> from envs.scenes import build_house
+        >>> house = build_house(0)
+        >>> house_model(house) is house_model(house), house_model(house).ntex
+        (True, 1)
+    """
+    key = id(house)
+    model = _COMPILED.get(key)
+    if model is None:
+        model = _COMPILED[key] = compile_house(house)
+        weakref.finalize(house, _COMPILED.pop, key, None)
     return model
 
 
@@ -173,7 +200,7 @@ def _polygon_mesh(polygons: list[np.ndarray]) -> tuple[str, str, str]:
         for i in range(1, len(polygon) - 1):
             faces.append([base, base + i, base + i + 1])
         base += len(polygon)
-    fmt = lambda a: " ".join(f"{v:.4f}" for v in np.concatenate(a).ravel())  # noqa: E731
+    fmt = lambda a: " ".join(f"{v:.4f}" for v in np.concatenate(a).ravel())
     return fmt(vertices), " ".join(str(v) for v in np.concatenate(faces)), fmt(texcoords)
 
 

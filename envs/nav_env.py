@@ -50,8 +50,7 @@ from envs.demo_store import DemoStore
 from envs.demos import DEFAULT_DEMO_LENGTH, Demonstration, default_min_route_length_m, move_agents, nominal_motion
 from envs.episode_numbering import EpisodeNumbering
 from envs.expert import GeodesicExpert
-from envs.follow import (  # noqa: F401  (the protocol's constants, re-exported)
-    MAX_EPISODE_SEED,
+from envs.follow import (
     PROGRESS_REWARD_PER_M,
     STEP_PENALTY,
     SUCCESS_FRACTION,
@@ -63,7 +62,7 @@ from envs.follow import (  # noqa: F401  (the protocol's constants, re-exported)
 )
 from envs.homing import FOLLOW, check_task
 from envs.house_grid import check_demo_length
-from envs.playlist import DISTANCE_FIELD_CACHE_SIZE, DemonstrationPlaylist, EpisodeSource  # noqa: F401
+from envs.playlist import DemonstrationPlaylist, EpisodeSource
 from envs.render import FirstPersonRenderer
 from envs.scenes import House
 from envs.specs import NUM_DEMO_ACTIONS, NUM_RGB_CHANNELS, path_follow_specs

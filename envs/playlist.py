@@ -18,7 +18,7 @@ import numpy as np
 from envs.demo_store import DemoStore
 from envs.demos import Demonstration
 from envs.follow import episode_for_seed
-from envs.geometry import DistanceField
+from envs.geodesic import DistanceField
 from envs.homing import FOLLOW, HOMING, check_task, task_demonstration
 from envs.scenes import House, build_house
 from envs.specs import NUM_DEMO_ACTIONS

@@ -27,8 +27,12 @@ import logging
 import math
 import os
 import weakref
+from dataclasses import dataclass
 
 import numpy as np
+
+from envs.house_mesh import house_model
+from envs.scenes import House
 
 logger = logging.getLogger(__name__)
 
@@ -65,7 +69,7 @@ def _close_open_renderers() -> None:
     for renderer in list(_OPEN_RENDERERS):
         try:
             renderer.close()
-        except Exception:  # noqa: BLE001 - best effort at exit
+        except Exception:
             logger.debug("could not close a renderer at exit", exc_info=True)
 
 
@@ -138,13 +142,31 @@ def create_gl_context(width: int, height: int):
         gl_module = importlib.import_module(f"mujoco.{backend}") if backend != "glfw" else importlib.import_module("mujoco.glfw")
         context = gl_module.GLContext(width, height)
         context.make_current()
-    except Exception as err:  # noqa: BLE001 - re-raised with advice
+    except Exception as err:
         alternative = "osmesa" if backend == "egl" else "egl"
         raise RendererUnavailableError(
             f"Could not create a MuJoCo OpenGL context with MUJOCO_GL={backend!r} ({err}). "
             f"Try MUJOCO_GL={alternative}. {_INSTALL_HINT}"
         ) from err
     return context
+
+
+@dataclass(frozen=True)
+class FirstPersonView:
+    """A compiled model and its eye height (metres), drawn as it is: for instance a dm_control
+    physics' own model (:attr:`envs.dmc_physics.HousePhysics.first_person_view`).
+
+    :class:`FirstPersonRenderer` draws a :class:`~envs.scenes.House` layout through its
+    compiled model (:func:`envs.house_mesh.house_model`), or such a view.
+    """
+
+    model: object  # a mujoco.MjModel (mujoco is imported only once rendering starts)
+    eye_height_m: float
+
+
+def _model_of(scene: House | FirstPersonView):
+    """The compiled model a scene is drawn from."""
+    return scene.model if isinstance(scene, FirstPersonView) else house_model(scene)
 
 
 class FirstPersonRenderer:
@@ -195,10 +217,10 @@ class FirstPersonRenderer:
         import mujoco
 
         self._activate()
-        key = id(house.model)
+        key = id(_model_of(house))
         state = self._per_model.get(key)
         if state is None:
-            model = house.model
+            model = _model_of(house)
             data = mujoco.MjData(model)
             mujoco.mj_forward(model, data)  # place every geom before the first scene update
             scene = mujoco.MjvScene(model, maxgeom=max(64, model.ngeom + 8))
@@ -263,7 +285,7 @@ class FirstPersonRenderer:
         everything = mujoco.mjtCatBit.mjCAT_ALL
         current = None
         for row, house in enumerate(houses):
-            key = id(house.model)
+            key = id(_model_of(house))
             state = self._per_model.get(key)
             if state is None:
                 state = self._model_state(house)
@@ -282,7 +304,7 @@ class FirstPersonRenderer:
 
     def release(self, house) -> None:
         """Free the GL resources held for ``house``'s model."""
-        state = self._per_model.pop(id(house.model), None)
+        state = self._per_model.pop(id(_model_of(house)), None)
         if state is not None:
             self._activate()
             state[3].free()

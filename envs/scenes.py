@@ -12,11 +12,11 @@ A house is a pure function of its seed:
    first-person frames from two rooms of a house can be told apart. Furniture
    that would cut the navigable space in two is left out.
 4. Walls and furniture are rasterised into an :class:`~envs.geometry.OccupancyMap`
-   (and a :class:`~envs.geometry.GeodesicGraph` over it) on first use.
+   (and a :class:`~envs.geodesic.GeodesicGraph` over it) on first use.
 
-The textured MuJoCo model of a house (one mesh, one texture atlas) is built by
-:mod:`envs.house_mesh`; :attr:`House.model` compiles it on first access, and
-:func:`house_mjcf` is importable from here too.
+A house is a layout only: it knows nothing of MuJoCo. :mod:`envs.house_mesh` builds
+the textured MuJoCo model of a layout (one mesh, one texture atlas), as dm_control's
+maze arenas build theirs from a labmaze layout.
 
 Splits ``train`` / ``val`` / ``test`` are disjoint seed ranges (default 61 / 11 /
 18 houses, as in the paper) that can be enlarged up to ``MAX_HOUSES_PER_SPLIT``.
@@ -25,24 +25,14 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import labmaze
 import numpy as np
 from labmaze import assets as labmaze_assets
 
-from envs.geometry import (
-    GEODESIC_RESOLUTION_M,
-    OCCUPANCY_RESOLUTION_M,
-    GeodesicGraph,
-    OccupancyMap,
-    count_components,
-    navigable_beside,
-)
+from envs.geodesic import GeodesicGraph, count_components, navigable_beside
+from envs.geometry import GEODESIC_RESOLUTION_M, OCCUPANCY_RESOLUTION_M, OccupancyMap
 from envs.house_grid import DEFAULT_GRID_SIZE_CELLS, house_seed, max_rooms, split_house_seed
-
-if TYPE_CHECKING:
-    from envs.house_mesh import house_mjcf  # noqa: F401 (re-exported lazily by __getattr__)
 
 #: Side of a labmaze cell, metres.
 CELL_SIZE_M = 1.0
@@ -104,15 +94,6 @@ WALL_CHAR = "*"
 CORRIDOR_LABEL = "."
 #: labmaze entity-layer character of an object cell (where furniture may stand).
 OBJECT_CHAR = "G"
-
-
-def __getattr__(name: str):
-    """``house_mjcf`` lives in :mod:`envs.house_mesh` (imported on first use: no import cycle)."""
-    if name == "house_mjcf":
-        from envs.house_mesh import house_mjcf
-
-        return house_mjcf
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def split_seeds(split: str, num_houses: int | None = None, grid_size_cells: int | None = None) -> list[int]:
@@ -178,7 +159,6 @@ class House:
     cell_size_m: float = CELL_SIZE_M
     wall_height_m: float = WALL_HEIGHT_M
     eye_height_m: float = EYE_HEIGHT_M
-    _model: object = field(default=None, repr=False)
     _occupancy: OccupancyMap | None = field(default=None, repr=False)
     _graph: GeodesicGraph | None = field(default=None, repr=False)
 
@@ -206,15 +186,6 @@ class House:
         if self._graph is None:
             self._graph = GeodesicGraph(self.occupancy, GEODESIC_RESOLUTION_M)
         return self._graph
-
-    @property
-    def model(self):
-        """The compiled :class:`mujoco.MjModel` (:func:`envs.house_mesh.compile_house`, on first access)."""
-        if self._model is None:
-            from envs.house_mesh import compile_house  # lazy: envs.house_mesh imports this module
-
-            self._model = compile_house(self)
-        return self._model
 
     @property
     def spawn_xy(self) -> np.ndarray:
@@ -287,7 +258,7 @@ def _place_furniture(house: House, cells: np.ndarray, rng: np.random.Generator) 
     A piece is kept only if the navigable space stays in one piece with it (as many
     8-connected components of navigable nodes as the walls alone leave). The
     navigable nodes are updated piece by piece with
-    :func:`~envs.geometry.navigable_beside`: exactly the nodes of
+    :func:`~envs.geodesic.navigable_beside`: exactly the nodes of
     ``GeodesicGraph(OccupancyMap(_rasterise(house, kept + [piece])))``, without a
     distance transform of the whole house per piece.
     """

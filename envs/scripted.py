@@ -26,6 +26,27 @@ from envs.transforms import philox_uniforms
 BEHAVIOUR_STREAM_SALT = 0xE5B1
 
 
+def behaviour_coins(tensordict: TensorDictBase, salt: int, count: int) -> torch.Tensor:
+    """``(rows, count)`` uniform coins in ``[0, 1)`` of a behaviour policy's steps: Philox draws
+    of ``(episode_seed ^ salt, step_count)``.
+
+    The one rule by which behaviour policies mix actions (:class:`EpsilonExpertPolicy`,
+    DAgger's :class:`~spf_rl.train.dagger.ExpertMixturePolicy`): an episode draws the same
+    coins in any batch layout, process or number of agents, and each policy's ``salt``
+    keeps its coins apart from the actuation noise's.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> td = TensorDict({"episode_seed": torch.tensor([[7], [7]]), "step_count": torch.tensor([[0], [1]])}, [2])
+        >>> coins = behaviour_coins(td, BEHAVIOUR_STREAM_SALT, 2)
+        >>> coins.shape, bool(((coins >= 0) & (coins < 1)).all()), torch.equal(coins, behaviour_coins(td, BEHAVIOUR_STREAM_SALT, 2))
+        (torch.Size([2, 2]), True, True)
+    """
+    seeds = tensordict.get("episode_seed").reshape(-1).cpu().numpy() ^ salt
+    steps = tensordict.get("step_count").reshape(-1).cpu().numpy()
+    return torch.from_numpy(philox_uniforms(seeds, steps, count))
+
+
 class ExpertPolicy(TensorDictModuleBase):
     """Copies the env's privileged ``expert_action`` into ``action``.
 
@@ -85,9 +106,7 @@ class EpsilonExpertPolicy(TensorDictModuleBase):
             raise KeyError("EpsilonExpertPolicy needs 'expert_action': build the env with with_expert=True.")
         expert = tensordict.get("expert_action")
         if self.random_action_prob > 0.0:
-            seeds = tensordict.get("episode_seed").reshape(-1).cpu().numpy() ^ BEHAVIOUR_STREAM_SALT
-            steps = tensordict.get("step_count").reshape(-1).cpu().numpy()
-            coins = torch.from_numpy(philox_uniforms(seeds, steps, 2)).to(expert.device)
+            coins = behaviour_coins(tensordict, BEHAVIOUR_STREAM_SALT, 2).to(expert.device)
             random_action = (coins[:, 1] * NUM_DEMO_ACTIONS).long().clamp(max=NUM_DEMO_ACTIONS - 1)
             take_random = coins[:, 0] < self.random_action_prob
             expert = torch.where(take_random.reshape(expert.shape), random_action.reshape(expert.shape).to(expert.dtype), expert)
@@ -364,4 +383,4 @@ def gather_episode_steps(
     return TensorDict({"steps": steps, **out}, batch_size=[count])
 
 
-__all__ = ["EpsilonExpertPolicy", "ExpertPolicy", "OpenLoopReplay", "episode_record", "gather_episode_steps", "play_episode_steps", "record_episodes", "run_episodes"]
+__all__ = ["EpsilonExpertPolicy", "ExpertPolicy", "behaviour_coins", "OpenLoopReplay", "episode_record", "gather_episode_steps", "play_episode_steps", "record_episodes", "run_episodes"]

@@ -39,6 +39,7 @@ from filelock import FileLock
 from tensordict import TensorDict, TensorDictBase
 from tqdm.auto import tqdm
 
+from envs.atomic_io import atomic_write_json
 from envs.version import ENV_VERSION, check_env_version
 
 logger = logging.getLogger(__name__)
@@ -52,16 +53,6 @@ _DATA_DIR = "data"
 
 class StoreError(RuntimeError):
     """A store directory is missing, half-written, corrupt, stale, or of another configuration."""
-
-
-def atomic_write_json(path: Path, payload: Any) -> None:
-    """Write ``payload`` as JSON to ``path`` through a temporary file, fsync and rename."""
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w") as handle:
-        json.dump(payload, handle, indent=2, sort_keys=True)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(tmp, path)
 
 
 def tensor_checksums(data: TensorDictBase) -> dict[str, str]:
@@ -174,7 +165,7 @@ class TensorStore:
     def _open(self) -> TensorDict:
         try:
             data = TensorDict.load_memmap(self.root / _DATA_DIR)
-        except Exception as err:  # noqa: BLE001 - any failure to map means a damaged store
+        except Exception as err:
             raise self._fail(f"cannot read the tensors ({err}).") from err
         expected = self.empty(self.config)
         present = set(data.keys(include_nested=True, leaves_only=True))
@@ -277,7 +268,7 @@ class TensorStore:
             start = chunk * chunk_rows
             data[start : start + values.shape[0]].update_(values)
             done[str(chunk)] = chunk_checksum(values)
-            atomic_write_json(partial / "progress.json", {"config": config_dict, "chunks": done})
+            atomic_write_json(partial / "progress.json", {"config": config_dict, "chunks": done}, sort_keys=True)
             bar.update(1)
 
         if num_workers <= 1 or len(todo) <= 1:
@@ -298,7 +289,7 @@ class TensorStore:
             "checksums": tensor_checksums(data),
         }
         data = None  # closes the memory-mapped files before the directory moves
-        atomic_write_json(partial / "meta.json", meta)
+        atomic_write_json(partial / "meta.json", meta, sort_keys=True)
         (partial / "progress.json").unlink()
         if root.exists():  # an empty directory the caller created
             root.rmdir()
@@ -333,5 +324,5 @@ class TensorStore:
                 shutil.rmtree(partial)
             partial.mkdir(parents=True)
             data = cls.empty(config).memmap_(partial / _DATA_DIR)
-            atomic_write_json(partial / "progress.json", {"config": config_dict, "chunks": {}})
+            atomic_write_json(partial / "progress.json", {"config": config_dict, "chunks": {}}, sort_keys=True)
             return data, {}

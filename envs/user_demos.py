@@ -430,11 +430,3 @@ __all__ = [
     "pose_from_degrees",
 ]
 
-
-def __getattr__(name: str):
-    """``DemonstrationPlaylist`` lives in :mod:`envs.playlist` (imported on first use: no import cycle)."""
-    if name == "DemonstrationPlaylist":
-        from envs.playlist import DemonstrationPlaylist
-
-        return DemonstrationPlaylist
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -17,11 +17,10 @@ The policy runs on ``--device``; the env and its rendering on the CPU.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
-import os
 from pathlib import Path
 
+from envs.atomic_io import atomic_write_json
 from envs.scenes import SPLIT_SEED_OFFSETS
 from envs.transforms import DEFAULT_NOISE, NOISE_PRESETS
 from spf_rl.device import DEFAULT_DEVICE, DEVICE_CHOICES, module_device, resolve_device
@@ -33,7 +32,7 @@ def evaluate_path(path: str, args: argparse.Namespace) -> dict:
     """Evaluate one checkpoint file (or ``open_loop``) and return its results dict."""
     import envs  # noqa: F401
     from spf_rl.hub import policy_from_checkpoint
-    from spf_rl.modules.policy import OpenLoopPolicy
+    from spf_rl.modules.open_loop import OpenLoopPolicy
     from spf_rl.train.bc import model_memory_bytes
     from spf_rl.train.evaluation import EvalConfig, evaluate_policy
 
@@ -143,9 +142,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         if args.sparsity is not None and target != "open_loop":
             name += f"-at{args.sparsity:g}"
         destination = out / f"{name}-{args.split}-{args.noise}-seed{args.seed}.json"
-        tmp = destination.with_name(f".{destination.name}.tmp")
-        tmp.write_text(json.dumps(result, indent=2))
-        os.replace(tmp, destination)
+        atomic_write_json(destination, result)
         print(f"{target}: success {result['success']:.3f} {result['success_ci']}  SPL {result['spl']:.3f} -> {destination}")
         results.append(result)
     return results

@@ -20,99 +20,23 @@ Runs of another task or demonstration length than the paper's (follow, n = 30) w
 from __future__ import annotations
 
 import argparse
-import json
 import logging
-import sys
-import time
 from pathlib import Path
 
-if __package__ in (None, ""):  # run as a script: make the repository importable
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import torch
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-import envs  # noqa: E402,F401
-from envs.demos import DEFAULT_DEMO_LENGTH  # noqa: E402
-from envs.factory import make_path_follow_env  # noqa: E402
-from envs.homing import FOLLOW, TASKS  # noqa: E402
-from envs.scenes import SPLIT_SEED_OFFSETS, build_house  # noqa: E402
-from envs.scripted import ExpertPolicy, OpenLoopReplay, run_episodes  # noqa: E402
-from envs.transforms import NOISE_PRESETS  # noqa: E402
+import envs  # noqa: F401  (selects the headless GL back-end first)
+from envs.atomic_io import atomic_write_json
+from envs.demos import DEFAULT_DEMO_LENGTH
+from envs.factory import make_path_follow_env
+from envs.homing import FOLLOW, TASKS
+from envs.scenes import SPLIT_SEED_OFFSETS, build_house
+from envs.transforms import NOISE_PRESETS
+from spf_rl.eval.scripted import DEFAULT_RUNS, NOTES, POLICIES, run_one
 
 logger = logging.getLogger("expert_stats")
 
 RESULTS_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "results" / "expert_stats.json"
-#: (policy, noise preset) pairs scored by default.
-DEFAULT_RUNS = (
-    ("expert", "none"),
-    ("expert", "paper"),
-    ("expert", "paper_symmetric"),
-    ("expert", "paper_unclipped"),
-    ("expert", "locobot"),
-    ("open_loop", "none"),
-    ("open_loop", "paper"),
-    ("open_loop", "paper_symmetric"),
-    ("open_loop", "paper_unclipped"),
-    ("open_loop", "locobot"),
-)
-
-
-#: Caveats written into the JSON with the numbers.
-NOTES = (
-    "SPL saturates at 1 for near-optimal agents: without STOP the episode ends as soon as the agent is within "
-    "max(0.6 m, 10% of the initial geodesic distance) of the route's end, while SPL compares the path taken with the "
-    "full start-to-end geodesic length (mean_path_length_m is below mean_shortest_path_length_m). A detour shorter "
-    "than the success radius costs no SPL, so expert SPL = 1.000 does not mean the expert's paths are optimal.",
-    "Open-loop replay without noise succeeds by construction: the demonstration is replayed from its own start pose "
-    "with the nominal motion that produced it, so it reaches the goal.",
-    "Episodes whose agents finish their quota early keep stepping (their extra episodes are discarded), so 'seconds' "
-    "is not a per-episode cost.",
-)
-
-
-def bootstrap_ci(values: np.ndarray, rng: np.random.Generator, resamples: int = 10_000, level: float = 0.95) -> tuple[float, float]:
-    """Percentile bootstrap confidence interval of the mean."""
-    values = np.asarray(values, dtype=np.float64)
-    indices = rng.integers(0, len(values), size=(resamples, len(values)))
-    means = values[indices].mean(axis=1)
-    alpha = (1.0 - level) / 2.0
-    low, high = np.quantile(means, [alpha, 1.0 - alpha])
-    return float(low), float(high)
-
-
-def score(records: list[dict], seed: int, resamples: int) -> dict:
-    """Mean success / SPL with bootstrap CIs, plus episode summaries."""
-    success = np.array([r["success"] for r in records], dtype=np.float64)
-    spl = np.array([r["spl"] for r in records], dtype=np.float64)
-    rng = np.random.default_rng(seed)
-    return {
-        "episodes": len(records),
-        "success": float(success.mean()),
-        "success_ci95": bootstrap_ci(success, rng, resamples),
-        "spl": float(spl.mean()),
-        "spl_ci95": bootstrap_ci(spl, rng, resamples),
-        "mean_steps": float(np.mean([r["steps"] for r in records])),
-        "mean_final_goal_distance_m": float(np.mean([r["goal_distance"] for r in records])),
-        "mean_path_length_m": float(np.mean([r["path_length"] for r in records])),
-        "mean_shortest_path_length_m": float(np.mean([r["shortest_path_length"] for r in records])),
-    }
-
-
-def run_one(split: str, policy_name: str, noise: str, episodes: int, env_kwargs: dict, seed: int, resamples: int, progress: bool) -> dict:
-    """Score one (split, policy, noise) run; module-level so worker processes can run it."""
-    torch.set_num_threads(1)
-    env = make_path_follow_env(noise, split=split, **env_kwargs)
-    env.set_seed(seed)
-    policy = ExpertPolicy() if policy_name == "expert" else OpenLoopReplay()
-    start = time.perf_counter()
-    records = run_episodes(env, policy, episodes, progress=progress)
-    elapsed = time.perf_counter() - start
-    env.close(raise_if_closed=False)
-    row = {"split": split, "policy": policy_name, "noise": noise, **score(records, seed, resamples)}
-    row["seconds"] = elapsed
-    row["episode_seeds_checksum"] = int(sum(r["episode_seed"] % 1_000_003 for r in records))
-    return row
 
 
 def main() -> None:
@@ -138,7 +62,7 @@ def main() -> None:
         args.output = RESULTS_PATH if paper else RESULTS_PATH.with_name(f"expert_stats_{args.task}_n{length}.json")
     for run in args.runs:  # the whole config first, before any episode is played
         policy_name, _, noise = run.partition(":")
-        if policy_name not in ("expert", "open_loop") or noise not in NOISE_PRESETS:
+        if policy_name not in POLICIES or noise not in NOISE_PRESETS:
             parser.error(f"--runs: {run!r} must be POLICY:NOISE with POLICY in (expert, open_loop) and NOISE in {sorted(NOISE_PRESETS)}")
     for split in args.splits:
         if split not in SPLIT_SEED_OFFSETS:
@@ -175,10 +99,11 @@ def main() -> None:
 
     def save() -> None:  # after every run, so a partial run still leaves its results
         args.output.parent.mkdir(parents=True, exist_ok=True)
-        args.output.write_text(json.dumps(output, indent=2) + "\n")
+        atomic_write_json(args.output, output)
 
     tasks = [(split, *run.split(":")) for split in args.splits for run in args.runs]
     common = (args.episodes, env_kwargs, args.seed, args.resamples)
+
     def collect(rows) -> None:
         for row in rows:  # in task order
             results.append(row)

@@ -4,7 +4,7 @@ A :class:`~envs.demo_store.DemoStore` holds ``num_demos`` demonstrations of a
 split, sampled and rendered once; envs given ``demo_store=<root>`` draw their
 episodes from it and can emit ``demo_id`` instead of the frames
 (``emit_demo_frames=False``), which is the fast collection path measured by
-``recipes/bench_env.py``. The store is a pure function of its configuration;
+``benchmarks/bench_env.py``. The store is a pure function of its configuration;
 an existing store with the same configuration is reopened and verified, not
 rebuilt.
 
@@ -21,7 +21,7 @@ import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from envs.demo_store import DemoStoreConfig  # noqa: E402
+from envs.demo_store import DemoStoreConfig
 from spf_rl.config import config_or_exit, load_config
 
 REPO_ROOT = Path(__file__).resolve().parents[1]

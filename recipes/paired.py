@@ -1,4 +1,5 @@
-"""Paired comparison of two evaluations of the same episodes (``recipes/evaluate.py`` JSONs).
+"""Paired comparison of two evaluations of the same episodes (``recipes/evaluate.py`` JSONs):
+the command line of :func:`spf_rl.eval.paired.compare`.
 
 Each side is one JSON, or several joined by commas (one per training seed: the
 statistic is then pooled over seeds). Every file must hold per-episode records of
@@ -19,81 +20,13 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 from pathlib import Path
 
+from envs.atomic_io import atomic_write_json
+from spf_rl.eval.paired import compare, split_paths
+
 logger = logging.getLogger("paired")
-
-#: Per-episode fields compared.
-METRICS = ("success", "spl", "success_lab")
-
-
-def load_records(path: Path) -> tuple[dict, list[dict]]:
-    """``(evaluation JSON, its per-episode records)``; a clear error for a file without records."""
-    payload = json.loads(Path(path).read_text())
-    records = payload.get("episodes_records")
-    if not records:
-        raise ValueError(f"{path} has no per-episode records ('episodes_records'): write it with recipes/evaluate.py.")
-    return payload, records
-
-
-def _paths(paths: Path | str | list) -> list[Path]:
-    """One path, a comma-joined string of paths, or a list of paths -> a list of paths."""
-    if isinstance(paths, (list, tuple)):
-        return [Path(path) for path in paths]
-    return [Path(part) for part in str(paths).split(",") if part]
-
-
-def compare(path_a: Path | str | list, path_b: Path | str | list, num_resamples: int, seed: int) -> dict:
-    """The paired comparison of two sides' evaluation JSONs (A - B, pooled over each
-    side's files), as written to ``--out``."""
-    from spf_rl.stats import paired_bootstrap
-
-    files = {"a": _paths(path_a), "b": _paths(path_b)}
-    loaded = {side: [load_records(path) for path in paths] for side, paths in files.items()}
-    reference = [(r["episode_seed"], r["house_seed"]) for r in loaded["a"][0][1]]
-    for side, paths in files.items():
-        for path, (_, records) in zip(paths, loaded[side]):
-            if [(r["episode_seed"], r["house_seed"]) for r in records] != reference:
-                raise ValueError(
-                    f"{files['a'][0]} and {path} hold different episodes ({len(reference)} and {len(records)} records; "
-                    "evaluate both with the same --split, --seed and --episodes)."
-                )
-    houses = [house for _, house in reference]
-    records_a = [r for _, records in loaded["a"] for r in records]
-    records_b = [r for _, records in loaded["b"] for r in records]
-    metrics = {}
-    for name in METRICS:
-        if not all(name in r for r in records_a + records_b):
-            continue
-        result = paired_bootstrap(
-            [[float(r[name]) for r in records] for _, records in loaded["a"]],
-            [[float(r[name]) for r in records] for _, records in loaded["b"]],
-            houses,
-            num_resamples=num_resamples,
-            seed=seed,
-        )
-        metrics[name] = {
-            "a": sum(float(r[name]) for r in records_a) / len(records_a),
-            "b": sum(float(r[name]) for r in records_b) / len(records_b),
-            "difference": result.difference,
-            "ci95": list(result.ci),
-            "p_greater": result.p_greater,
-            "p_two_sided": result.p_two_sided,
-        }
-    return {
-        "a": [str(path) for path in files["a"]],
-        "b": [str(path) for path in files["b"]],
-        "a_checkpoints": [payload.get("checkpoint") for payload, _ in loaded["a"]],
-        "b_checkpoints": [payload.get("checkpoint") for payload, _ in loaded["b"]],
-        "episodes": len(reference),
-        "houses": len(set(houses)),
-        "num_resamples": num_resamples,
-        "seed": seed,
-        "method": "spf_rl.stats.paired_bootstrap: houses resampled, then episodes within them; difference is A - B",
-        "metrics": metrics,
-    }
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -107,14 +40,12 @@ def main(argv: list[str] | None = None) -> dict:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if args.resamples < 1:
         parser.error(f"--resamples must be >= 1, got {args.resamples}")
-    for path in _paths(args.a) + _paths(args.b):
+    for path in split_paths(args.a) + split_paths(args.b):
         if not path.is_file():
             parser.error(f"no evaluation JSON at {path}")
     result = compare(args.a, args.b, args.resamples, args.seed)
-    from spf_rl.train.bc import atomic_json
-
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_json(args.out, result)
+    atomic_write_json(args.out, result, default=str)
     for name, metric in result["metrics"].items():
         logger.info(
             "%s: A %.3f, B %.3f, A - B %+.3f [%+.3f, %+.3f], p (two-sided) %.3f",

@@ -21,83 +21,13 @@ import argparse
 import dataclasses
 import json
 import logging
-import os
 from pathlib import Path
 
+from envs.atomic_io import atomic_write_json
 from spf_rl.device import DEFAULT_DEVICE, DEVICE_CHOICES
+from spf_rl.eval.picking import epoch_files, plot_study, summarize_study, validation_history
 
 logger = logging.getLogger("picking_study")
-
-
-def epoch_files(run: Path) -> dict[int, Path]:
-    """Epoch number -> weights file of a run kept with ``keep_epochs``."""
-    from spf_rl.train.bc import EPOCHS_DIR
-
-    return {int(path.stem.split("-")[1]): path for path in sorted((run / EPOCHS_DIR).glob("epoch-*.pt"))}
-
-
-def validation_history(run: Path) -> dict[int, float]:
-    """Epoch number -> validation success of the validated epochs, from the run's ``last.pt``."""
-    from spf_rl.checkpoint import load_checkpoint
-
-    history = load_checkpoint(run / "last.pt")["history"]
-    return {record["epoch"]: record["val_success"] for record in history if record["val_success"] is not None}
-
-
-def rank_agreement(val: list[float], test: list[float]) -> dict:
-    """Spearman's rho and Kendall's tau (with p-values) between two per-epoch score lists
-    (``None`` where one list is constant: no ranking to agree with)."""
-    from scipy import stats
-
-    if len(set(val)) < 2 or len(set(test)) < 2:
-        return {"spearman_rho": None, "spearman_p": None, "kendall_tau": None, "kendall_p": None}
-    rho, rho_p = stats.spearmanr(val, test)
-    tau, tau_p = stats.kendalltau(val, test)
-    return {"spearman_rho": float(rho), "spearman_p": float(rho_p), "kendall_tau": float(tau), "kendall_p": float(tau_p)}
-
-
-def summarize_study(epochs: list[int], val: list[float], test: list[float]) -> dict:
-    """The rank agreement and the test success of the epochs each rule picks.
-
-    Validation picks the first epoch with the highest validation success (as training
-    keeps ``best.pt``); ``oracle`` is the best epoch on test; ``last`` the final one.
-    """
-    picked = max(range(len(epochs)), key=lambda i: (val[i], -i))
-    oracle = max(range(len(epochs)), key=lambda i: (test[i], -i))
-    return {
-        **rank_agreement(val, test),
-        "picked_by_validation": {"epoch": epochs[picked], "val_success": val[picked], "test_success": test[picked]},
-        "best_on_test": {"epoch": epochs[oracle], "val_success": val[oracle], "test_success": test[oracle]},
-        "last": {"epoch": epochs[-1], "val_success": val[-1], "test_success": test[-1]},
-        "regret_of_validation": test[oracle] - test[picked],
-    }
-
-
-def plot_study(path: Path, study: dict) -> None:
-    from spf_rl.viz import pyplot
-
-    plt = pyplot()
-    rows = study["epochs"]
-    epochs = [row["epoch"] for row in rows]
-    fig, ax = plt.subplots(figsize=(6, 3.5))
-    ax.plot(epochs, [row["val_success"] for row in rows], "o-", label=f"validation ({study['val_episodes']} episodes)")
-    ax.plot(epochs, [row["test_success"] for row in rows], "s-", label=f"test ({study['test_episodes']} episodes)")
-    picked = study["summary"]["picked_by_validation"]["epoch"]
-    ax.axvline(picked, color="grey", linestyle=":", label=f"picked by validation (epoch {picked})")
-    ax.set_xlabel("epoch")
-    ax.set_ylabel("success")
-    rho = study["summary"]["spearman_rho"]
-    ax.set_title("Spearman rho " + ("undefined (constant scores)" if rho is None else f"{rho:.2f}"), fontsize=9)
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
-def write_json(path: Path, payload: dict) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(payload, indent=2))
-    os.replace(tmp, path)
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -144,13 +74,13 @@ def main(argv: list[str] | None = None) -> dict:
         summary, _ = evaluate_policy(policy, test, progress=not args.quiet)
         study["epochs"].append({"epoch": epoch, "val_success": val[epoch], "test_success": summary["success"], "test_spl": summary["spl"]})
         study["epochs"].sort(key=lambda row: row["epoch"])
-        write_json(path, study)
+        atomic_write_json(path, study)
         logger.info("epoch %d: validation %.3f, test %.3f", epoch, val[epoch], summary["success"])
     rows = study["epochs"]
     study["val_episodes"] = config["val"]["num_episodes"]
     study["test_episodes"] = test.num_episodes
     study["summary"] = summarize_study([r["epoch"] for r in rows], [r["val_success"] for r in rows], [r["test_success"] for r in rows])
-    write_json(path, study)
+    atomic_write_json(path, study)
     from spf_rl.viz import plot_if_available
 
     plot_if_available(plot_study, path.with_suffix(".png"), study)

@@ -52,7 +52,8 @@ def main(argv: list[str] | None = None) -> dict:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
 
     import envs  # noqa: F401  (selects the headless GL back-end first)
-    from spf_rl.train.ppo import PPOConfig, train_ppo
+    from spf_rl.train.ppo import train_ppo
+    from spf_rl.train.ppo_config import PPOConfig
 
     config = config_or_exit(parser, load_config, PPOConfig, "ppo", expand_shorthands(args.overrides), preset="ppo_quick" if args.quick else None)
     results = train_ppo(config)

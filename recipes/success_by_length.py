@@ -18,10 +18,10 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 from pathlib import Path
 
+from envs.atomic_io import atomic_write_json
 from envs.scenes import SPLIT_SEED_OFFSETS
 from envs.transforms import DEFAULT_NOISE, NOISE_PRESETS
 
@@ -98,7 +98,7 @@ def main(argv: list[str] | None = None) -> dict:
         "render": not args.no_render,
         "results": results,
     }
-    (out / JSON_NAME).write_text(json.dumps(content, indent=2) + "\n")
+    atomic_write_json((out / JSON_NAME), content)
     plot_if_available(plot_success_by_length, results, out / FIGURE_NAME, title=f"success against route length ({args.noise} noise)")
     for label, rows in results.items():
         print(label + ": " + ", ".join(f"n={row['demo_length']} success {row['success']:.2f} SPL {row['spl']:.2f}" for row in rows))

@@ -52,17 +52,13 @@ import argparse
 import dataclasses
 import json
 import logging
-import shutil
-import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from table1_report import Line, build_table, cache_entry, cached_records, write_reports  # noqa: E402
-
-from spf_rl.config import load_config  # noqa: E402
+from envs.atomic_io import atomic_write
+from spf_rl.config import load_config
+from spf_rl.eval.table1 import Line, build_table, cache_entry, cached_records, write_reports
 
 logger = logging.getLogger("table1")
 
@@ -265,9 +261,7 @@ def eval_sets(overrides: list[str], quick: bool) -> dict:
 # --------------------------------------------------------------------- training
 def copy_atomic(source: Path, target: Path) -> None:
     target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = target.with_name(f".{target.name}.tmp")
-    shutil.copyfile(source, tmp)
-    tmp.replace(target)
+    atomic_write(target, lambda handle: handle.write(source.read_bytes()), binary=True)
 
 
 def dagger_config(row: RowSpec, seed: int):

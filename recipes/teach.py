@@ -40,12 +40,12 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
 import sys
 from pathlib import Path
 
+from envs.atomic_io import atomic_write_json
 from envs.follow import default_max_steps
 from envs.homing import FOLLOW, HOMING
 from envs.scenes import build_house, split_seeds
@@ -217,7 +217,7 @@ def main(argv: list[str] | None = None) -> dict:
         logger.info("writing the video")
         files["video"] = write_video(played, demo_frames, repeats[0], out / VIDEO_STEM, args.noise).name
     content["files"] = files
-    (out / JSON_NAME).write_text(json.dumps(content, indent=2) + "\n")
+    atomic_write_json((out / JSON_NAME), content)
     for repeat in repeats:
         record = repeat.record
         print(f"repeat {record['repeat']}: {'success' if record['success'] else 'failure'}, SPL {record['spl']:.2f}")

@@ -38,7 +38,7 @@ def main(argv: list[str] | None = None) -> None:
 
     import envs  # noqa: F401
     from spf_rl.hub import policy_from_checkpoint, resolve_checkpoint
-    from spf_rl.modules.policy import OpenLoopPolicy
+    from spf_rl.modules.open_loop import OpenLoopPolicy
     from spf_rl.viz import watch
 
     if args.checkpoint == "open_loop":

@@ -5,7 +5,7 @@
 #      no network needed), keeping the machine's own torch;
 #   3. checks that MuJoCo renders (EGL, else OSMesa);
 #   4. runs the CUDA tests (tests/test_device_cuda.py) and the CPU device tests;
-#   5. runs `recipes/bench_train.py --device cuda`: CPU, CUDA float32 and CUDA bf16 in one run.
+#   5. runs `benchmarks/bench_train.py --device cuda`: CPU, CUDA float32 and CUDA bf16 in one run.
 # Everything it writes goes to $OUT (the device machine's return folder) or, without $OUT,
 # to benchmarks/results/: gpu_env.json, gpu_tests.log, gpu_tests.xml, bench_train.log,
 # train-cuda.json. Copy train-cuda.json to benchmarks/results/ and commit it; say in
@@ -103,7 +103,7 @@ tail -n 15 "$RESULTS/gpu_tests.log"
 
 # 5. the benchmark: CPU and CUDA measured in this one run
 log "bench_train --device cuda (limit $(limit 230)s)"
-timeout "$(limit 230)" python recipes/bench_train.py --device cuda --data-dir /tmp/bench-train \
+timeout "$(limit 230)" python benchmarks/bench_train.py --device cuda --data-dir /tmp/bench-train \
   --out "$RESULTS/train-cuda.json" > "$RESULTS/bench_train.log" 2>&1 || status=$?
 grep -v "it/s\]" "$RESULTS/bench_train.log" | tail -n 25
 

@@ -21,8 +21,9 @@ from typing import Any
 
 import torch
 
+from envs.atomic_io import atomic_write
 from spf_rl.modules import SPFConfig
-from spf_rl.train.models import MODEL_NAMES
+from spf_rl.modules.registry import MODEL_NAMES
 
 #: Version of the checkpoint layout.
 CHECKPOINT_FORMAT_VERSION = 1
@@ -76,12 +77,7 @@ def save_checkpoint(path: str | os.PathLike, model_type: str, config: SPFConfig,
         "model_config": config_dict,
         **cpu_copy(state),
     }
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as handle:
-        torch.save(payload, handle)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(tmp, path)
+    atomic_write(path, lambda handle: torch.save(payload, handle), binary=True)
 
 
 def load_checkpoint(
@@ -108,7 +104,7 @@ def load_checkpoint(
         raise CheckpointError(f"checkpoint {path} does not exist.")
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
-    except Exception as err:  # noqa: BLE001 - any unpickling failure means a bad file
+    except Exception as err:
         raise CheckpointError(f"checkpoint {path} is corrupt or not a checkpoint ({type(err).__name__}: {err}).") from err
     if not isinstance(payload, dict) or payload.get("format_version") != CHECKPOINT_FORMAT_VERSION:
         raise CheckpointError(f"checkpoint {path} has an unknown format (expected version {CHECKPOINT_FORMAT_VERSION}).")

@@ -23,7 +23,7 @@ import torch
 from spf_rl.checkpoint import load_checkpoint
 from spf_rl.device import resolve_device
 from spf_rl.modules.policy import SPFConfig, SPFPolicy
-from spf_rl.train.models import build_policy
+from spf_rl.modules.registry import build_policy
 
 #: Where the shipped checkpoints live: ``checkpoints/`` at the root of the repository.
 CHECKPOINT_DIR = Path(__file__).resolve().parent.parent / "checkpoints"

@@ -28,7 +28,7 @@ import numpy as np
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["PairedResult", "SeedSummary", "hierarchical_bootstrap_ci", "paired_bootstrap", "seed_summary"]
+__all__ = ["PairedResult", "SeedSummary", "bootstrap_ci", "hierarchical_bootstrap_ci", "paired_bootstrap", "seed_summary"]
 
 #: Defaults of the bootstraps.
 DEFAULT_CONFIDENCE = 0.95
@@ -92,6 +92,42 @@ def seed_summary(per_seed_means: Sequence[float] | np.ndarray) -> SeedSummary:
     if x.ndim != 1:
         raise ValueError(f"per_seed_means must be one score per seed (1-D), got shape {x.shape}.")
     return SeedSummary(mean=float(x.mean()), sd=float(np.std(x, ddof=1)) if x.size > 1 else None, num_seeds=int(x.size))
+
+
+def bootstrap_ci(
+    values: Sequence | np.ndarray,
+    confidence: float = DEFAULT_CONFIDENCE,
+    num_resamples: int = DEFAULT_NUM_RESAMPLES,
+    seed: int = 0,
+) -> tuple[float, float]:
+    """Percentile bootstrap interval of the mean of independent values (deterministic given ``seed``).
+
+    The flat bootstrap: every value is its own group. For episodes grouped by house,
+    :func:`hierarchical_bootstrap_ci` resamples the houses too.
+
+    Args:
+        values: 1-d sample (array, sequence or tensor).
+        confidence: interval level, in (0, 1).
+        num_resamples: bootstrap resamples (>= 1).
+        seed: seed of the numpy generator.
+
+    Returns:
+        ``(low, high)``; ``(nan, nan)`` for an empty sample.
+
+    Examples:
+        >>> low, high = bootstrap_ci([0.0, 1.0, 1.0, 0.0, 1.0])
+        >>> low <= 0.6 <= high
+        True
+    """
+    _check_bootstrap_options(confidence, num_resamples)
+    if hasattr(values, "detach"):  # a torch tensor
+        values = values.detach().cpu().double().numpy()
+    x = np.asarray(values, dtype=np.float64).reshape(-1)
+    if x.size == 0:
+        return float("nan"), float("nan")
+    rng = np.random.default_rng(seed)
+    means = x[rng.integers(0, x.size, size=(num_resamples, x.size))].mean(axis=1)
+    return _percentile_interval(means, confidence)
 
 
 def hierarchical_bootstrap_ci(

@@ -7,14 +7,13 @@ import matplotlib
 
 matplotlib.use("Agg")
 
-import pytest  # noqa: E402
-import torch  # noqa: E402
-from torch import nn  # noqa: E402
+import pytest
+import torch
+from torch import nn
 
-import envs  # noqa: E402,F401  (selects the GL back-end before mujoco opens a context)
-from spf_rl.modules.encoder import ImageEncoder  # noqa: E402
-from spf_rl.train.evaluation import EPISODE_STORE_ROOT_ENV  # noqa: E402
-
+import envs  # noqa: F401  (selects the GL back-end before mujoco opens a context)
+from spf_rl.modules.encoder import ImageEncoder
+from spf_rl.train.evaluation import EPISODE_STORE_ROOT_ENV
 
 #: Scripts that made the committed test data: run by hand, never collected (``--doctest-modules``).
 collect_ignore_glob = ["data/*.py"]

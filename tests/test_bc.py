@@ -8,9 +8,10 @@ import pytest
 import torch
 
 from spf_rl.data import DatasetConfig, EpisodeDataset
-from spf_rl.train.bc import BCConfig, OptimConfig, bc_loss, train_bc
+from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
+from spf_rl.train.bc import BCConfig, bc_loss, train_bc
 from spf_rl.train.evaluation import EvalConfig
-from spf_rl.train.models import ModelConfig, build_policy, spf_config
+from spf_rl.train.run import OptimConfig
 
 DATA = DatasetConfig(num_episodes=8, num_houses=1, demo_length=5, max_steps=8, image_size=32, chunk_size=4)
 

@@ -6,7 +6,7 @@ import torch
 
 from spf_rl.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from spf_rl.modules.policy import SPFConfig
-from spf_rl.train.models import build_policy
+from spf_rl.modules.registry import build_policy
 
 CONFIG = SPFConfig(demo_length=6, sparsity=0.5, feature_dim=8, hidden_size=8, image_size=(16, 16))
 

@@ -11,11 +11,11 @@ from tensordict.nn import TensorDictModule
 
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.modules import SPFConfig
+from spf_rl.modules.registry import build_policy
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig
 from spf_rl.train.dagger import DAggerConfig, ExpertMixturePolicy, train_dagger
 from spf_rl.train.dagger_rounds import RoundConfig, RoundError, RoundStore
 from spf_rl.train.evaluation import EvalConfig
-from spf_rl.train.models import build_policy
 
 
 def constant_learner(action: int) -> TensorDictModule:
@@ -243,10 +243,7 @@ def test_checkpoint_of_other_sizes_is_refused(tmp_path, bc_checkpoint):
 
 
 def test_recipe_configs_load_and_refuse_unknown_keys():
-    import sys
-    from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
     from spf_rl.config import load_config
 
     default = load_config(DAggerConfig, "dagger", [])

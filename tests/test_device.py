@@ -6,7 +6,6 @@ the stated tolerance. The CUDA tests are in ``tests/test_device_cuda.py``."""
 from __future__ import annotations
 
 import dataclasses
-import sys
 from pathlib import Path
 
 import pytest
@@ -17,10 +16,12 @@ from torch import nn
 from torchrl.modules import set_recurrent_mode
 
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
+from spf_rl.config import load_config
 from spf_rl.data import DatasetConfig, empty_training_episodes
 from spf_rl.device import AMP_DTYPE, autocast, exact_float32, resolve_device, to_device
 from spf_rl.hub import policy_from_checkpoint
 from spf_rl.modules import SPFConfig
+from spf_rl.modules.registry import build_policy
 from spf_rl.train import collection, dagger, ppo
 from spf_rl.train.bc import BCConfig, bc_loss, episodes_to_sequence, train_bc
 from spf_rl.train.collection import (
@@ -32,13 +33,9 @@ from spf_rl.train.collection import (
 )
 from spf_rl.train.dagger import DAggerConfig, train_dagger
 from spf_rl.train.evaluation import EvalConfig, evaluate_policy
-from spf_rl.train.models import build_policy
-from spf_rl.train.ppo import PPOConfig, train_ppo
+from spf_rl.train.ppo import train_ppo
+from spf_rl.train.ppo_config import PPOConfig
 from spf_rl.train.ppo_loss import AMP_RATIO_SYNC_TOLERANCE, Autocast, make_ppo_modules, recompute_log_prob
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
-
-from spf_rl.config import load_config  # noqa: E402
 
 META = torch.device("meta")
 POLICY = SPFConfig(demo_length=5, sparsity=0.4, feature_dim=16, hidden_size=16, image_size=(32, 32))

@@ -21,8 +21,8 @@ from envs.nav_env import PathFollowEnv
 from envs.scripted import ExpertPolicy, run_episodes
 from envs.transforms import ActuationNoise
 from spf_rl.modules.policy import SPFConfig
+from spf_rl.modules.registry import build_policy
 from spf_rl.train.evaluation import EvalConfig, episode_store_name, evaluate_policy, greedy, make_eval_env
-from spf_rl.train.models import build_policy
 
 SIZES = dict(demo_length=6, image_size=32)
 EPISODES, AGENTS, SEED = 7, 3, 11
@@ -203,7 +203,7 @@ def test_concurrent_builds_of_one_store_take_turns(tmp_path):
     def build():
         try:
             results.append(_store(root, episodes=3))
-        except Exception as err:  # noqa: BLE001 - reported below
+        except Exception as err:
             errors.append(err)
 
     threads = [threading.Thread(target=build) for _ in range(2)]

@@ -9,7 +9,7 @@ import pytest
 
 from spf_rl.checkpoint import CheckpointError, save_checkpoint
 from spf_rl.modules.policy import SPFConfig
-from spf_rl.train.models import build_policy
+from spf_rl.modules.registry import build_policy
 
 RECIPE = Path(__file__).resolve().parents[1] / "recipes" / "evaluate.py"
 CONFIG = SPFConfig(demo_length=6, sparsity=0.5, feature_dim=8, hidden_size=8, image_size=(32, 32))

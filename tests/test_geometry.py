@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 from scipy.sparse import csgraph
 
-from envs.geometry import GeodesicGraph, OccupancyMap, grid_graph
+from envs.geodesic import GeodesicGraph, grid_graph
+from envs.geometry import OccupancyMap
 from envs.scenes import build_house
 
 

@@ -12,7 +12,7 @@ from torchrl.modules import set_recurrent_mode
 
 from envs import DemoStore, DemoStoreConfig, PathFollowEnv
 from envs.follow import MAX_STEPS_PER_DEMO_STEP, default_max_steps
-from envs.geometry import count_components
+from envs.geodesic import count_components
 from envs.house_grid import (
     DEFAULT_GRID_SIZE_CELLS,
     GRID_SEED_STRIDE,
@@ -122,7 +122,7 @@ def test_demo_store_follows_the_grid_rule(tmp_path):
 
 def test_spf_modules_take_100_step_demonstrations():
     """The memory and pointer take n = 100 with the weights of an n = 30 model (no n-sized parameter)."""
-    from spf_rl.train.models import ModelConfig, build_policy, spf_config
+    from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
 
     small = ModelConfig(feature_dim=16, hidden_size=16)
     config30 = spf_config(small, demo_length=30, image_size=32)

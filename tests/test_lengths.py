@@ -2,26 +2,21 @@
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import pytest
+import success_by_length
 import torch
 from tensordict import TensorDict
 
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
+from spf_rl.config import load_config
 from spf_rl.data import DEMOS_SUFFIX, DatasetConfig, format_tag
 from spf_rl.modules import SPFConfig, SPFPolicy
-from spf_rl.train.bc import OptimConfig
+from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
 from spf_rl.train.evaluation import EvalConfig
 from spf_rl.train.lengths import MixedLengthConfig, epoch_schedule, policy_for_length, train_bc_mixed
-from spf_rl.train.models import ModelConfig, build_policy, spf_config
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
-
-import success_by_length  # noqa: E402
-
-from spf_rl.config import load_config  # noqa: E402
+from spf_rl.train.run import OptimConfig
 
 TINY_MODEL = ModelConfig(sparsity=0.5, feature_dim=16, hidden_size=16)
 

@@ -10,7 +10,7 @@ import spf_rl
 from spf_rl import hub
 from spf_rl.checkpoint import CheckpointError, save_checkpoint
 from spf_rl.modules.policy import SPFConfig, SPFPolicy
-from spf_rl.train.models import build_policy
+from spf_rl.modules.registry import build_policy
 
 SHIPPED = [
     "action_only-s0",

@@ -3,20 +3,17 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import sys
 from pathlib import Path
 
+import picking_study
 import pytest
 import torch
+from test_bc import tiny_config
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-import picking_study  # noqa: E402
-from test_bc import tiny_config  # noqa: E402
-
-from spf_rl.checkpoint import load_checkpoint  # noqa: E402
-from spf_rl.train.bc import epoch_checkpoint, train_bc  # noqa: E402
+from spf_rl.checkpoint import load_checkpoint
+from spf_rl.eval import picking
+from spf_rl.train.bc import train_bc
+from spf_rl.train.run import epoch_checkpoint
 
 
 @pytest.fixture(scope="module")
@@ -52,13 +49,13 @@ def test_study_scores_every_epoch_and_resumes(kept_run, tmp_path, monkeypatch):
 
 
 def test_summary_picks_and_ranks():
-    summary = picking_study.summarize_study([1, 2, 3, 4], [0.5, 0.7, 0.7, 0.6], [0.4, 0.6, 0.8, 0.7])
+    summary = picking.summarize_study([1, 2, 3, 4], [0.5, 0.7, 0.7, 0.6], [0.4, 0.6, 0.8, 0.7])
     assert summary["picked_by_validation"] == {"epoch": 2, "val_success": 0.7, "test_success": 0.6}
     assert summary["best_on_test"]["epoch"] == 3 and summary["last"]["epoch"] == 4
     assert summary["regret_of_validation"] == pytest.approx(0.2)
     assert 0 < summary["spearman_rho"] < 1
-    assert picking_study.rank_agreement([1, 2, 3], [3, 2, 1])["spearman_rho"] == pytest.approx(-1.0)
-    assert picking_study.rank_agreement([0.5, 0.5, 0.5], [0.1, 0.2, 0.3])["spearman_rho"] is None  # no NaN in the JSON
+    assert picking.rank_agreement([1, 2, 3], [3, 2, 1])["spearman_rho"] == pytest.approx(-1.0)
+    assert picking.rank_agreement([0.5, 0.5, 0.5], [0.1, 0.2, 0.3])["spearman_rho"] is None  # no NaN in the JSON
 
 
 @pytest.mark.parametrize(

@@ -16,7 +16,7 @@ from torchrl.modules import set_recurrent_mode
 
 from spf_rl.checkpoint import load_checkpoint
 from spf_rl.modules import ImageEncoder
-from spf_rl.train.models import build_policy
+from spf_rl.modules.registry import build_policy
 
 ROOT = Path(__file__).resolve().parents[1]
 REFERENCE = torch.load(ROOT / "tests" / "data" / "reference_logits.pt", weights_only=True)

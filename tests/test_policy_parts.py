@@ -155,7 +155,7 @@ def test_rpf_original_sequence_mode_matches_step_mode() -> None:
 
 def test_rpf_original_is_a_model_type_that_round_trips_a_checkpoint(tmp_path) -> None:
     from spf_rl.checkpoint import load_checkpoint, save_checkpoint
-    from spf_rl.train.models import ModelConfig, build_policy, spf_config
+    from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
 
     config = spf_config(ModelConfig(name="rpf_original", feature_dim=16, hidden_size=16), demo_length=6, image_size=16)
     policy = build_policy("rpf_original", config)

@@ -6,34 +6,24 @@ import copy
 import dataclasses
 import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pytest
 import torch
+from ppo_finetune import expand_shorthands
 from torchrl.modules import set_recurrent_mode
 from torchrl.objectives.value import GAE
 
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
+from spf_rl.config import load_config
 from spf_rl.modules import SPFConfig
+from spf_rl.modules.registry import build_policy
 from spf_rl.train import ppo as ppo_module
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig, make_collector
 from spf_rl.train.evaluation import EvalConfig
-from spf_rl.train.models import build_policy
-from spf_rl.train.ppo import (
-    PPOConfig,
-    SPFPPOLoss,
-    compute_values,
-    make_ppo_modules,
-    recompute_log_prob,
-    train_ppo,
-)
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
-
-from ppo_finetune import expand_shorthands  # noqa: E402
-
-from spf_rl.config import load_config  # noqa: E402
+from spf_rl.train.ppo import train_ppo
+from spf_rl.train.ppo_config import PPOConfig
+from spf_rl.train.ppo_loss import SPFPPOLoss, compute_values, make_ppo_modules, recompute_log_prob
 
 POLICY = SPFConfig(demo_length=5, sparsity=0.4, feature_dim=16, hidden_size=16, image_size=(32, 32))
 ENV = CollectionEnvConfig(num_houses=1, demo_length=5, max_steps=8, image_size=32, with_expert=False)
@@ -328,11 +318,8 @@ def test_non_finite_updates_are_skipped_not_applied(tmp_path, checkpoint, monkey
 
 def test_the_recipe_trains_the_dataclass_defaults():
     """One home for every default: ppo.yaml only names the run."""
-    import sys
     from dataclasses import asdict
-    from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
     from spf_rl.config import load_config
     from spf_rl.train.ppo_config import PPOConfig
 

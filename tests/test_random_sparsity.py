@@ -3,26 +3,20 @@ model ``"spf_random"``): mask semantics, step/sequence agreement, random draws, 
 from __future__ import annotations
 
 import dataclasses
-import sys
-from pathlib import Path
 
 import pytest
 import torch
+from table1 import RANDOM_EVAL_SPARSITIES, RANDOM_MODEL, ROW_BY_NAME, checkpoint_name, table_lines
 from test_policy import CFG as FIXED_CFG
 from test_policy import DemoEnv, N, _make_trajectory, _random_td, _run_steps
 from torchrl.envs import Compose, InitTracker, TransformedEnv
 from torchrl.modules import set_recurrent_mode
 
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
+from spf_rl.config import load_config
 from spf_rl.modules import SPFConfig, SPFPolicy, make_rpf_policy, memory_length, memory_mask
+from spf_rl.modules.registry import MODEL_NAMES, ModelConfig, build_policy, spf_config
 from spf_rl.train.bc import BCConfig, model_memory_bytes
-from spf_rl.train.models import MODEL_NAMES, ModelConfig, build_policy, spf_config
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
-
-from table1 import RANDOM_EVAL_SPARSITIES, RANDOM_MODEL, ROW_BY_NAME, checkpoint_name, table_lines  # noqa: E402
-
-from spf_rl.config import load_config  # noqa: E402
 
 RANGE = (0.2, 1.0)
 CFG = dataclasses.replace(FIXED_CFG, sparsity_range=RANGE)  # n = 6, 16x16 frames, D = 16

@@ -8,13 +8,11 @@ from __future__ import annotations
 
 import json
 import re
-import sys
 from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
-from table1_report import summary_markdown  # noqa: E402
+from spf_rl.eval.table1 import summary_markdown
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 TABLE1 = README.parent / "results" / "table1.json"

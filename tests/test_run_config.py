@@ -3,21 +3,19 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import sys
 from pathlib import Path
 
 import pytest
 
-from spf_rl.train.bc import BC_RESUME_FREE, BCConfig, OptimConfig, train_bc
+from spf_rl.config import load_config
+from spf_rl.train.bc import BCConfig, train_bc
 from spf_rl.train.dagger import DAGGER_RESUME_FREE, DAggerConfig, default_dagger_val_config, train_dagger
 from spf_rl.train.ppo import train_ppo
 from spf_rl.train.ppo_config import PPO_RESUME_FREE, PPOConfig
-from spf_rl.train.run_config import EXECUTION_KEYS, changed_settings, config_dict, write_run_config
+from spf_rl.train.run import OptimConfig
+from spf_rl.train.run_config import BC_RESUME_FREE, EXECUTION_KEYS, changed_settings, config_dict, write_run_config
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "recipes"))
-
-from spf_rl.config import load_config  # noqa: E402
 
 
 def started_run(directory: Path, config) -> Path:

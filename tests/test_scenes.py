@@ -4,8 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from envs.house_mesh import house_mjcf, house_model
 from envs.render import FirstPersonRenderer, draw_top_down_map
-from envs.scenes import DEFAULT_SPLIT_SIZES, build_house, house_mjcf, split_seeds
+from envs.scenes import DEFAULT_SPLIT_SIZES, build_house, split_seeds
 
 
 def test_house_is_a_pure_function_of_its_seed():
@@ -49,14 +50,14 @@ def test_house_has_rooms_furniture_and_one_navigable_component():
     # every room gets its own wall texture (as far as the style has textures)
     assert len(set(house.wall_texture_of_label.values())) >= min(len(rooms), 4)
     # a compiled model draws the house with few geoms
-    assert house.model.ngeom <= 2 * (len(rooms) + 2) + 2
+    assert house_model(house).ngeom <= 2 * (len(rooms) + 2) + 2
 
 
 def test_house_is_one_textured_mesh_and_model_matches_its_mjcf():
     import mujoco
 
     house = build_house(3)
-    model = house.model
+    model = house_model(house)
     assert model.ngeom == 1 and model.ntex == 1 and model.nmat == 1
     xml, assets = house_mjcf(house)
     reference = mujoco.MjModel.from_xml_string(xml, assets)  # through the atlas PNG

@@ -6,8 +6,7 @@ import time
 import numpy as np
 import pytest
 
-from spf_rl.metrics import bootstrap_ci
-from spf_rl.stats import hierarchical_bootstrap_ci, paired_bootstrap, seed_summary
+from spf_rl.stats import bootstrap_ci, hierarchical_bootstrap_ci, paired_bootstrap, seed_summary
 
 HOUSES = np.repeat(np.arange(18), 50)  # 900 episodes in 18 houses, as the test split has
 

@@ -1,21 +1,17 @@
-"""Tests for recipes/table1.py and recipes/table1_report.py: the table over seeds from cached
+"""Tests for recipes/table1.py and spf_rl/eval/table1.py: the table over seeds from cached
 per-episode records (no env, no policy), bad options, the cache, and a real open-loop smoke run."""
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+import table1
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
-
-import table1  # noqa: E402
-import table1_report  # noqa: E402
-from table1_report import build_table, load_cached, write_cached  # noqa: E402
-
-from spf_rl.config import load_config  # noqa: E402
+from spf_rl.config import load_config
+from spf_rl.eval import table1 as table1_report
+from spf_rl.eval.table1 import build_table, load_cached, write_cached
 
 ROWS = "spf-s0.8,action_only-s0,open_loop"
 HOUSES = np.repeat(np.arange(12), 10) + 400  # 120 episodes in 12 houses
@@ -218,7 +214,7 @@ def test_dagger_column_reads_the_dagger_presets_run_directories():
 
 
 def test_summary_names_unscored_rows_once_and_leaves_claims_to_the_full_table():
-    from table1_report import summary_markdown
+    from spf_rl.eval.table1 import summary_markdown
 
     stats = {"success": {"mean": 0.8, "sd": 0.01}, "spl": {"mean": 0.7, "sd": 0.02}}
     base = {"model": "spf", "dagger_of": None, "seeds": [0, 1], "seeds_expected": [0, 1, 2], "missing_seeds": [2],
@@ -239,7 +235,7 @@ def test_summary_names_unscored_rows_once_and_leaves_claims_to_the_full_table():
 
 
 def test_summary_puts_a_model_scored_at_several_sparsities_on_one_line():
-    from table1_report import summary_markdown
+    from spf_rl.eval.table1 import summary_markdown
 
     base = {"model": "spf_random", "dagger_of": None, "seeds": [0, 1], "seeds_expected": [0, 1, 2], "missing_seeds": [2],
             "paper_success": None, "paper_spl": None, "row": "r", "checkpoint_stem": "r"}

@@ -4,21 +4,17 @@ from __future__ import annotations
 import curses
 import json
 import re
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+import teach
+from teach_keys import NO_KEY, ascii_map, decode_escape, handle_key
+from teach_utils import route_letters
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
-
-import teach  # noqa: E402
-from teach_keys import NO_KEY, ascii_map, decode_escape, handle_key  # noqa: E402
-from teach_utils import route_letters  # noqa: E402
-
-from envs import RouteRecorder, demonstration_from_actions, demonstration_from_waypoints  # noqa: E402
-from envs.expert import FORWARD, TURN_LEFT  # noqa: E402
-from envs.scenes import build_house  # noqa: E402
+from envs import RouteRecorder, demonstration_from_actions, demonstration_from_waypoints
+from envs.expert import FORWARD, TURN_LEFT
+from envs.scenes import build_house
 
 HOUSE = "0"
 START = "7.5,1.5,0"

@@ -9,10 +9,11 @@ from torchrl.envs import Compose, InitTracker, TransformedEnv
 from envs import PathFollowEnv, RouteError, RouteRecorder, demonstration_from_actions, demonstration_from_waypoints
 from envs.demos import drive_expert
 from envs.expert import FORWARD, TURN_LEFT
+from envs.playlist import DemonstrationPlaylist
 from envs.scenes import build_house
 from envs.scripted import OpenLoopReplay
 from envs.transforms import ActuationNoise
-from envs.user_demos import WAYPOINT_RADIUS_M, DemonstrationPlaylist, parse_actions
+from envs.user_demos import WAYPOINT_RADIUS_M, parse_actions
 
 HOUSE = 0
 #: In house 0 the corridor y in [1, 2] m is free from x = 7 to 12 m.

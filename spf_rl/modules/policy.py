@@ -14,7 +14,8 @@ that a user can take out, replace or reuse:
   ``action_window``, ``spf_hidden``, ``eta_used`` -> ``logits``, ``features``, next
   ``spf_hidden`` and ``eta``).
 
-Step mode runs the four in order; sequence mode is :func:`~spf_rl.modules.sequence.unroll_sequence`.
+Step mode runs the four in order; sequence mode unrolls attention and cell together over time
+(:meth:`SPFPolicy._forward_sequence`).
 Baselines from the same parts (:mod:`spf_rl.modules.factories`): RPF as SPF at
 sparsity 1, the RPF lab code's memory network, and action-only.
 """
@@ -35,11 +36,9 @@ from spf_rl.modules.attention import MemoryAttention, PointerAttention
 from spf_rl.modules.cell import SPFCell
 from spf_rl.modules.config import SPFConfig
 from spf_rl.modules.encoder import ImageEncoder
-from spf_rl.modules.open_loop import OpenLoopPolicy  # noqa: F401  (re-exported)
 from spf_rl.modules.rpf import RPF_HEAD_HIDDEN, RPFAttention, SlotMLP
-from spf_rl.modules.sequence import unroll_sequence
 from spf_rl.modules.sparse_memory import SparseMemory
-from spf_rl.modules.td_utils import next_key, with_batch_dim
+from spf_rl.modules.td_utils import flat_or_zeros, init_flags, next_key, with_batch_dim
 
 logger = logging.getLogger(__name__)
 
@@ -341,10 +340,10 @@ class SPFPolicy(TensorDictModuleBase):
 
         ``valid`` (recurrent mode only; ``[*B, T]`` bool): encode only these steps'
         frames, for sequences padded after their episodes' ends (see
-        :func:`~spf_rl.modules.sequence.unroll_sequence`).
+        :meth:`_forward_sequence`).
         """
         if recurrent_mode():
-            return unroll_sequence(self, tensordict, valid)
+            return self._forward_sequence(tensordict, valid)
         if valid is not None:
             raise ValueError("valid applies to recurrent (sequence) mode only; step mode encodes every row.")
         return with_batch_dim(self._forward_step, tensordict)
@@ -365,6 +364,76 @@ class SPFPolicy(TensorDictModuleBase):
         features = encoded.new_zeros(*valid.shape, encoded.shape[-1])
         features[valid] = encoded
         td.set(self.encoder.out_keys[0], features)
+
+    def _forward_sequence(self, tensordict: TensorDictBase, valid: torch.Tensor | None = None) -> TensorDictBase:
+        """Sequence mode: attention and GRU cell unrolled together over time.
+
+        The attention at step ``t`` reads the pointer the cell wrote at step ``t - 1``,
+        so the two cannot run over all steps one after the other; frames and memories
+        are encoded for every step at once, then the loop runs on tensors (no
+        TensorDict work per step).
+
+        Runs the policy over a ``[*B, T]`` sequence (time last), writing its outputs for every step.
+
+        A segment (``t = 0`` or ``is_init``) starts from the stored ``h`` and ``eta`` of
+        that step, as in :class:`~torchrl.modules.GRUModule`.
+
+        ``valid`` (``[*B, T]`` bool, e.g. a training batch's ``mask``): only these steps'
+        frames are encoded; the others get zero features. For padding *after* an
+        episode's last step: every output is causal, so the valid steps' outputs are
+        those of the full sequence, and the padded steps' outputs are meaningless.
+        """
+        if tensordict.batch_dims == 0:
+            raise ValueError(
+                "SPFPolicy in recurrent mode needs an input with a time dimension "
+                "(batch shape [*B, T]); got a 0-d tensordict."
+            )
+        self.check_inputs(tensordict)
+        self.encode_pixels(tensordict, valid)
+        segments = self.memory.encode_segments(tensordict) if self.use_memory else None
+        td = tensordict.reshape(-1, tensordict.shape[-1])
+        rows, steps = td.batch_size
+        # per-step views by unbind and per-segment gathers: their backward passes stack and
+        # index-add small tensors, where t-slices of [B, T, ...] tensors would each
+        # accumulate a zero-filled gradient of the whole sequence
+        phi = td.get(self.encoder.out_keys[0]).reshape(rows, steps, -1).unbind(1)
+        demo_actions = td.get(self.demo_actions_key).reshape(rows, steps, -1).long().unbind(1)
+        start = init_flags(td, self.is_init_key, phi[0].device).clone()
+        start[:, 0] = True
+        h0 = flat_or_zeros(td.get(self.hidden_key, None), (rows, steps, self.config.hidden_size), phi[0])
+        eta0 = flat_or_zeros(td.get(self.eta_key, None), (rows, steps, 1), phi[0])
+        h, eta = h0[:, 0], eta0[:, 0]
+        outputs: dict[str, list[torch.Tensor]] = {name: [] for name in ("logits", "h", "eta_used", "eta_next", "mu", "window")}
+        for t in range(steps):
+            segment_start = start[:, t].unsqueeze(-1)
+            h = torch.where(segment_start, h0[:, t], h)
+            eta = torch.where(segment_start, eta0[:, t], eta)
+            memory = mask = None
+            if segments is not None:
+                feats, segment, masks = segments
+                memory = feats.index_select(0, segment[:, t])
+                mask = masks.index_select(0, segment[:, t]) if masks is not None else None
+            mu, window = self.attention.attend(memory, demo_actions[t], eta, mask)
+            logits, h, eta_next = self.cell.step(mu, phi[t], window, eta, h)
+            for name, value in zip(outputs, (logits, h, eta, eta_next, mu, window)):
+                outputs[name].append(value)
+            eta = eta_next
+        stacked = {name: torch.stack(values, 1) for name, values in outputs.items()}
+        out = {
+            self.logits_key: stacked["logits"],
+            self.features_key: stacked["h"],
+            self.eta_used_key: stacked["eta_used"],
+            self.attention.mu_key: stacked["mu"],
+            self.attention.action_window_key: stacked["window"],
+            next_key(self.hidden_key): stacked["h"],
+            next_key(self.eta_key): stacked["eta_next"],
+        }
+        shape = tensordict.batch_size
+        for key, value in out.items():
+            tensordict.set(key, value.reshape(*shape, *value.shape[2:]))
+        if segments is not None:
+            self.memory.write_segments(tensordict, *segments)
+        return tensordict
 
     def _forward_step(self, td: TensorDictBase) -> TensorDictBase:
         # the parts' step forwards, called directly: the batch dim is already there

@@ -18,9 +18,7 @@ available, see :mod:`spf_rl.device`); each batch moves there
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
-import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -30,46 +28,19 @@ import torch.nn.functional as F
 from tensordict import TensorDict
 from torchrl.modules import set_recurrent_mode
 from torchrl.record.loggers import get_logger
-from tqdm.auto import tqdm
 
+from envs.atomic_io import atomic_write_json
 from envs.checks import check_positive_ints
 from envs.homing import FOLLOW
-from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.data import DatasetConfig, EpisodeDataset, format_tag
-from spf_rl.device import DEFAULT_DEVICE, autocast, check_device, exact_float32, module_device, resolve_device, to_device
+from spf_rl.device import DEFAULT_DEVICE, autocast, check_device, module_device, to_device
 from spf_rl.modules.memory import memory_bytes
 from spf_rl.modules.policy import SPFPolicy
+from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
 from spf_rl.train.evaluation import EvalConfig, episode_store_root, evaluate_policy
-from spf_rl.train.models import ModelConfig, build_policy, spf_config
-from spf_rl.train.run_config import BC_RESUME_FREE, write_run_config
+from spf_rl.train.run import OptimConfig, TrainingRun, run_on_device, start_run
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass
-class OptimConfig:
-    """Optimiser settings.
-
-    Args:
-        lr: Adam learning rate.
-        weight_decay: Adam weight decay.
-        batch_size: episodes per gradient step.
-        epochs: passes over the dataset (12 on the default 2,000 episodes at batch 16 =
-            1,500 gradient steps, the main job's budget).
-        max_grad_norm: gradient-norm clip.
-        cosine_schedule: decay the learning rate to 0 over the run (cosine), which
-            steadies the final checkpoints.
-        amp: compute the loss under bf16 autocast (mixed precision; see
-            :mod:`spf_rl.device`). Off by default; on the CPU faster only with native bf16 (docs/performance.md).
-    """
-
-    lr: float = 1e-3
-    weight_decay: float = 0.0
-    batch_size: int = 16
-    epochs: int = 12
-    max_grad_norm: float = 1.0
-    cosine_schedule: bool = True
-    amp: bool = False
 
 
 def default_val_config() -> EvalConfig:
@@ -97,7 +68,7 @@ class BCConfig:
         logger: torchrl logger backend (``"csv"``, ``"tensorboard"``, ...) or ``""`` for none.
         progress: progress bars.
         data: the dataset (:class:`~spf_rl.data.DatasetConfig`).
-        model: the policy (:class:`~spf_rl.train.models.ModelConfig`).
+        model: the policy (:class:`~spf_rl.modules.registry.ModelConfig`).
         optim: the optimiser (:class:`OptimConfig`).
         val: validation rollouts; the best validated epoch is kept as ``best.pt``.
         val_every: validate after every ``val_every``-th epoch and after the last one.
@@ -225,155 +196,6 @@ def model_memory_bytes(model_type: str, demo_length: int, sparsity: float, image
     return memory_bytes(demo_length, 1.0 if model_type in ("rpf", "rpf_original") else sparsity, frame_shape)
 
 
-class TrainingRun:
-    """The optimiser, schedule, resume state and checkpoints of a BC run (shared by :func:`train_bc`
-    and the mixed-length run of :mod:`spf_rl.train.lengths`).
-
-    ``<output>/last.pt`` holds everything needed to resume (written after every epoch);
-    ``<output>/best.pt`` the weights of the best validation epoch (success, then SPL).
-
-    Args:
-        output: the run directory.
-        model_type: the policy's model type (checked when resuming).
-        policy_config: the policy's :class:`~spf_rl.modules.SPFConfig`, saved with it.
-        policy: the policy being trained.
-        optim: the optimiser settings.
-        total_steps: gradient steps of the whole run (the cosine schedule's length).
-        keep_epochs: also write every epoch's weights to ``epochs/epoch-NNN.pt``.
-    """
-
-    def __init__(
-        self,
-        output: Path,
-        model_type: str,
-        policy_config,
-        policy: SPFPolicy,
-        optim: OptimConfig,
-        total_steps: int,
-        keep_epochs: bool = False,
-    ) -> None:
-        self.model_type, self.policy_config, self.policy, self.optim = model_type, policy_config, policy, optim
-        self.optimizer = torch.optim.Adam(policy.parameters(), lr=optim.lr, weight_decay=optim.weight_decay)
-        self.scheduler = (
-            torch.optim.lr_scheduler.CosineAnnealingLR(self.optimizer, T_max=total_steps)
-            if optim.cosine_schedule
-            else torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda _: 1.0)
-        )
-        self.last_path, self.best_path = output / "last.pt", output / "best.pt"
-        self.epochs_dir = output / EPOCHS_DIR if keep_epochs else None
-        self.history: list[dict] = []
-        self.best = {"success": -1.0, "spl": -1.0, "epoch": -1}
-        self.step = 0
-
-    def resume(self) -> int:
-        """Load ``last.pt`` if it exists; returns the number of finished epochs."""
-        if not self.last_path.exists():
-            return 0
-        payload = load_checkpoint(self.last_path, expected_model_type=self.model_type)
-        self.policy.load_state_dict(payload["model"])
-        self.optimizer.load_state_dict(payload["optimizer"])
-        if "scheduler" in payload:
-            self.scheduler.load_state_dict(payload["scheduler"])
-        self.history, self.best = payload["history"], payload["best"]
-        self.step = self.history[-1]["step"] if self.history else 0
-        torch.set_rng_state(payload["torch_rng"])
-        logger.info("resuming %s after epoch %d", self.last_path.parent, payload["epoch"])
-        return payload["epoch"]
-
-    def train_epoch(
-        self, batches, num_batches: int, desc: str, progress: bool, run_logger=None, policy_of=None
-    ) -> tuple[list, list, float]:
-        """One gradient step per batch (cross-entropy, clipped gradients); returns (losses, accuracies, seconds).
-
-        ``policy_of(batch)``, if given, is the module that computes a batch's loss (a view of
-        the policy sharing its parameters, e.g. for another demonstration length).
-        """
-        self.policy.train()
-        losses, accuracies, start = [], [], time.time()
-        bar = tqdm(batches, total=num_batches, desc=desc, disable=not progress)
-        for batch in bar:
-            policy = self.policy if policy_of is None else policy_of(batch).train()
-            loss, accuracy = bc_loss(policy, batch, amp=self.optim.amp)
-            self.optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(self.policy.parameters(), self.optim.max_grad_norm)
-            self.optimizer.step()
-            self.scheduler.step()
-            self.step += 1
-            losses.append(loss.item())
-            accuracies.append(accuracy.item())
-            bar.set_postfix(loss=f"{losses[-1]:.3f}", acc=f"{accuracies[-1]:.2f}")
-            if run_logger is not None:
-                run_logger.log_scalar("train/loss", losses[-1], step=self.step)
-        return losses, accuracies, time.time() - start
-
-    def end_epoch(
-        self, epoch: int, losses: list, accuracies: list, train_seconds: float, val: dict | None, run_logger=None
-    ) -> dict:
-        """Record epoch ``epoch`` (from 0), keep ``best.pt`` if ``val`` is the best so far, write ``last.pt``.
-
-        ``val`` is ``None`` for an epoch that was not validated (its record says so with
-        ``None`` scores; it cannot become ``best.pt``).
-        """
-        record = {
-            "epoch": epoch + 1,
-            "step": self.step,
-            "train_loss": sum(losses) / len(losses),
-            "train_accuracy": sum(accuracies) / len(accuracies),
-            "val_success": None if val is None else val["success"],
-            "val_spl": None if val is None else val["spl"],
-            "train_seconds": train_seconds,
-        }
-        self.history.append(record)
-        if run_logger is not None:
-            for key in ("train_accuracy", "val_success", "val_spl"):
-                if record[key] is not None:
-                    run_logger.log_scalar(f"epoch/{key}", record[key], step=self.step)
-        state = {"model": self.policy.state_dict(), "epoch": epoch + 1}
-        if val is not None and (val["success"], val["spl"]) > (self.best["success"], self.best["spl"]):
-            self.best = {"success": val["success"], "spl": val["spl"], "epoch": epoch + 1}
-            save_checkpoint(self.best_path, self.model_type, self.policy_config, {**state, "val": val})
-        if self.epochs_dir is not None:
-            save_checkpoint(epoch_checkpoint(self.epochs_dir.parent, epoch + 1), self.model_type, self.policy_config, {**state, "val": val})
-        extra = {"optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict()}
-        save_checkpoint(
-            self.last_path,
-            self.model_type,
-            self.policy_config,
-            {**state, **extra, "history": self.history, "best": self.best, "torch_rng": torch.get_rng_state()},
-        )
-        return record
-
-    def load_best(self) -> None:
-        """Load the weights of ``best.pt`` into the policy."""
-        self.policy.load_state_dict(load_checkpoint(self.best_path, expected_model_type=self.model_type)["model"])
-
-
-#: Where a run with ``keep_epochs`` keeps every epoch's weights.
-EPOCHS_DIR = "epochs"
-
-
-def epoch_checkpoint(run_dir: str | os.PathLike, epoch: int) -> Path:
-    """The path of epoch ``epoch``'s (from 1) weights in a run kept with ``keep_epochs``."""
-    return Path(run_dir) / EPOCHS_DIR / f"epoch-{epoch:03d}.pt"
-
-
-def run_on_device(train, config) -> dict:
-    """``train(config, device)`` on the config's device (resolved before any work), in full
-    float32 unless ``config.optim.amp`` (:func:`~spf_rl.device.exact_float32`)."""
-    device = resolve_device(config.device)
-    with exact_float32(device, enabled=not config.optim.amp):
-        return train(config, device)
-
-
-def start_run(config) -> Path:
-    """Create ``config.output_dir``, write its ``config.json`` (:func:`write_run_config`), seed torch."""
-    output = Path(config.output_dir)
-    write_run_config(output, config, free=BC_RESUME_FREE)
-    torch.manual_seed(config.seed)
-    return output
-
-
 def train_bc(config: BCConfig) -> dict:
     """Run (or resume) a behaviour-cloning run and return its results dict (also written to ``results.json``).
 
@@ -395,7 +217,8 @@ def _train_bc(config: BCConfig, device: torch.device) -> dict:
     logger.info("training on %s%s", device, " with bf16 autocast" if config.optim.amp else "")
     batches_per_epoch = -(-len(dataset) // config.optim.batch_size)
     run = TrainingRun(
-        output, model_type, policy_config, policy, config.optim, batches_per_epoch * config.optim.epochs, config.keep_epochs
+        output, model_type, policy_config, policy, config.optim, batches_per_epoch * config.optim.epochs, config.keep_epochs,
+        loss_fn=bc_loss,
     )
     start_epoch = run.resume()
 
@@ -435,16 +258,9 @@ def _train_bc(config: BCConfig, device: torch.device) -> dict:
         "wall_seconds_this_run": time.time() - start_time,
         "config": asdict(config),
     }
-    atomic_json(output / "results.json", results)
-    atomic_json(output / "test_episodes.json", {"episodes": records})
+    atomic_write_json(output / "results.json", results, default=str)
+    atomic_write_json(output / "test_episodes.json", {"episodes": records}, default=str)
     from spf_rl.viz import plot_if_available, plot_training_curves
 
     plot_if_available(plot_training_curves, history, output / "training_curves.png", title=f"BC {model_type}")
     return results
-
-
-def atomic_json(path: Path, payload: dict) -> None:
-    """Write ``payload`` as indented JSON to ``path`` through a temporary file and a rename."""
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(payload, indent=2, default=str))
-    os.replace(tmp, path)

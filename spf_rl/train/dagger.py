@@ -45,13 +45,14 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.record.loggers import get_logger
 from tqdm.auto import tqdm
 
+from envs.atomic_io import atomic_write_json
 from envs.demo_store import DemoStore
-from envs.scripted import STEPS_PER_BATCH, gather_episode_steps
-from envs.transforms import philox_uniforms
+from envs.scripted import STEPS_PER_BATCH, behaviour_coins, gather_episode_steps
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.data import STEP_KEYS, DatasetConfig, EpisodeDataset, demos_root
 from spf_rl.device import DEFAULT_DEVICE, check_device, exact_float32, module_device
-from spf_rl.train.bc import BCConfig, OptimConfig, atomic_json, bc_loss, default_test_config, default_val_config
+from spf_rl.modules.registry import build_policy
+from spf_rl.train.bc import BCConfig, bc_loss, default_test_config, default_val_config
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig, collection_device, make_collector
 from spf_rl.train.dagger_rounds import (
     RoundConfig,
@@ -62,7 +63,7 @@ from spf_rl.train.dagger_rounds import (
     training_sources,
 )
 from spf_rl.train.evaluation import EvalConfig, FramesFromStore, evaluate_policy, with_episode_sizes
-from spf_rl.train.models import build_policy
+from spf_rl.train.run import OptimConfig
 from spf_rl.train.run_config import DAGGER_RESUME_FREE, write_run_config
 from spf_rl.viz import plot_if_available, pyplot
 
@@ -123,9 +124,7 @@ class ExpertMixturePolicy(TensorDictModuleBase):
         action = tensordict.get("logits").argmax(-1)
         if self.beta > 0.0:
             expert = tensordict.get("expert_action").reshape(action.shape).to(action.dtype)
-            seeds = tensordict.get("episode_seed").reshape(-1).cpu().numpy() ^ MIXING_STREAM_SALT
-            steps = tensordict.get("step_count").reshape(-1).cpu().numpy()
-            coin = torch.from_numpy(philox_uniforms(seeds, steps, 1)[:, 0]).reshape(action.shape).to(action.device)
+            coin = behaviour_coins(tensordict, MIXING_STREAM_SALT, 1)[:, 0].reshape(action.shape).to(action.device)
             action = torch.where(coin < self.beta, expert, action)
         tensordict.set("action", action)
         return tensordict
@@ -350,7 +349,7 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
         "wall_seconds_this_run": time.time() - start_time,
         "config": asdict(config),
     }
-    atomic_json(output / "results.json", results)
+    atomic_write_json(output / "results.json", results, default=str)
     plot_if_available(plot_rounds, history, output / "dagger.png", title=f"DAgger from {Path(config.checkpoint).name}")
     return results
 

@@ -27,24 +27,17 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
+from envs.atomic_io import atomic_write_json
 from envs.checks import check_positive_int
 from envs.follow import default_max_steps
 from envs.house_grid import check_demo_length, default_grid_size_cells
 from spf_rl.data import DatasetConfig, EpisodeDataset, format_tag
 from spf_rl.device import DEFAULT_DEVICE, check_device
 from spf_rl.modules.policy import SPFPolicy
-from spf_rl.train.bc import (
-    OptimConfig,
-    TrainingRun,
-    atomic_json,
-    default_test_config,
-    default_val_config,
-    model_memory_bytes,
-    run_on_device,
-    start_run,
-)
+from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
+from spf_rl.train.bc import bc_loss, default_test_config, default_val_config, model_memory_bytes
 from spf_rl.train.evaluation import EvalConfig, evaluate_policy
-from spf_rl.train.models import ModelConfig, build_policy, spf_config
+from spf_rl.train.run import OptimConfig, TrainingRun, run_on_device, start_run
 
 logger = logging.getLogger(__name__)
 
@@ -244,7 +237,9 @@ def _train_mixed(config: MixedLengthConfig, device: torch.device) -> dict:
     views = {length: policy_for_length(policy, length) for length in config.lengths}
     batch_size = config.optim.batch_size
     batches = [-(-len(dataset) // batch_size) for dataset in datasets]
-    run = TrainingRun(output, model_type, policy_config, policy, config.optim, sum(batches) * config.optim.epochs)
+    run = TrainingRun(
+        output, model_type, policy_config, policy, config.optim, sum(batches) * config.optim.epochs, loss_fn=bc_loss
+    )
     start_epoch = run.resume()
 
     def policy_of(batch: TensorDict) -> SPFPolicy:
@@ -282,8 +277,8 @@ def _train_mixed(config: MixedLengthConfig, device: torch.device) -> dict:
         "wall_seconds_this_run": time.time() - start_time,
         "config": asdict(config),
     }
-    atomic_json(output / "results.json", results)
-    atomic_json(output / "test_episodes.json", {"episodes_by_length": records})
+    atomic_write_json(output / "results.json", results, default=str)
+    atomic_write_json(output / "test_episodes.json", {"episodes_by_length": records}, default=str)
     from spf_rl.viz import plot_if_available, plot_success_by_length, plot_training_curves
 
     plot_if_available(plot_training_curves, run.history, output / "training_curves.png", title=f"BC {model_type}, mixed lengths")

@@ -60,12 +60,12 @@ from torchrl.objectives.value import GAE
 from torchrl.record.loggers import get_logger
 from tqdm.auto import tqdm
 
+from envs.atomic_io import atomic_write_json
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.device import autocast, exact_float32
-from spf_rl.train.bc import atomic_json
+from spf_rl.modules.registry import build_policy
 from spf_rl.train.collection import collection_device, make_collector
 from spf_rl.train.evaluation import FramesFromStore, evaluate_policy, frames_lookup, with_episode_sizes
-from spf_rl.train.models import build_policy
 from spf_rl.train.ppo_config import PPO_RESUME_FREE, PPOConfig, checked_env_config, training_demo_store
 from spf_rl.train.ppo_loss import (
     AMP_RATIO_SYNC_TOLERANCE,
@@ -75,21 +75,14 @@ from spf_rl.train.ppo_loss import (
     VALUE_KEY,
     Autocast,
     SPFPPOLoss,
-    ValueHead,
     compute_values,
     episode_statistics,
     make_ppo_modules,
-    recompute_log_prob,
 )
 from spf_rl.train.run_config import write_run_config
 from spf_rl.viz import plot_if_available, pyplot
 
 logger = logging.getLogger(__name__)
-
-__all__ = [  # the loss, modules and config are re-exported from spf_rl.train.ppo_loss and ppo_config
-    "PPOConfig", "SPFPPOLoss", "ValueHead", "compute_values", "episode_statistics", "make_ppo_modules",
-    "plot_ppo", "recompute_log_prob", "train_ppo",
-]
 
 #: Salt of the per-iteration minibatch permutation seed.
 _PERMUTATION_SALT = 1_000_003
@@ -384,7 +377,7 @@ class _PPORun:
             "wall_seconds_this_run": seconds,
             "config": asdict(self.config),
         }
-        atomic_json(self.output / "results.json", results)
+        atomic_write_json(self.output / "results.json", results, default=str)
         plot_if_available(
             plot_ppo, val_history, start, self.output / "ppo.png", title=f"PPO from {Path(self.config.checkpoint).name}"
         )

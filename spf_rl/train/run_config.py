@@ -12,11 +12,12 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 from collections.abc import Collection
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
+
+from envs.atomic_io import atomic_write_json
 
 logger = logging.getLogger(__name__)
 
@@ -95,6 +96,4 @@ def write_run_config(output: Path, config: Any, free: Collection[str] = ()) -> N
                 f"({details}). Keep the run's settings, or give a new output_dir (or delete {output / RESUME_FILE})."
             )
         logger.debug("resuming %s with its settings unchanged", output)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(new, indent=2))
-    os.replace(tmp, path)
+    atomic_write_json(path, new)

@@ -1,7 +1,7 @@
 """Reference logits of every shipped checkpoint on fixed CHW frames (made with the CHW code, commit bc21b44)."""
 import torch
 from spf_rl.checkpoint import load_checkpoint
-from spf_rl.train.models import build_policy
+from spf_rl.modules.registry import build_policy
 from tensordict import TensorDict
 from torchrl.modules import set_recurrent_mode
 g = torch.Generator().manual_seed(1234)

@@ -4,7 +4,7 @@
 ``--baseline``), run from a ``git worktree`` of it (``--baseline-dir``, reused when
 it is already there at that commit); *new* is the working tree. Both trees share
 module names (``envs``, ``spf_rl``), so each runs in its own child process with
-``PYTHONPATH`` pointing at it (``recipes/bench_pipeline_worker.py``, the same
+``PYTHONPATH`` pointing at it (``benchmarks/bench_pipeline_worker.py``, the same
 script for both, calling only what both trees have), with the same worker counts
 and episode counts (:class:`Sizes`). Measures:
 
@@ -42,12 +42,12 @@ Writes ``benchmarks/results/pipeline.json`` (or ``--output``), atomically::
 
 Usage::
 
-    python recipes/bench_pipeline.py                    # sized for well under an hour on 2 cores
-    python recipes/bench_pipeline.py --quick            # sized for at most 10 minutes on 2 idle cores
+    python benchmarks/bench_pipeline.py                    # sized for well under an hour on 2 cores
+    python benchmarks/bench_pipeline.py --quick            # sized for at most 10 minutes on 2 idle cores
 
 (Both sizes are estimates from single measures timed on a loaded machine; neither run
 has been timed on idle cores yet.)
-    python recipes/bench_pipeline.py --only evaluation,bc_training --repeats 5
+    python benchmarks/bench_pipeline.py --only evaluation,bc_training --repeats 5
 """
 from __future__ import annotations
 
@@ -65,9 +65,7 @@ from typing import Sequence
 
 # this checkout's recipes; never its packages here: the workers import this module, and each
 # must import ``envs`` and ``spf_rl`` from its own tree (its ``PYTHONPATH``)
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from bench_baseline import SIDES, baseline_worktree, interleaved_runs, resolve_commit, run_json_child  # noqa: E402
+from bench_baseline import SIDES, baseline_worktree, interleaved_runs, resolve_commit, run_json_child
 
 ROOT = Path(__file__).resolve().parents[1]
 #: The commit before issue #10's first change: the "old" paths.
@@ -241,7 +239,7 @@ def summarise(runs: dict[str, list[dict]], measures: Sequence[str]) -> dict:
         "store_lookup_ratio_to_raw": ratio,
         "targets": evaluate_targets(speedups, ratio),
         "raw_loop": {
-            "what": "recipes/bench_env_paths.py bench_raw (working tree's code) run in each tree's collection worker; "
+            "what": "benchmarks/bench_env_paths.py bench_raw (working tree's code) run in each tree's collection worker; "
             "raw_fps and the ratio use the new tree's",
             "old_tree_fps": _median(raw["old"]),
             "old_repeats": raw["old"],
@@ -282,7 +280,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     from bench_env_report import MachineLoad
 
-    from spf_rl.train.bc import atomic_json
+    from envs.atomic_io import atomic_write_json
 
     start = time.perf_counter()
     load = MachineLoad.start()
@@ -309,11 +307,11 @@ def main(argv: Sequence[str] | None = None) -> dict:
         "machine": machine,
         "notes": [note] if note else [],
         "wall_seconds": time.perf_counter() - start,
-        "command": "python recipes/bench_pipeline.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "command": "python benchmarks/bench_pipeline.py " + " ".join(argv if argv is not None else sys.argv[1:]),
         "runs": runs,
     }
     args.output.parent.mkdir(parents=True, exist_ok=True)
-    atomic_json(args.output, result)
+    atomic_write_json(args.output, result, default=str)
     for name, target in result["targets"].items():
         logger.info("target %s >= %.1f: measured %s, holds %s", name, target["target"], target["measured"], target["holds"])
     logger.info("wrote %s", args.output)

@@ -1,18 +1,14 @@
-"""Build the SPF policy or a baseline from a model name and hyper-parameters."""
+"""The model registry: the SPF policy or a baseline built from a model name and hyper-parameters,
+through the factories of :mod:`spf_rl.modules.factories`."""
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
 
-from spf_rl.modules import (
-    SPFConfig,
-    SPFPolicy,
-    make_action_only_policy,
-    make_rpf_original_policy,
-    make_rpf_policy,
-    make_spf_policy,
-)
+from spf_rl.modules.config import SPFConfig
+from spf_rl.modules.factories import make_action_only_policy, make_rpf_original_policy, make_rpf_policy, make_spf_policy
 from spf_rl.modules.memory import validate_sparsity_range
+from spf_rl.modules.policy import SPFPolicy
 
 #: Model names the recipes accept.
 MODEL_NAMES = ("spf", "rpf", "rpf_original", "action_only", "spf_random")

@@ -1,4 +1,4 @@
-"""The measured paths of ``recipes/bench_env.py``: the raw render loop, one env, collectors.
+"""The measured paths of ``benchmarks/bench_env.py``: the raw render loop, one env, collectors.
 
 Each path returns a result dict (``fps``: median frames/s over timed chunks,
 ``frames``, ``seconds``, and for paths that sample demonstrations at reset
@@ -82,7 +82,7 @@ def make_bench_env(**kwargs: Any):
     torch.set_num_threads(1)
     env = make_path_follow_env(**kwargs)
     for seed in env.base_env.house_seeds:
-        build_house(seed).model  # noqa: B018  (compile once per process, outside the timed chunks)
+        build_house(seed).model
     return env
 
 

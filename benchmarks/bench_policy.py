@@ -14,20 +14,19 @@ Writes ``benchmarks/results/policy_parts.json``.
 
 Usage::
 
-    python recipes/bench_policy.py            # a few minutes on 2 CPU cores
-    python recipes/bench_policy.py --quick
+    python benchmarks/bench_policy.py            # a few minutes on 2 CPU cores
+    python benchmarks/bench_policy.py --quick
 """
 from __future__ import annotations
 
 import argparse
 import json
 import statistics
-import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_baseline import baseline_worktree, interleaved_runs, resolve_commit, run_json_child
 
-from bench_baseline import baseline_worktree, interleaved_runs, resolve_commit, run_json_child  # noqa: E402
+from envs.atomic_io import atomic_write_json
 
 ROOT = Path(__file__).resolve().parents[1]
 #: The commit before the SPF policy was composed of TensorDict modules.
@@ -98,10 +97,10 @@ def measure(episodes: int, steps: int, iterations: int, threads: int) -> dict[st
 
 def _run_child(tree: Path, args: argparse.Namespace) -> dict[str, float]:
     code = (
-        f"import json, sys; sys.path.insert(0, {str(ROOT / 'recipes')!r}); import bench_policy; "
+        f"import json, bench_policy; "
         f"print(json.dumps(bench_policy.measure({args.episodes}, {args.steps}, {args.iterations}, {args.threads})))"
     )
-    return run_json_child(["-c", code], tree)
+    return run_json_child(["-c", code], tree, after=[Path(__file__).resolve().parent])
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -138,7 +137,7 @@ def main(argv: list[str] | None = None) -> dict:
         "runs": runs,
     }
     args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(result, indent=2) + "\n")
+    atomic_write_json(args.output, result)
     print(json.dumps(result["ratios_new_over_old"], indent=2))
     return result
 

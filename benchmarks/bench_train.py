@@ -15,9 +15,9 @@ precision and threads, and each CUDA run's speed-up over the CPU run per model.
 
 Usage::
 
-    python recipes/bench_train.py                  # about 2-3 minutes on 2 CPU cores
-    python recipes/bench_train.py --quick
-    python recipes/bench_train.py --device cuda    # CPU and GPU in one run
+    python benchmarks/bench_train.py                  # about 2-3 minutes on 2 CPU cores
+    python benchmarks/bench_train.py --quick
+    python benchmarks/bench_train.py --device cuda    # CPU and GPU in one run
 """
 from __future__ import annotations
 
@@ -25,15 +25,13 @@ import argparse
 import json
 import os
 import platform
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from spf_rl.device import DEFAULT_DEVICE, DEVICE_CHOICES, exact_float32, resolve_device  # noqa: E402
+from envs.atomic_io import atomic_write_json
+from spf_rl.device import DEFAULT_DEVICE, DEVICE_CHOICES, exact_float32, resolve_device
 
 #: (model name, sparsity) of the benchmarked models.
 MODELS = (("spf", 0.8), ("spf", 0.4), ("rpf", 1.0), ("action_only", 0.0))
@@ -44,8 +42,8 @@ def bench_models(dataset, device, amp: bool, steps: int, batch_size: int = 16) -
     import torch
 
     from spf_rl.device import to_device
+    from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
     from spf_rl.train.bc import bc_loss, episodes_to_sequence
-    from spf_rl.train.models import ModelConfig, build_policy, spf_config
 
     def sync() -> None:
         if device.type == "cuda":
@@ -151,7 +149,7 @@ def main(argv: list[str] | None = None) -> dict:
     }
     out = Path(args.out or ("benchmarks/results/train-cuda.json" if device.type == "cuda" else "benchmarks/results/train.json"))
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(results, indent=2))
+    atomic_write_json(out, results)
     print(f"wrote {out}")
     return results
 

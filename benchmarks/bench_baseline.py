@@ -6,7 +6,7 @@ whose ``PYTHONPATH`` is the tree (:func:`run_json_child`), the baseline from a
 ``git worktree`` of its commit (:func:`baseline_worktree`). Figures are taken over
 repeats interleaved between the trees (:func:`interleaved_runs`: old, new, old,
 new, ...), so drifts in the machine's speed hit both. Used by
-``recipes/bench_policy.py`` and ``recipes/bench_pipeline.py``.
+``benchmarks/bench_policy.py`` and ``benchmarks/bench_pipeline.py``.
 """
 from __future__ import annotations
 
@@ -102,14 +102,15 @@ def baseline_worktree(repo: Path, sha: str, path: Path | None = None) -> Iterato
             _git(repo, "worktree", "remove", "--force", str(worktree), check=False)
 
 
-def run_json_child(argv: Sequence[str], tree: Path, timeout: float | None = None) -> dict:
-    """Run ``python argv...`` with the tree's packages (``PYTHONPATH=tree``, working directory ``tree``)
-    and parse the last line of its standard output as JSON.
+def run_json_child(argv: Sequence[str], tree: Path, timeout: float | None = None, after: Sequence[Path] = ()) -> dict:
+    """Run ``python argv...`` with the tree's packages (``PYTHONPATH=tree``, then the folders ``after``,
+    e.g. the benchmarks' own; working directory ``tree``) and parse the last line of its standard
+    output as JSON.
 
     Raises:
         RuntimeError: the child failed (its exit status and the end of its stderr are in the message).
     """
-    environment = {**os.environ, "PYTHONPATH": str(tree)}
+    environment = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tree), *map(str, after)])}
     result = subprocess.run(
         [sys.executable, *argv], env=environment, cwd=tree, capture_output=True, text=True, timeout=timeout
     )

@@ -41,33 +41,28 @@ i''. ``multisync_2x_batched32_store_lookup``: (i') with a policy that looks the
    without them entering the collected batch;
 j. ``multisync_2x_batched8_store_frames``: (f) with the store but the frames
    still emitted at every step (``emit_demo_frames=True``).
-k. ``dmc`` (only when named in ``--only``): ``recipes/bench_dmc.py``, the dm_control
+k. ``dmc`` (only when named in ``--only``): ``benchmarks/bench_dmc.py``, the dm_control
    face beside ``PathFollowEnv``, written to ``benchmarks/results/dmc.json``.
 
-The paths are in ``recipes/bench_env_paths.py``, the JSON, plot and notes in
-``recipes/bench_env_report.py``.
+The paths are in ``benchmarks/bench_env_paths.py``, the JSON, plot and notes in
+``benchmarks/bench_env_report.py``.
 
 Usage::
 
-    python recipes/bench_env.py            # about 4-5 minutes
-    python recipes/bench_env.py --quick    # about 1 minute
-    python recipes/bench_env.py --plot-only  # redraw env.png from env.json
+    python benchmarks/bench_env.py            # about 4-5 minutes
+    python benchmarks/bench_env.py --quick    # about 1 minute
+    python benchmarks/bench_env.py --plot-only  # redraw env.png from env.json
 """
 from __future__ import annotations
 
 import argparse
 import json
 import logging
-import sys
 from pathlib import Path
 
-if __package__ in (None, ""):  # run as a script: make the repository and sibling recipes importable
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-import torch  # noqa: E402
-from bench_env_paths import DESCRIPTIONS, BenchConfig, BenchPaths  # noqa: E402
-from bench_env_report import (  # noqa: E402
+import torch
+from bench_env_paths import DESCRIPTIONS, BenchConfig, BenchPaths
+from bench_env_report import (
     MachineLoad,
     add_ratios,
     build_notes,
@@ -77,7 +72,7 @@ from bench_env_report import (  # noqa: E402
     write_output,
 )
 
-from envs.render import select_gl_backend  # noqa: E402
+from envs.render import select_gl_backend
 
 logger = logging.getLogger("bench_env")
 
@@ -117,7 +112,7 @@ def main() -> None:
     config = BenchConfig(args.image_size, args.num_houses, args.demo_length, args.seed, args.quick, args.demo_store)
     paths = BenchPaths(config)
     wanted = set(args.only) if args.only else set(DESCRIPTIONS)
-    if "dmc" in wanted:  # optional path (only when named): recipes/bench_dmc.py, writes benchmarks/results/dmc.json
+    if "dmc" in wanted:  # optional path (only when named): benchmarks/bench_dmc.py, writes benchmarks/results/dmc.json
         from bench_dmc import bench_dmc, write_results
 
         write_results(bench_dmc(args.image_size, args.num_houses, args.demo_length, args.seed, args.quick))

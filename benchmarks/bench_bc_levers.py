@@ -16,8 +16,8 @@ median rate and its ratio to ``eager_b16``.
 
 Usage::
 
-    python recipes/bench_bc_levers.py --threads 1        # a few minutes on 2 CPU cores
-    python recipes/bench_bc_levers.py --quick
+    python benchmarks/bench_bc_levers.py --threads 1        # a few minutes on 2 CPU cores
+    python benchmarks/bench_bc_levers.py --quick
 """
 from __future__ import annotations
 
@@ -27,11 +27,10 @@ import json
 import os
 import platform
 import statistics
-import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from envs.atomic_io import atomic_write_json
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "bc_levers.json"
@@ -74,8 +73,8 @@ def main(argv: list[str] | None = None) -> dict:
     import envs  # noqa: F401  (selects the headless GL back-end first)
     from spf_rl.data import DatasetConfig, EpisodeDataset
     from spf_rl.modules.encoder import ImageEncoder
+    from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
     from spf_rl.train.bc import bc_loss
-    from spf_rl.train.models import ModelConfig, build_policy, spf_config
 
     if args.threads is not None:
         torch.set_num_threads(args.threads)
@@ -144,9 +143,7 @@ def main(argv: list[str] | None = None) -> dict:
     }
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp")
-    tmp.write_text(json.dumps(results, indent=2))
-    tmp.replace(out)
+    atomic_write_json(out, results)
     print(json.dumps({name: round(v["over_reference"], 3) for name, v in results["variants"].items()}))
     return results
 

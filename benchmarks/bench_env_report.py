@@ -1,4 +1,4 @@
-"""The report of ``recipes/bench_env.py``: machine facts, ratios, notes, JSON, plot and table.
+"""The report of ``benchmarks/bench_env.py``: machine facts, ratios, notes, JSON, plot and table.
 
 :func:`build_output` assembles the JSON written to ``benchmarks/results/env.json``
 (keys ``benchmark``, ``machine``, ``setup``, ``results``, ``profile_single_env``,
@@ -8,7 +8,6 @@ records what else used the CPUs while the benchmark ran, since the figures depen
 """
 from __future__ import annotations
 
-import json
 import os
 import platform
 import time
@@ -17,6 +16,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import torch
+
+from envs.atomic_io import atomic_write_json
 
 if TYPE_CHECKING:
     from bench_env_paths import BenchConfig
@@ -235,7 +236,7 @@ def build_output(
 ) -> dict:
     """The JSON document of a run."""
     return {
-        "benchmark": "recipes/bench_env.py" + (" --quick" if config.quick else ""),
+        "benchmark": "benchmarks/bench_env.py" + (" --quick" if config.quick else ""),
         "machine": machine,
         "setup": {
             "image_size": config.image_size,
@@ -259,7 +260,7 @@ def build_output(
 def write_output(output: dict, path: Path) -> None:
     """The JSON at ``path`` and its plot beside it (same name, ``.png``)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(output, indent=2) + "\n")
+    atomic_write_json(path, output)
     plot_results(output, path.with_suffix(".png"))
 
 
@@ -283,7 +284,7 @@ def plot_results(output: dict, path: Path) -> None:
         ax.text(value, row, f" {value:.0f}", va="center", fontsize=8)
     ax.set_xlabel(f"collected frames/s ({output['setup']['image_size']} px, 2 processes at most; green: demo store)")
     ax.legend(loc="lower right", fontsize=8)
-    ax.set_title("Environment throughput (recipes/bench_env.py)")
+    ax.set_title("Environment throughput (benchmarks/bench_env.py)")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

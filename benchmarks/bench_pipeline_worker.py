@@ -1,4 +1,4 @@
-"""One tree's side of ``recipes/bench_pipeline.py``: run the pipeline measures, print one JSON line.
+"""One tree's side of ``benchmarks/bench_pipeline.py``: run the pipeline measures, print one JSON line.
 
 The driver runs this script twice per repeat, with ``PYTHONPATH`` set to the
 baseline's worktree and to the working tree, so the same code measures both.
@@ -7,8 +7,10 @@ the working tree (checked when this was written):
 
 * ``spf_rl.data``: ``DatasetConfig``, ``EpisodeDataset.build(root, config,
   num_workers, progress)``, ``EpisodeDataset.replay_buffer``;
-* ``spf_rl.train.models``: ``ModelConfig``, ``spf_config``, ``build_policy``;
-* ``spf_rl.train.bc``: ``OptimConfig``, ``bc_loss(policy, batch)``;
+* ``spf_rl.modules.registry`` (``spf_rl.train.models`` at the baseline): ``ModelConfig``,
+  ``spf_config``, ``build_policy``;
+* ``spf_rl.train.bc``: ``bc_loss(policy, batch)``; ``spf_rl.train.run`` (``spf_rl.train.bc`` at
+  the baseline): ``OptimConfig``;
 * ``spf_rl.train.dagger``: ``DAggerConfig``, ``ExpertMixturePolicy`` and
   ``_collect_round`` (one round's collection, as ``train_dagger`` runs it: at the
   baseline ``(policy, config, beta, seed)``, ``make_collector`` + ``collect_episodes``;
@@ -18,7 +20,7 @@ the working tree (checked when this was written):
 * ``spf_rl.train.collection``: ``CollectionEnvConfig``, ``CollectorConfig``,
   ``make_collector``;
 * ``spf_rl.train.evaluation``: ``EvalConfig``, ``evaluate_policy``;
-* from the working tree's ``recipes/bench_env_paths.py`` (not the tree's own):
+* from the working tree's ``benchmarks/bench_env_paths.py`` (not the tree's own):
   the raw render loop ``bench_raw`` and the collector timing loop
   ``bench_collector``, which import only ``envs`` names present in both trees.
 
@@ -39,7 +41,7 @@ The learner is the tree's default SPF model (``ModelConfig()``) with random weig
 
 Usage (the driver does this)::
 
-    PYTHONPATH=<tree> python recipes/bench_pipeline_worker.py --measures evaluation \\
+    PYTHONPATH=<tree> python benchmarks/bench_pipeline_worker.py --measures evaluation \\
         --sizes '{"eval_episodes": 8}' --scratch /tmp/scratch
 """
 from __future__ import annotations
@@ -58,9 +60,7 @@ from functools import partial
 from pathlib import Path
 from typing import Any, Callable
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # the working tree's recipes, whatever the PYTHONPATH
-
-from bench_pipeline import MEASURES, UNITS, Sizes  # noqa: E402
+from bench_pipeline import MEASURES, UNITS, Sizes
 
 logger = logging.getLogger("bench_pipeline_worker")
 
@@ -85,7 +85,10 @@ def build_learner(sizes: Sizes):
     """The tree's default SPF model (``ModelConfig()``) with random weights, for the episodes' sizes."""
     import torch
 
-    from spf_rl.train.models import ModelConfig, build_policy, spf_config
+    try:
+        from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
+    except ImportError:  # the baseline tree, where the registry was spf_rl.train.models
+        from spf_rl.train.models import ModelConfig, build_policy, spf_config
 
     torch.manual_seed(sizes.seed)
     model = ModelConfig()
@@ -221,7 +224,11 @@ def measure_bc_training(sizes: Sizes, scratch: Path, branches: dict) -> dict:
     import torch
 
     from spf_rl.data import EpisodeDataset
-    from spf_rl.train.bc import OptimConfig, bc_loss
+    from spf_rl.train.bc import bc_loss
+    try:
+        from spf_rl.train.run import OptimConfig
+    except ImportError:  # the baseline tree, where OptimConfig was in spf_rl.train.bc
+        from spf_rl.train.bc import OptimConfig
 
     applied: list[str] = []
     root = scratch / "bc_data"

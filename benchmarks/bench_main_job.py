@@ -15,24 +15,21 @@ are only comparable within one run; machines of one kind differ by up to 4x.
 
 Usage::
 
-    python recipes/bench_main_job.py                 # two full main jobs (tens of minutes on 2 cores)
-    python recipes/bench_main_job.py --quick         # tiny versions of both, for a smoke test
+    python benchmarks/bench_main_job.py                 # two full main jobs (tens of minutes on 2 cores)
+    python benchmarks/bench_main_job.py --quick         # tiny versions of both, for a smoke test
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import logging
 import os
 import shutil
-import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from spf_rl.config import load_config  # noqa: E402
+from envs.atomic_io import atomic_write_json
+from spf_rl.config import load_config
 
 #: The main job before its budget was raised (commit 1bca04c and earlier), as overrides of today's.
 PREVIOUS_MAIN_JOB = ["optim.epochs=6", "val.num_episodes=100", "val_every=1"]
@@ -111,7 +108,7 @@ def main(argv: list[str] | None = None) -> dict:
         logger.info("%s: %.0f s, test success %.3f", name, jobs[name]["wall_seconds"], jobs[name]["test_success"])
     report = {
         "quick": args.quick,
-        "command": "python recipes/bench_main_job.py" + (" --quick" if args.quick else ""),
+        "command": "python benchmarks/bench_main_job.py" + (" --quick" if args.quick else ""),
         "cpu_count": os.cpu_count(),
         "torch_threads": torch.get_num_threads(),
         "jobs": jobs,
@@ -120,9 +117,7 @@ def main(argv: list[str] | None = None) -> dict:
     }
     output = Path(args.output)
     output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = output.with_name(f".{output.name}.tmp")
-    tmp.write_text(json.dumps(report, indent=2))
-    os.replace(tmp, output)
+    atomic_write_json(output, report)
     logger.info("wall ratio current/previous %.2f", report["wall_ratio_current_to_previous"])
     return report
 

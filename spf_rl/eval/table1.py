@@ -13,13 +13,13 @@ import dataclasses
 import hashlib
 import json
 import logging
-import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from envs.atomic_io import atomic_write, atomic_write_json, atomic_write_text
 from spf_rl.stats import hierarchical_bootstrap_ci, paired_bootstrap, seed_summary
 
 logger = logging.getLogger("table1")
@@ -77,22 +77,16 @@ def cache_entry(line: str, seed: int | None, set_name: str, config, checkpoint: 
     return eval_dir / set_name / (line + ("" if seed is None else f"-seed{seed}") + ".json"), meta
 
 
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary file and :func:`os.replace`."""
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
-def atomic_write_json(path: Path, payload: dict) -> None:
-    atomic_write_text(path, json.dumps(payload, indent=1) + "\n")
+def write_table_json(path: Path, payload: dict) -> None:
+    """The Table 1 JSON files are indented by one space (they are long)."""
+    atomic_write_json(path, payload, indent=1)
 
 
 def write_cached(path: Path, meta: dict, records: Sequence[dict]) -> None:
     """Cache an evaluation: ``meta`` (what was evaluated, how) and the records, one list per key."""
     path.parent.mkdir(parents=True, exist_ok=True)
     columns = {key: [record[key] for record in records] for key in RECORD_KEYS}
-    atomic_write_json(path, {"meta": meta, "columns": columns})
+    write_table_json(path, {"meta": meta, "columns": columns})
 
 
 def load_cached(path: Path, meta: dict) -> list[dict] | None:
@@ -401,17 +395,15 @@ def plot(table: dict, path: Path) -> None:
     handles, labels = axes[0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="upper center", ncol=len(labels), fontsize=8, frameon=False)
     fig.tight_layout(rect=(0, 0, 1, 0.93))
-    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
-    fig.savefig(tmp, dpi=120)
+    atomic_write(path, lambda handle: fig.savefig(handle, dpi=120, format=path.suffix[1:]), binary=True)
     plt.close(fig)
-    os.replace(tmp, path)
 
 
 def write_reports(table: dict, out: Path) -> None:
     """``table1.json``, ``table1.md``, ``table1_summary.md`` (the README's table) and
     ``table1.png`` in ``out``, each written atomically."""
     out.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(out / "table1.json", table)
+    write_table_json(out / "table1.json", table)
     text = markdown(table)
     atomic_write_text(out / "table1.md", text)
     atomic_write_text(out / "table1_summary.md", summary_markdown(table))

@@ -1,4 +1,4 @@
-"""recipes/bench_pipeline.py: the baseline worktree, interleaved medians, the JSON and its targets, bad options,
+"""benchmarks/bench_pipeline.py: the baseline worktree, interleaved medians, the JSON and its targets, bad options,
 and a tiny smoke run of every measure against the working tree (a smoke run, not a result)."""
 from __future__ import annotations
 
@@ -6,17 +6,13 @@ import contextlib
 import dataclasses
 import json
 import subprocess
-import sys
 from pathlib import Path
 
+import bench_baseline
+import bench_pipeline
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
-
-import bench_baseline  # noqa: E402
-import bench_pipeline  # noqa: E402
-
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _git(repo: Path, *args: str) -> str:
@@ -123,7 +119,7 @@ def test_json_layout_and_targets_from_canned_worker_outputs(tmp_path, monkeypatc
     result = bench_pipeline.main(["--quick", "--baseline", "HEAD", "--output", str(out)])
     written = json.loads(out.read_text())
     assert written == json.loads(json.dumps(result))
-    assert not list(out.parent.glob(".*.tmp"))  # written through a temporary file, renamed
+    assert not list(out.parent.glob(".*.tmp*"))  # written through a temporary file, renamed
     assert seen["trees"] == {"old": Path("/nonexistent-baseline"), "new": ROOT}
     assert seen["sizes"] == bench_pipeline.QUICK_SIZES and seen["repeats"] == 3
     assert written["baseline_commit"] == _git(ROOT, "rev-parse", "HEAD") and written["quick"] is True
@@ -202,7 +198,7 @@ def test_a_worker_imports_the_packages_of_its_own_tree(tmp_path):
     (tree / "spf_rl").mkdir(parents=True)
     (tree / "spf_rl" / "__init__.py").write_text("")
     code = "import bench_pipeline, json, spf_rl; print(json.dumps({'spf_rl_file': spf_rl.__file__}))"
-    output = bench_baseline.run_json_child(["-c", f"import sys; sys.path.insert(0, {str(ROOT / 'recipes')!r}); {code}"], tree)
+    output = bench_baseline.run_json_child(["-c", code], tree, after=[ROOT / "benchmarks"])
     assert Path(output["spf_rl_file"]).resolve() == (tree / "spf_rl" / "__init__.py").resolve()
 
 

@@ -26,37 +26,32 @@ over chunks, and speed is stated as ratios between paths of the same run.
 
 Usage::
 
-    python recipes/bench_dmc.py            # about 1 minute
-    python recipes/bench_dmc.py --quick    # about 30 s
-    python recipes/bench_env.py --only dmc # the same, from bench_env
+    python benchmarks/bench_dmc.py            # about 1 minute
+    python benchmarks/bench_dmc.py --quick    # about 30 s
+    python benchmarks/bench_env.py --only dmc # the same, from bench_env
 """
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
-import sys
 import time
 from pathlib import Path
 from typing import Callable
 
-if __package__ in (None, ""):  # run as a script: make the repository and sibling recipes importable
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
+import numpy as np
+import torch
+from bench_env_paths import median_fps
+from bench_env_report import machine_info, other_processes_cpu_seconds
+from torchrl.envs import DMControlWrapper
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-from bench_env_paths import median_fps  # noqa: E402
-from bench_env_report import machine_info, other_processes_cpu_seconds  # noqa: E402
-from torchrl.envs import DMControlWrapper  # noqa: E402
-
-from envs.demos import apply_motion, nominal_motion  # noqa: E402
-from envs.dmc import load  # noqa: E402
-from envs.dmc_physics import HousePhysics, agent_house_model  # noqa: E402
-from envs.nav_env import DEFAULT_MAX_STEPS, PathFollowEnv  # noqa: E402
-from envs.render import FirstPersonRenderer  # noqa: E402
-from envs.scenes import build_house, split_seeds  # noqa: E402
+from envs.atomic_io import atomic_write_json
+from envs.demos import apply_motion, nominal_motion
+from envs.dmc import load
+from envs.dmc_physics import HousePhysics, agent_house_model
+from envs.nav_env import DEFAULT_MAX_STEPS, PathFollowEnv
+from envs.render import FirstPersonRenderer
+from envs.scenes import build_house, split_seeds
 
 logger = logging.getLogger("bench_dmc")
 
@@ -152,7 +147,7 @@ def bench_dmc(
     house_seeds = split_seeds("train", num_houses)
     for house_seed in house_seeds:  # compile once per process, outside the timed chunks
         agent_house_model(house_seed)
-        build_house(house_seed).model  # noqa: B018
+        build_house(house_seed).model
     wrapped = DMControlWrapper(load(seed=seed, **env_kwargs))
     path_follow_env = PathFollowEnv("train", **env_kwargs)
     first_person, dm_control_camera = _render_paths(house_seeds[0], image_size, seed)
@@ -202,7 +197,7 @@ def bench_dmc(
         busy = {command: round(cpu / wall, 2) for command, cpu in used.values() if cpu > 0.05 * wall}
         machine["other_processes_cpu_share"] = busy
     return {
-        "benchmark": "recipes/bench_dmc.py" + (" --quick" if quick else ""),
+        "benchmark": "benchmarks/bench_dmc.py" + (" --quick" if quick else ""),
         "machine": {**machine, "load_average_at_end": [round(x, 2) for x in os.getloadavg()]},
         "setup": {
             "image_size": image_size,
@@ -228,7 +223,7 @@ def bench_dmc(
 def write_results(output: dict, path: Path = RESULTS_PATH) -> None:
     """Write ``output`` as JSON to ``path`` and log a table of it."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(output, indent=2) + "\n")
+    atomic_write_json(path, output)
     for name, result in output["results"].items():
         logger.info("%-20s %8.0f frames/s  %.3f ms/frame", name, result["fps"], result["ms_per_frame"])
     for name, ratio in output["ratios"].items():

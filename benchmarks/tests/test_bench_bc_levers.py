@@ -1,15 +1,10 @@
-"""Tests for recipes/bench_bc_levers.py: options checked before any work, and the JSON it writes."""
+"""Tests for benchmarks/bench_bc_levers.py: options checked before any work, and the JSON it writes."""
 from __future__ import annotations
 
 import json
-import sys
-from pathlib import Path
 
+import bench_bc_levers
 import pytest
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
-
-import bench_bc_levers  # noqa: E402
 
 
 @pytest.mark.parametrize(

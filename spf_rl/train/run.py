@@ -1,0 +1,207 @@
+"""The machinery every training run shares: optimiser settings, the resumable run
+(:class:`TrainingRun`: optimiser, schedule, ``last.pt`` and ``best.pt``), where a run
+keeps every epoch's weights, and starting a run on its device.
+
+Behaviour cloning (:mod:`spf_rl.train.bc`), the mixed-length run
+(:mod:`spf_rl.train.lengths`) and DAgger's training rounds build on it.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections.abc import Callable, Collection
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from tqdm.auto import tqdm
+
+from spf_rl.checkpoint import load_checkpoint, save_checkpoint
+from spf_rl.device import exact_float32, resolve_device
+from spf_rl.modules.policy import SPFPolicy
+from spf_rl.train.run_config import BC_RESUME_FREE, write_run_config
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class OptimConfig:
+    """Optimiser settings.
+
+    Args:
+        lr: Adam learning rate.
+        weight_decay: Adam weight decay.
+        batch_size: episodes per gradient step.
+        epochs: passes over the dataset (12 on the default 2,000 episodes at batch 16 =
+            1,500 gradient steps, the main job's budget).
+        max_grad_norm: gradient-norm clip.
+        cosine_schedule: decay the learning rate to 0 over the run (cosine), which
+            steadies the final checkpoints.
+        amp: compute the loss under bf16 autocast (mixed precision; see
+            :mod:`spf_rl.device`). Off by default; on the CPU faster only with native bf16 (docs/performance.md).
+    """
+
+    lr: float = 1e-3
+    weight_decay: float = 0.0
+    batch_size: int = 16
+    epochs: int = 12
+    max_grad_norm: float = 1.0
+    cosine_schedule: bool = True
+    amp: bool = False
+
+
+class TrainingRun:
+    """The optimiser, schedule, resume state and checkpoints of a BC run (shared by :func:`train_bc`
+    and the mixed-length run of :mod:`spf_rl.train.lengths`).
+
+    ``<output>/last.pt`` holds everything needed to resume (written after every epoch);
+    ``<output>/best.pt`` the weights of the best validation epoch (success, then SPL).
+
+    Args:
+        output: the run directory.
+        model_type: the policy's model type (checked when resuming).
+        policy_config: the policy's :class:`~spf_rl.modules.SPFConfig`, saved with it.
+        policy: the policy being trained.
+        optim: the optimiser settings.
+        total_steps: gradient steps of the whole run (the cosine schedule's length).
+        keep_epochs: also write every epoch's weights to ``epochs/epoch-NNN.pt``.
+        loss_fn: ``loss_fn(policy, batch, amp=...) -> (loss, accuracy)`` of a batch
+            (:func:`spf_rl.train.bc.bc_loss` for behaviour cloning).
+    """
+
+    def __init__(
+        self,
+        output: Path,
+        model_type: str,
+        policy_config,
+        policy: SPFPolicy,
+        optim: OptimConfig,
+        total_steps: int,
+        keep_epochs: bool = False,
+        loss_fn: Callable[..., tuple[torch.Tensor, torch.Tensor]] | None = None,
+    ) -> None:
+        if loss_fn is None:
+            raise ValueError("loss_fn is required: the batch loss, e.g. spf_rl.train.bc.bc_loss.")
+        self.loss_fn = loss_fn
+        self.model_type, self.policy_config, self.policy, self.optim = model_type, policy_config, policy, optim
+        self.optimizer = torch.optim.Adam(policy.parameters(), lr=optim.lr, weight_decay=optim.weight_decay)
+        self.scheduler = (
+            torch.optim.lr_scheduler.CosineAnnealingLR(self.optimizer, T_max=total_steps)
+            if optim.cosine_schedule
+            else torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda _: 1.0)
+        )
+        self.last_path, self.best_path = output / "last.pt", output / "best.pt"
+        self.epochs_dir = output / EPOCHS_DIR if keep_epochs else None
+        self.history: list[dict] = []
+        self.best = {"success": -1.0, "spl": -1.0, "epoch": -1}
+        self.step = 0
+
+    def resume(self) -> int:
+        """Load ``last.pt`` if it exists; returns the number of finished epochs."""
+        if not self.last_path.exists():
+            return 0
+        payload = load_checkpoint(self.last_path, expected_model_type=self.model_type)
+        self.policy.load_state_dict(payload["model"])
+        self.optimizer.load_state_dict(payload["optimizer"])
+        if "scheduler" in payload:
+            self.scheduler.load_state_dict(payload["scheduler"])
+        self.history, self.best = payload["history"], payload["best"]
+        self.step = self.history[-1]["step"] if self.history else 0
+        torch.set_rng_state(payload["torch_rng"])
+        logger.info("resuming %s after epoch %d", self.last_path.parent, payload["epoch"])
+        return payload["epoch"]
+
+    def train_epoch(
+        self, batches, num_batches: int, desc: str, progress: bool, run_logger=None, policy_of=None
+    ) -> tuple[list, list, float]:
+        """One gradient step per batch (cross-entropy, clipped gradients); returns (losses, accuracies, seconds).
+
+        ``policy_of(batch)``, if given, is the module that computes a batch's loss (a view of
+        the policy sharing its parameters, e.g. for another demonstration length).
+        """
+        self.policy.train()
+        losses, accuracies, start = [], [], time.time()
+        bar = tqdm(batches, total=num_batches, desc=desc, disable=not progress)
+        for batch in bar:
+            policy = self.policy if policy_of is None else policy_of(batch).train()
+            loss, accuracy = self.loss_fn(policy, batch, amp=self.optim.amp)
+            self.optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(self.policy.parameters(), self.optim.max_grad_norm)
+            self.optimizer.step()
+            self.scheduler.step()
+            self.step += 1
+            losses.append(loss.item())
+            accuracies.append(accuracy.item())
+            bar.set_postfix(loss=f"{losses[-1]:.3f}", acc=f"{accuracies[-1]:.2f}")
+            if run_logger is not None:
+                run_logger.log_scalar("train/loss", losses[-1], step=self.step)
+        return losses, accuracies, time.time() - start
+
+    def end_epoch(
+        self, epoch: int, losses: list, accuracies: list, train_seconds: float, val: dict | None, run_logger=None
+    ) -> dict:
+        """Record epoch ``epoch`` (from 0), keep ``best.pt`` if ``val`` is the best so far, write ``last.pt``.
+
+        ``val`` is ``None`` for an epoch that was not validated (its record says so with
+        ``None`` scores; it cannot become ``best.pt``).
+        """
+        record = {
+            "epoch": epoch + 1,
+            "step": self.step,
+            "train_loss": sum(losses) / len(losses),
+            "train_accuracy": sum(accuracies) / len(accuracies),
+            "val_success": None if val is None else val["success"],
+            "val_spl": None if val is None else val["spl"],
+            "train_seconds": train_seconds,
+        }
+        self.history.append(record)
+        if run_logger is not None:
+            for key in ("train_accuracy", "val_success", "val_spl"):
+                if record[key] is not None:
+                    run_logger.log_scalar(f"epoch/{key}", record[key], step=self.step)
+        state = {"model": self.policy.state_dict(), "epoch": epoch + 1}
+        if val is not None and (val["success"], val["spl"]) > (self.best["success"], self.best["spl"]):
+            self.best = {"success": val["success"], "spl": val["spl"], "epoch": epoch + 1}
+            save_checkpoint(self.best_path, self.model_type, self.policy_config, {**state, "val": val})
+        if self.epochs_dir is not None:
+            save_checkpoint(epoch_checkpoint(self.epochs_dir.parent, epoch + 1), self.model_type, self.policy_config, {**state, "val": val})
+        extra = {"optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict()}
+        save_checkpoint(
+            self.last_path,
+            self.model_type,
+            self.policy_config,
+            {**state, **extra, "history": self.history, "best": self.best, "torch_rng": torch.get_rng_state()},
+        )
+        return record
+
+    def load_best(self) -> None:
+        """Load the weights of ``best.pt`` into the policy."""
+        self.policy.load_state_dict(load_checkpoint(self.best_path, expected_model_type=self.model_type)["model"])
+
+
+#: Where a run with ``keep_epochs`` keeps every epoch's weights.
+EPOCHS_DIR = "epochs"
+
+
+def epoch_checkpoint(run_dir: str | os.PathLike, epoch: int) -> Path:
+    """The path of epoch ``epoch``'s (from 1) weights in a run kept with ``keep_epochs``."""
+    return Path(run_dir) / EPOCHS_DIR / f"epoch-{epoch:03d}.pt"
+
+
+def run_on_device(train, config) -> dict:
+    """``train(config, device)`` on the config's device (resolved before any work), in full
+    float32 unless ``config.optim.amp`` (:func:`~spf_rl.device.exact_float32`)."""
+    device = resolve_device(config.device)
+    with exact_float32(device, enabled=not config.optim.amp):
+        return train(config, device)
+
+
+def start_run(config, free: Collection[str] = BC_RESUME_FREE) -> Path:
+    """Create ``config.output_dir``, write its ``config.json`` (:func:`write_run_config`; the
+    settings in ``free`` may change on resume), seed torch."""
+    output = Path(config.output_dir)
+    write_run_config(output, config, free=free)
+    torch.manual_seed(config.seed)
+    return output

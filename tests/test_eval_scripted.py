@@ -1,0 +1,31 @@
+"""spf_rl.eval.scripted: the expert and open-loop scores of recipes/expert_stats.py."""
+from __future__ import annotations
+
+import math
+
+from spf_rl.eval.scripted import run_one, score
+
+ENV = {"num_agents": 2, "num_houses": 2, "render": False, "emit_demo_frames": False, "with_expert": True, "demo_length": 10}
+
+
+def test_a_run_scores_the_same_episodes_for_every_policy_and_repeats():
+    expert = run_one("train", "expert", "none", 4, ENV, seed=0, resamples=200, progress=False)
+    again = run_one("train", "expert", "none", 4, ENV, seed=0, resamples=200, progress=False)
+    replay = run_one("train", "open_loop", "paper", 4, ENV, seed=0, resamples=200, progress=False)
+    assert expert["episodes"] == replay["episodes"] == 4
+    assert expert["episode_seeds_checksum"] == replay["episode_seeds_checksum"]  # the same episodes
+    assert {k: v for k, v in expert.items() if k != "seconds"} == {k: v for k, v in again.items() if k != "seconds"}
+    assert expert["success"] == 1.0  # the noise-free expert reaches every route's end
+    low, high = replay["success_ci95"]
+    assert low <= replay["success"] <= high
+
+
+def test_score_summarises_records_with_intervals():
+    records = [
+        {"success": s, "spl": 0.9 * s, "steps": 10, "goal_distance": 0.5, "path_length": 3.0, "shortest_path_length": 2.7}
+        for s in (1, 0, 1, 1)
+    ]
+    row = score(records, seed=0, resamples=500)
+    assert row["episodes"] == 4 and row["success"] == 0.75 and math.isclose(row["spl"], 0.675)
+    assert row["success_ci95"][0] <= 0.75 <= row["success_ci95"][1]
+    assert row["mean_path_length_m"] == 3.0
