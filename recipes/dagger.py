@@ -8,7 +8,7 @@ Scores every round on ``val`` and ``test`` and writes ``results.json`` and
 
 Usage::
 
-    python recipes/dagger.py                                  # from checkpoints/spf-s0.8.pt
+    python recipes/dagger.py                                  # from the shipped checkpoint spf-s0.8
     python recipes/dagger.py --quick                          # a few-minute smoke run
     python recipes/dagger.py --preset dagger_control          # the expert drives every step: the control
     python recipes/dagger.py --preset dagger_long             # after bc.py --preset bc_long: its checkpoint and 8,000 episodes

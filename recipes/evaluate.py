@@ -7,9 +7,12 @@ confidence intervals, mean distance to goal, memory bytes, per-episode records.
 Usage::
 
     python recipes/evaluate.py runs/bc/spf-s0.8-seed0/best.pt
+    python recipes/evaluate.py spf-s0.8 dagger-spf-s0.8   # shipped names (spf_rl.list_checkpoints())
     python recipes/evaluate.py checkpoints/ --split test --episodes 500 --noise paper --out results/eval
     python recipes/evaluate.py open_loop --split test
-    python recipes/evaluate.py checkpoints/spf_random-s0.2-1.pt --sparsity 0.6   # one model, any sparsity
+    python recipes/evaluate.py spf_random-s0.2-1 --sparsity 0.6   # one model, any sparsity
+
+A shipped name's JSON is named ``checkpoints_<name>-...``, a file's after its path.
     python recipes/evaluate.py checkpoints/ --device cpu     # default --device auto: CUDA if available
 
 The policy runs on ``--device``; the env and its rendering on the CPU.
@@ -24,6 +27,7 @@ from envs.atomic_io import atomic_write_json
 from envs.scenes import SPLIT_SEED_OFFSETS
 from envs.transforms import DEFAULT_NOISE, NOISE_PRESETS
 from spf_rl.device import DEFAULT_DEVICE, DEVICE_CHOICES, module_device, resolve_device
+from spf_rl.hub import CHECKPOINT_DIR, list_checkpoints
 
 SPLITS = tuple(SPLIT_SEED_OFFSETS)
 
@@ -31,7 +35,7 @@ SPLITS = tuple(SPLIT_SEED_OFFSETS)
 def evaluate_path(path: str, args: argparse.Namespace) -> dict:
     """Evaluate one checkpoint file (or ``open_loop``) and return its results dict."""
     import envs  # noqa: F401
-    from spf_rl.hub import policy_from_checkpoint
+    from spf_rl.hub import policy_from_checkpoint, resolve_checkpoint
     from spf_rl.modules.open_loop import OpenLoopPolicy
     from spf_rl.train.bc import model_memory_bytes
     from spf_rl.train.evaluation import EvalConfig, evaluate_policy
@@ -40,7 +44,9 @@ def evaluate_path(path: str, args: argparse.Namespace) -> dict:
         policy, model_type, demo_length, image_size, sparsity = OpenLoopPolicy(), "open_loop", args.demo_length, args.image_size, 0.0
         memory = demo_length
     else:
-        policy, payload = policy_from_checkpoint(path, expected_model_type=args.model_type, device=args.device)
+        policy, payload = policy_from_checkpoint(
+            resolve_checkpoint(path), expected_model_type=args.model_type, device=args.device
+        )
         config = payload["model_config"]
         model_type = payload["model_type"]
         demo_length, image_size, sparsity = config.demo_length, config.image_size[0], config.effective_sparsity
@@ -135,10 +141,16 @@ def main(argv: list[str] | None = None) -> list[dict]:
             targets.append(path)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    shipped = set(list_checkpoints()) if CHECKPOINT_DIR.is_dir() else set()
     results = []
     for target in targets:
         result = evaluate_path(target, args)
-        name = "open_loop" if target == "open_loop" else Path(target).with_suffix("").as_posix().replace("/", "_").strip("_.")
+        if target == "open_loop":
+            name = target
+        elif target in shipped:
+            name = f"checkpoints_{target}"
+        else:
+            name = Path(target).with_suffix("").as_posix().replace("/", "_").strip("_.")
         if args.sparsity is not None and target != "open_loop":
             name += f"-at{args.sparsity:g}"
         destination = out / f"{name}-{args.split}-{args.noise}-seed{args.seed}.json"

@@ -10,7 +10,7 @@ to the output directory. Run it again with the same config to resume.
 
 Usage::
 
-    python recipes/ppo_finetune.py                          # from checkpoints/spf-s0.8.pt, ~15 min on 2 CPU cores
+    python recipes/ppo_finetune.py                          # from the shipped checkpoint spf-s0.8, ~15 min on 2 CPU cores
     python recipes/ppo_finetune.py --quick                  # the whole pipeline in a few minutes
     python recipes/ppo_finetune.py checkpoint=runs/bc/spf-s0.8-seed0/best.pt total_frames=25000
     python recipes/ppo_finetune.py kl_coef=0.05 bc_coef=0.1 noise=locobot

@@ -17,12 +17,12 @@ steps), every other row with ``--preset bc_row`` (5,000 steps); run directories
 ``runs/bc_long/<model>-s<sparsity>-seed<S>`` and ``runs/bc_row/...`` (the presets'
 ``output_dir``; an interrupted run resumes). A finished run's ``best.pt`` (best by
 validation) is copied to ``checkpoints/table1/<row>-seed<S>.pt``, and the seed with
-the best validation success of each row to the row's shipped name
-``checkpoints/<row>.pt``. DAgger checkpoints (a DAgger column for the rows with a
+the best validation success of each row becomes the row's shipped name ``<row>``
+(``checkpoints/manifest.json`` maps the name to that file). DAgger checkpoints (a DAgger column for the rows with a
 :attr:`RowSpec.dagger_preset`) are never trained here: a finished run of the row's DAgger
 preset (``python recipes/dagger.py --preset dagger_long|dagger_rpf|... seed=S``) is copied to
 ``checkpoints/table1/dagger-<row>-seed<S>.pt`` (or put one there yourself), and its best
-seed by validation to ``checkpoints/dagger-<row>.pt``. ``--from-checkpoints`` trains
+seed by validation is shipped as ``dagger-<row>``. ``--from-checkpoints`` trains
 nothing, but still copies and ships what finished runs left. A per-seed checkpoint
 whose run directory is gone (no ``results.json``) is scored on its run's own validation
 episodes (cached in ``results/eval/table1/val/``), so that shipping stays by validation.
@@ -290,14 +290,24 @@ def run_validation(line: str, row: RowSpec, seed: int, overrides: list[str], qui
     return with_episode_sizes(config.val, config.env)
 
 
+def shipped_names(checkpoints: Path) -> dict[str, str]:
+    """The shipped names of a checkpoint directory's manifest (none before its first)."""
+    from spf_rl.hub import MANIFEST_NAME, read_manifest
+
+    return read_manifest(checkpoints)["names"] if (checkpoints / MANIFEST_NAME).is_file() else {}
+
+
 def ship_best(checkpoints: Path, line: str, scores: dict) -> dict | None:
-    """Copy the per-seed checkpoint of the seed with the best validation ``(success, spl)`` to ``<line>.pt``."""
+    """Ship the per-seed checkpoint of the seed with the best validation ``(success, spl)`` as the name
+    ``line``: the manifest maps the name to that file (no copy: each file is stored once)."""
+    from spf_rl.hub import write_manifest
+
     if not scores:
         return None
     seed = max(scores, key=lambda s: (*scores[s], -s))
-    copy_atomic(seed_checkpoint(checkpoints, line, seed), checkpoints / f"{line}.pt")
-    logger.info("%s: seed %d is the best by validation (success %.3f): copied to %s.pt", line, seed, scores[seed][0],
-                checkpoints / line)
+    target = seed_checkpoint(checkpoints, line, seed).relative_to(checkpoints).as_posix()
+    write_manifest(checkpoints, {**shipped_names(checkpoints), line: target})
+    logger.info("%s: seed %d is the best by validation (success %.3f): shipped as %s", line, seed, scores[seed][0], target)
     return {"seed": seed, "val_success": scores[seed][0], "val_spl": scores[seed][1]}
 
 
@@ -348,11 +358,15 @@ def train_missing(
             if unscored[line]:  # a seed's validation score is unknown: it may be the best, so ship nothing new
                 logger.warning(
                     "%s: seed(s) %s have a checkpoint in %s/table1 but no run results (validation unknown): "
-                    "%s.pt is left as it is", line, unscored[line], checkpoints, line,
+                    "the name %s is left as it is", line, unscored[line], checkpoints, line,
                 )
                 continue
             if (picked := ship_best(checkpoints, line, line_scores)) is not None:
                 shipped[line] = picked
+    if checkpoints.is_dir():  # per-seed files copied above are listed too
+        from spf_rl.hub import write_manifest
+
+        write_manifest(checkpoints, shipped_names(checkpoints))
     return shipped
 
 

@@ -1,8 +1,11 @@
 """Shipped checkpoints by name, and a ready policy from a checkpoint in one call.
 
 The repository ships trained policies in ``checkpoints/`` (next to the
-``spf_rl`` package in a clone installed with ``pip install -e .``). A shipped
-checkpoint is named by its file stem: ``"spf-s0.8"`` is ``checkpoints/spf-s0.8.pt``.
+``spf_rl`` package in a clone installed with ``pip install -e .``). Every file there is
+stored once and listed in ``checkpoints/manifest.json`` with its SHA-256; the manifest
+also maps each shipped name to its file: ``"spf-s0.8"`` is the Table 1 seed that was
+best by validation, ``checkpoints/table1/spf-s0.8-seed2.pt``. A listed file whose bytes
+differ from the manifest is refused before it is read.
 
 Examples:
     >>> import spf_rl
@@ -14,19 +17,27 @@ Examples:
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import torch
 
-from spf_rl.checkpoint import load_checkpoint
+from envs.atomic_io import atomic_write_json
+from spf_rl.checkpoint import CheckpointError, load_checkpoint
 from spf_rl.device import resolve_device
 from spf_rl.modules.policy import SPFConfig, SPFPolicy
 from spf_rl.modules.registry import build_policy
 
 #: Where the shipped checkpoints live: ``checkpoints/`` at the root of the repository.
 CHECKPOINT_DIR = Path(__file__).resolve().parent.parent / "checkpoints"
+#: The shipped checkpoint that DAgger and PPO start from by default.
+DEFAULT_START_CHECKPOINT = "spf-s0.8"
+#: The manifest of a checkpoint directory: ``{"names": {name: file}, "files": {file: sha256}}``,
+#: files relative to the directory.
+MANIFEST_NAME = "manifest.json"
 
 
 class LoadedPolicy(NamedTuple):
@@ -54,14 +65,78 @@ def checkpoint_dir() -> Path:
     return CHECKPOINT_DIR
 
 
+def file_sha256(path: str | os.PathLike) -> str:
+    """The SHA-256 of a file's bytes, as hex."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def read_manifest(directory: str | os.PathLike | None = None) -> dict[str, dict[str, str]]:
+    """The manifest of a checkpoint directory (the shipped one by default)."""
+    directory = checkpoint_dir() if directory is None else Path(directory)
+    path = directory / MANIFEST_NAME
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} is missing: the checkpoint directory has no manifest (write_manifest makes one).")
+    return json.loads(path.read_text())
+
+
+def write_manifest(directory: str | os.PathLike, names: dict[str, str]) -> dict[str, dict[str, str]]:
+    """Write ``directory``'s manifest: every ``*.pt`` below it with its SHA-256, and ``names``
+    (shipped name -> file relative to ``directory``), each of which must be one of the files.
+
+    Examples:
+        >>> import tempfile
+        >>> directory = Path(tempfile.mkdtemp())
+        >>> (directory / "table1").mkdir()
+        >>> _ = (directory / "table1" / "a-seed0.pt").write_bytes(b"weights")
+        >>> manifest = write_manifest(directory, {"a": "table1/a-seed0.pt"})
+        >>> manifest["names"], list(manifest["files"])
+        ({'a': 'table1/a-seed0.pt'}, ['table1/a-seed0.pt'])
+    """
+    directory = Path(directory)
+    files = {path.relative_to(directory).as_posix(): file_sha256(path) for path in sorted(directory.rglob("*.pt"))}
+    missing = sorted(set(names.values()) - set(files))
+    if missing:
+        raise ValueError(f"names point to files that are not in {directory}: {missing}")
+    manifest = {"names": dict(sorted(names.items())), "files": files}
+    atomic_write_json(directory / MANIFEST_NAME, manifest)
+    return manifest
+
+
+def verify_checkpoint_file(path: str | os.PathLike, directory: str | os.PathLike | None = None) -> None:
+    """Refuse a file of the shipped checkpoint directory that its manifest does not list, or
+    whose bytes differ from the listed SHA-256; files elsewhere pass unchecked.
+
+    Raises:
+        CheckpointError: an unlisted or changed shipped file.
+    """
+    directory = CHECKPOINT_DIR if directory is None else Path(directory)
+    path = Path(path).resolve()
+    if not path.is_relative_to(directory.resolve()):
+        return
+    relative = path.relative_to(directory.resolve()).as_posix()
+    expected = read_manifest(directory)["files"].get(relative)
+    if expected is None:
+        raise CheckpointError(f"{path} is in {directory} but not in its {MANIFEST_NAME}: a shipped file must be listed.")
+    actual = file_sha256(path)
+    if actual != expected:
+        raise CheckpointError(
+            f"{path} differs from {MANIFEST_NAME} (sha256 {actual[:12]}..., listed {expected[:12]}...): "
+            "restore it (git checkout -- checkpoints) or list it again with write_manifest."
+        )
+
+
 def list_checkpoints() -> list[str]:
-    """Names of the shipped checkpoints (file stems of ``checkpoints/*.pt``), sorted.
+    """Names of the shipped checkpoints (``checkpoints/manifest.json``), sorted.
 
     Examples:
         >>> list_checkpoints()[:3]
         ['action_only-s0', 'dagger-rpf-s1', 'dagger-rpf_original-s1']
     """
-    return sorted(path.stem for path in checkpoint_dir().glob("*.pt"))
+    return sorted(read_manifest()["names"])
 
 
 def resolve_checkpoint(path_or_name: str | os.PathLike) -> Path:
@@ -81,13 +156,26 @@ def resolve_checkpoint(path_or_name: str | os.PathLike) -> Path:
     text = os.fspath(path_or_name)
     if not isinstance(path_or_name, str) or text.endswith(".pt") or os.sep in text or "/" in text:
         raise FileNotFoundError(f"checkpoint file {text} does not exist.")
-    names = list_checkpoints()
+    names = read_manifest()["names"]
     if text not in names:
         raise ValueError(
-            f"unknown checkpoint name {text!r}; the shipped checkpoints are: {', '.join(names)} "
+            f"unknown checkpoint name {text!r}; the shipped checkpoints are: {', '.join(sorted(names))} "
             "(or pass the path of a .pt file)."
         )
-    return checkpoint_dir() / f"{text}.pt"
+    return checkpoint_dir() / names[text]
+
+
+def checked_checkpoint(path_or_name: str | os.PathLike) -> Path:
+    """The file of a checkpoint given by path or shipped name (:func:`resolve_checkpoint`),
+    checked against the manifest if it is a shipped file (:func:`verify_checkpoint_file`).
+
+    Examples:
+        >>> checked_checkpoint("spf-s0.8").relative_to(CHECKPOINT_DIR).as_posix()
+        'table1/spf-s0.8-seed2.pt'
+    """
+    path = resolve_checkpoint(path_or_name)
+    verify_checkpoint_file(path)
+    return path
 
 
 def policy_from_checkpoint(
@@ -108,9 +196,11 @@ def policy_from_checkpoint(
         (the policy, the checkpoint's payload as :func:`~spf_rl.checkpoint.load_checkpoint` returns it).
 
     Raises:
-        CheckpointError: missing or corrupt file, unknown format, wrong model type.
+        CheckpointError: missing or corrupt file, unknown format, wrong model type, or a shipped
+            file that differs from its manifest.
     """
     device = resolve_device(device)
+    verify_checkpoint_file(path)
     payload = load_checkpoint(path, expected_model_type=expected_model_type, map_location=device)
     policy = build_policy(payload["model_type"], payload["model_config"]).to(device)
     policy.load_state_dict(payload["model"])
@@ -148,9 +238,16 @@ def load_policy(
 
 __all__ = [
     "CHECKPOINT_DIR",
+    "DEFAULT_START_CHECKPOINT",
+    "MANIFEST_NAME",
     "LoadedPolicy",
+    "checked_checkpoint",
     "checkpoint_dir",
+    "file_sha256",
     "list_checkpoints",
+    "read_manifest",
+    "verify_checkpoint_file",
+    "write_manifest",
     "load_policy",
     "policy_from_checkpoint",
     "resolve_checkpoint",

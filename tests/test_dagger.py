@@ -248,7 +248,7 @@ def test_recipe_configs_load_and_refuse_unknown_keys():
 
     default = load_config(DAggerConfig, "dagger", [])
     quick = load_config(DAggerConfig, "dagger", ["collector.backend=ray"], preset="dagger_quick")
-    assert default.checkpoint == "checkpoints/spf-s0.8.pt" and default.rounds >= 10
+    assert default.checkpoint == "spf-s0.8" and default.rounds >= 10
     assert default.beta0 == 0.0 and default.steps_per_round and default.window_rounds  # learner-driven, windowed
     control = load_config(DAggerConfig, "dagger", [], preset="dagger_control")
     assert control.beta(1) == control.beta(10) == 1.0 and control.steps_per_round == default.steps_per_round

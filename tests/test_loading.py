@@ -61,8 +61,8 @@ def test_config_has_the_memory_of_the_model_type():
 
 def test_name_and_path_give_the_same_weights():
     by_name, _ = spf_rl.load_policy("spf-s0.8")
-    by_path, _ = spf_rl.load_policy(hub.CHECKPOINT_DIR / "spf-s0.8.pt")
-    by_str, _ = spf_rl.load_policy(str(hub.CHECKPOINT_DIR / "spf-s0.8.pt"))
+    by_path, _ = spf_rl.load_policy(hub.CHECKPOINT_DIR / "table1" / "spf-s0.8-seed2.pt")
+    by_str, _ = spf_rl.load_policy(str(hub.CHECKPOINT_DIR / "table1" / "spf-s0.8-seed2.pt"))
     for other in (by_path, by_str):
         for (key, a), b in zip(by_name.state_dict().items(), other.state_dict().values()):
             assert torch.equal(a, b), key
@@ -105,3 +105,55 @@ def test_without_a_checkpoint_directory_names_fail_clearly(monkeypatch, tmp_path
         spf_rl.list_checkpoints()
     with pytest.raises(FileNotFoundError, match="install spf-rl from a clone"):
         spf_rl.load_policy("spf-s0.8")
+
+
+def test_the_manifest_lists_every_shipped_file_once_with_its_hash():
+    manifest = hub.read_manifest()
+    on_disk = {path.relative_to(hub.CHECKPOINT_DIR).as_posix() for path in hub.CHECKPOINT_DIR.rglob("*.pt")}
+    assert set(manifest["files"]) == on_disk
+    for relative, digest in manifest["files"].items():
+        assert hub.file_sha256(hub.CHECKPOINT_DIR / relative) == digest, relative
+    hashes = list(manifest["files"].values())
+    assert len(set(hashes)) == len(hashes)  # each file's bytes are stored once
+    assert set(manifest["names"].values()) <= set(manifest["files"])
+
+
+def shipped_copy(tmp_path: Path, monkeypatch) -> Path:
+    """A copy of the shipped directory (its manifest and the files of two names), used as the shipped one."""
+    import shutil
+
+    manifest = hub.read_manifest()
+    names = {name: manifest["names"][name] for name in ("spf-s0.8", "rpf-s1")}
+    directory = tmp_path / "checkpoints"
+    for relative in names.values():
+        (directory / relative).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(hub.CHECKPOINT_DIR / relative, directory / relative)
+    hub.write_manifest(directory, names)
+    monkeypatch.setattr(hub, "CHECKPOINT_DIR", directory)
+    return directory
+
+
+def test_a_shipped_file_that_differs_from_the_manifest_is_refused(tmp_path, monkeypatch):
+    directory = shipped_copy(tmp_path, monkeypatch)
+    assert spf_rl.load_policy("spf-s0.8").config.sparsity == 0.8
+    target = directory / hub.read_manifest(directory)["names"]["spf-s0.8"]
+    data = bytearray(target.read_bytes())
+    data[-100] ^= 0xFF
+    target.write_bytes(bytes(data))
+    with pytest.raises(CheckpointError, match=r"differs from manifest.json"):
+        spf_rl.load_policy("spf-s0.8")
+    with pytest.raises(CheckpointError, match=r"differs from manifest.json"):
+        spf_rl.load_policy(target)  # by path too
+    assert spf_rl.load_policy("rpf-s1").config.memory_mode == "full"  # the others still load
+
+
+def test_an_unlisted_file_in_the_shipped_directory_is_refused_and_one_elsewhere_is_not(tmp_path, monkeypatch):
+    directory = shipped_copy(tmp_path, monkeypatch)
+    import shutil
+
+    source = directory / hub.read_manifest(directory)["names"]["rpf-s1"]
+    shutil.copyfile(source, directory / "extra.pt")
+    with pytest.raises(CheckpointError, match="not in its manifest.json"):
+        spf_rl.load_policy(directory / "extra.pt")
+    shutil.copyfile(source, tmp_path / "mine.pt")
+    assert spf_rl.load_policy(tmp_path / "mine.pt").config.memory_mode == "full"

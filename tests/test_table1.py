@@ -12,10 +12,16 @@ import table1
 from spf_rl.config import load_config
 from spf_rl.eval import table1 as table1_report
 from spf_rl.eval.table1 import build_table, load_cached, write_cached
+from spf_rl.hub import read_manifest, write_manifest
 
 ROWS = "spf-s0.8,action_only-s0,open_loop"
 HOUSES = np.repeat(np.arange(12), 10) + 400  # 120 episodes in 12 houses
 
+
+
+def shipped_file(checkpoints: Path, name: str) -> Path:
+    """The file a shipped name stands for in a checkpoint directory's manifest."""
+    return checkpoints / read_manifest(checkpoints)["names"][name]
 
 def fake_records(rate: float, seed: int) -> list[dict]:
     """Episodes with a shared difficulty (the same uniforms for every line), a rate per line, a little seed noise."""
@@ -172,7 +178,7 @@ def test_training_copies_each_finished_seed_and_ships_the_best_by_validation(tmp
     assert [t[:4] for t in trained] == [("spf", 0.8, s, 40) for s in (0, 1, 2)] + [("rpf", 1.0, s, 20) for s in (0, 1, 2)]
     assert trained[0][4] == "runs/bc_long/spf-s0.8-seed0" and trained[3][4] == "runs/bc_row/rpf-s1.0-seed0"
     assert (checkpoints / "table1" / "spf-s0.8-seed2.pt").read_text() == "seed 2"
-    assert (checkpoints / "spf-s0.8.pt").read_text() == "seed 1" and shipped["spf-s0.8"]["seed"] == 1
+    assert shipped_file(checkpoints, "spf-s0.8").read_text() == "seed 1" and shipped["spf-s0.8"]["seed"] == 1
     trained.clear()
     table1.train_missing([table1.ROW_BY_NAME["spf-s0.8"]], [0, 1, 2], [], checkpoints, False)
     assert trained == []  # finished runs are not trained again
@@ -193,8 +199,9 @@ def test_from_checkpoints_trains_nothing_but_ships_finished_bc_and_dagger_runs(t
         (dagger / "results.json").write_text(json.dumps({"best": {"round": 2, "val_success": dagger_val, "val_spl": 0.5}}))
     checkpoints = tmp_path / "checkpoints"
     shipped = table1.train_missing([table1.ROW_BY_NAME["spf-s0.8"]], [0, 1, 2], [], checkpoints, False, train=False)
-    assert shipped["spf-s0.8"]["seed"] == 2 and (checkpoints / "spf-s0.8.pt").read_text() == "bc seed 2"
-    assert shipped["dagger-spf-s0.8"]["seed"] == 0 and (checkpoints / "dagger-spf-s0.8.pt").read_text() == "dagger seed 0"
+    assert shipped["spf-s0.8"]["seed"] == 2 and shipped_file(checkpoints, "spf-s0.8").read_text() == "bc seed 2"
+    assert shipped["dagger-spf-s0.8"]["seed"] == 0
+    assert shipped_file(checkpoints, "dagger-spf-s0.8").read_text() == "dagger seed 0"
     assert (checkpoints / "table1" / "dagger-spf-s0.8-seed2.pt").read_text() == "dagger seed 2"
     assert not (checkpoints / "table1" / "spf-s0.8-seed1.pt").exists()
 
@@ -282,7 +289,7 @@ def _lost_dagger_seed(tmp_path: Path) -> Path:
     checkpoints = tmp_path / "checkpoints"
     (checkpoints / "table1").mkdir(parents=True)
     (checkpoints / "table1" / "dagger-rpf_original-s1-seed0.pt").write_text("dagger seed 0, run lost")
-    (checkpoints / "dagger-rpf_original-s1.pt").write_text("dagger seed 0, run lost")
+    write_manifest(checkpoints, {"dagger-rpf_original-s1": "table1/dagger-rpf_original-s1-seed0.pt"})  # shipped
     for seed in (0, 1):
         run = Path(f"runs/bc_row/rpf_original-s1.0-seed{seed}")
         run.mkdir(parents=True)
@@ -313,7 +320,7 @@ def test_a_seed_without_run_results_is_scored_on_its_runs_validation_episodes(
     assert shipped["dagger-rpf_original-s1"] == {"seed": shipped_seed, "val_success": [lost_seed_val, 0.88][shipped_seed],
                                                  "val_spl": [lost_seed_val, 0.87][shipped_seed]}
     expected = "dagger seed 0, run lost" if shipped_seed == 0 else "dagger seed 1"
-    assert (checkpoints / "dagger-rpf_original-s1.pt").read_text() == expected
+    assert shipped_file(checkpoints, "dagger-rpf_original-s1").read_text() == expected
 
 
 def test_cached_validation_scores_once_and_rereads_the_cache(tmp_path, monkeypatch):
@@ -341,5 +348,5 @@ def test_a_seed_without_run_results_blocks_reshipping_its_line(tmp_path, monkeyp
     shipped = table1.train_missing([table1.ROW_BY_NAME["rpf_original-s1"]], [0, 1, 2], [], checkpoints, False, train=False)
     assert shipped["rpf_original-s1"]["seed"] == 1
     assert "dagger-rpf_original-s1" not in shipped
-    assert (checkpoints / "dagger-rpf_original-s1.pt").read_text() == "dagger seed 0, run lost"
+    assert shipped_file(checkpoints, "dagger-rpf_original-s1").read_text() == "dagger seed 0, run lost"
     assert (checkpoints / "table1" / "dagger-rpf_original-s1-seed1.pt").read_text() == "dagger seed 1"

@@ -51,6 +51,7 @@ from envs.scripted import STEPS_PER_BATCH, behaviour_coins, gather_episode_steps
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.data import STEP_KEYS, DatasetConfig, EpisodeDataset, demos_root
 from spf_rl.device import DEFAULT_DEVICE, check_device, exact_float32, module_device
+from spf_rl.hub import DEFAULT_START_CHECKPOINT, checked_checkpoint
 from spf_rl.modules.registry import build_policy
 from spf_rl.train.bc import BCConfig, bc_loss, default_test_config, default_val_config
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig, collection_device, make_collector
@@ -135,7 +136,8 @@ class DAggerConfig:
     """A DAgger run.
 
     Args:
-        checkpoint: the BC checkpoint to start from.
+        checkpoint: the BC checkpoint to start from: a path, or a shipped name
+            (:func:`spf_rl.list_checkpoints`).
         output_dir: checkpoints, round data, logs, results and figures.
         seed: seed of collection and batching.
         device: where the learner trains and acts: ``"auto"`` (CUDA if available, else
@@ -168,7 +170,7 @@ class DAggerConfig:
         test: test evaluation.
     """
 
-    checkpoint: str = "checkpoints/spf-s0.8.pt"
+    checkpoint: str = DEFAULT_START_CHECKPOINT
     output_dir: str = "runs/dagger"
     seed: int = 0
     device: str = DEFAULT_DEVICE
@@ -245,7 +247,7 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
     output = Path(config.output_dir)
     write_run_config(output, config, free=DAGGER_RESUME_FREE)
     (output / "rounds").mkdir(parents=True, exist_ok=True)
-    payload = load_checkpoint(config.checkpoint)
+    payload = load_checkpoint(checked_checkpoint(config.checkpoint))
     model_type, policy_config = payload["model_type"], payload["model_config"]
     env = config.env
     if (policy_config.demo_length, policy_config.image_size) != (env.demo_length, (env.image_size, env.image_size)):

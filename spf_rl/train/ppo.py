@@ -63,6 +63,7 @@ from tqdm.auto import tqdm
 from envs.atomic_io import atomic_write_json
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.device import autocast, exact_float32
+from spf_rl.hub import checked_checkpoint
 from spf_rl.modules.registry import build_policy
 from spf_rl.train.collection import collection_device, make_collector
 from spf_rl.train.evaluation import FramesFromStore, evaluate_policy, frames_lookup, with_episode_sizes
@@ -133,7 +134,7 @@ class _PPORun:
         write_run_config(self.output, config, free=PPO_RESUME_FREE)  # a resume under other settings fails here
         self.last_path, self.best_path = self.output / "last.pt", self.output / "best.pt"
 
-        payload = load_checkpoint(config.checkpoint)
+        payload = load_checkpoint(checked_checkpoint(config.checkpoint))
         self.model_type, self.policy_config = payload["model_type"], payload["model_config"]
         self.env_config = checked_env_config(config, self.policy_config)
         self.val_config = with_episode_sizes(config.val, self.env_config)

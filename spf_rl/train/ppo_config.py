@@ -11,6 +11,7 @@ from envs.demo_store import DemoStore, DemoStoreConfig
 from envs.homing import FOLLOW
 from envs.version import ENV_VERSION
 from spf_rl.device import DEFAULT_DEVICE, check_device
+from spf_rl.hub import DEFAULT_START_CHECKPOINT
 from spf_rl.modules import SPFConfig
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig
 from spf_rl.train.evaluation import EvalConfig, episode_store_root
@@ -33,7 +34,8 @@ class PPOConfig:
     """A PPO fine-tuning run.
 
     Args:
-        checkpoint: the starting (BC) checkpoint.
+        checkpoint: the starting (BC) checkpoint: a path, or a shipped name
+            (:func:`spf_rl.list_checkpoints`).
         output_dir: checkpoints, logs, results and figures.
         seed: seed of the collector's episodes, action sampling and minibatches.
         device: where the policy, value head and their optimisers run, and where the
@@ -98,7 +100,7 @@ class PPOConfig:
         ValueError: clip_epsilon must be > 0, got 0.0.
     """
 
-    checkpoint: str = "checkpoints/spf-s0.8.pt"
+    checkpoint: str = DEFAULT_START_CHECKPOINT
     output_dir: str = "runs/ppo"
     seed: int = 0
     device: str = DEFAULT_DEVICE
