@@ -6,7 +6,6 @@ import dataclasses
 
 import pytest
 import torch
-from table1 import RANDOM_EVAL_SPARSITIES, RANDOM_MODEL, ROW_BY_NAME, checkpoint_name, table_lines
 from test_policy import CFG as FIXED_CFG
 from test_policy import DemoEnv, N, _make_trajectory, _random_td, _run_steps
 from torchrl.envs import Compose, InitTracker, TransformedEnv
@@ -14,6 +13,7 @@ from torchrl.modules import set_recurrent_mode
 
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.config import load_config
+from spf_rl.eval.table1_rows import RANDOM_EVAL_SPARSITIES, RANDOM_MODEL, ROW_BY_NAME, checkpoint_name, table_lines
 from spf_rl.modules import SPFConfig, SPFPolicy, make_rpf_policy, memory_length, memory_mask
 from spf_rl.modules.registry import MODEL_NAMES, ModelConfig, build_policy, spf_config
 from spf_rl.train.bc import BCConfig, model_memory_bytes

@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from spf_rl.config import load_config
+from spf_rl.eval import table1_rows
 from spf_rl.train.bc import BCConfig, train_bc
 from spf_rl.train.dagger import DAGGER_RESUME_FREE, DAggerConfig, default_dagger_val_config, train_dagger
 from spf_rl.train.ppo import train_ppo
@@ -94,14 +95,13 @@ def test_free_settings_name_real_config_fields():
 def test_committed_runs_resume_under_their_presets():
     """``python recipes/bc.py|dagger.py --preset P seed=S`` would accept each committed Table 1 run
     directory (its ``config.json``) if it were resumed."""
-    import table1
 
     checked = 0
-    for row in table1.ROWS:
+    for row in table1_rows.ROWS:
         for seed in (0, 1, 2):
             configs = []
             if row.preset:
-                configs.append((table1.row_config(row, seed, [], quick=False), BC_RESUME_FREE))
+                configs.append((table1_rows.row_config(row, seed, [], quick=False), BC_RESUME_FREE))
             if row.dagger_preset:
                 configs.append((load_config(DAggerConfig, "dagger", [f"seed={seed}"], preset=row.dagger_preset), DAGGER_RESUME_FREE))
             for config, free in configs:

@@ -11,6 +11,7 @@ import table1
 
 from spf_rl.config import load_config
 from spf_rl.eval import table1 as table1_report
+from spf_rl.eval import table1_rows
 from spf_rl.eval.table1 import build_table, load_cached, write_cached
 from spf_rl.hub import read_manifest, write_manifest
 
@@ -42,18 +43,18 @@ def options(tmp_path: Path, *more: str) -> list[str]:
 
 def cache_fake_evaluations(tmp_path: Path, plan: dict[str, tuple[float, list]]) -> None:
     """Fake checkpoints and cached records, exactly where and as table1.py looks for them."""
-    sets = table1.eval_sets([], quick=True)
-    lines = {line.name: line for line in table1.table_lines(list(table1.ROWS), 30, 64)}
+    sets = table1_rows.eval_sets([], quick=True)
+    lines = {line.name: line for line in table1_rows.table_lines(list(table1_rows.ROWS), 30, 64)}
     for name, (rate, seeds) in plan.items():
         line = lines[name]
         for seed in seeds:
             checkpoint = None
             if seed is not None:
-                checkpoint = table1.seed_checkpoint(tmp_path / "ckpt", line.checkpoint_stem, seed)
+                checkpoint = table1_rows.seed_checkpoint(tmp_path / "ckpt", line.checkpoint_stem, seed)
                 checkpoint.parent.mkdir(parents=True, exist_ok=True)
                 checkpoint.write_bytes(f"weights of {line.checkpoint_stem} {seed}".encode())
-            config = table1.eval_config(sets["test"], line)
-            path, meta = table1.cache_entry(line.name, seed, "test", config, checkpoint, tmp_path / "eval")
+            config = table1_rows.eval_config(sets["test"], line)
+            path, meta = table1_rows.cache_entry(line.name, seed, "test", config, checkpoint, tmp_path / "eval")
             write_cached(path, meta, fake_records(rate, seed or 0))
 
 
@@ -64,7 +65,7 @@ def test_table_from_cached_records_counts_seeds_and_tests_the_claims(tmp_path, m
         "open_loop": (0.5, [None]),
         "dagger-spf-s0.8": (0.9, [0]),
     })
-    monkeypatch.setattr(table1, "evaluate_line", lambda *a: pytest.fail("everything is cached: nothing to evaluate"))
+    monkeypatch.setattr(table1_rows, "evaluate_line", lambda *a: pytest.fail("everything is cached: nothing to evaluate"))
     # the checkpoints have no run results: each is scored on validation (here a stub) and the best one shipped
     monkeypatch.setattr(table1, "cached_validation", lambda eval_dir, device: lambda line, seed, path, config: (seed / 10, 0.0))
     table = table1.main(options(tmp_path, "--from-checkpoints", "--rows", ROWS, "--sets", "test"))
@@ -136,7 +137,7 @@ def test_the_cache_is_used_only_for_the_same_evaluation(tmp_path):
 
 
 def test_evaluations_of_other_episodes_cannot_be_compared(tmp_path):
-    line = table1.table_lines([table1.ROW_BY_NAME["spf-s0.8"]], 30, 64)[0]
+    line = table1_rows.table_lines([table1_rows.ROW_BY_NAME["spf-s0.8"]], 30, 64)[0]
     shifted = [{**r, "episode_seed": r["episode_seed"] + 1} for r in fake_records(0.5, 1)]
     with pytest.raises(ValueError, match="did not play the same test episodes"):
         build_table([line], {line.name: {"test": {0: fake_records(0.5, 0), 1: shifted}}}, {"test": None}, [0, 1], [], [], 100)
@@ -148,13 +149,13 @@ def test_quick_open_loop_run_plays_real_episodes_once(tmp_path, monkeypatch):
 
     table = table1.main(options(tmp_path, "--from-checkpoints", "--rows", "open_loop"))
     row = table["rows"][0]
-    assert row["sets"]["test"]["episodes"] == table1.QUICK_EPISODES
-    line = table1.table_lines([table1.ROW_BY_NAME["open_loop"]], 30, 64)[0]
-    config = table1.eval_config(table1.eval_sets([], quick=True)["extended"], line)
-    records = load_cached(*table1.cache_entry(line.name, None, "extended", config, None, tmp_path / "eval"))
-    assert len(records) == table1.QUICK_EPISODES and not config.render
-    assert {r["house_seed"] for r in records} <= set(split_seeds("test", table1.EXTENDED_HOUSES))
-    monkeypatch.setattr(table1, "evaluate_line", lambda *a: pytest.fail("a rerun must read the cache"))
+    assert row["sets"]["test"]["episodes"] == table1_rows.QUICK_EPISODES
+    line = table1_rows.table_lines([table1_rows.ROW_BY_NAME["open_loop"]], 30, 64)[0]
+    config = table1_rows.eval_config(table1_rows.eval_sets([], quick=True)["extended"], line)
+    records = load_cached(*table1_rows.cache_entry(line.name, None, "extended", config, None, tmp_path / "eval"))
+    assert len(records) == table1_rows.QUICK_EPISODES and not config.render
+    assert {r["house_seed"] for r in records} <= set(split_seeds("test", table1_rows.EXTENDED_HOUSES))
+    monkeypatch.setattr(table1_rows, "evaluate_line", lambda *a: pytest.fail("a rerun must read the cache"))
     again = table1.main(options(tmp_path, "--from-checkpoints", "--rows", "open_loop"))
     assert again["rows"] == table["rows"]
 
@@ -174,13 +175,13 @@ def test_training_copies_each_finished_seed_and_ships_the_best_by_validation(tmp
 
     monkeypatch.setattr("spf_rl.train.bc.train_bc", fake_train_bc)
     checkpoints = tmp_path / "checkpoints"
-    shipped = table1.train_missing([table1.ROW_BY_NAME["spf-s0.8"], table1.ROW_BY_NAME["rpf-s1"]], [0, 1, 2], [], checkpoints, False)
+    shipped = table1_rows.train_missing([table1_rows.ROW_BY_NAME["spf-s0.8"], table1_rows.ROW_BY_NAME["rpf-s1"]], [0, 1, 2], [], checkpoints, False)
     assert [t[:4] for t in trained] == [("spf", 0.8, s, 40) for s in (0, 1, 2)] + [("rpf", 1.0, s, 20) for s in (0, 1, 2)]
     assert trained[0][4] == "runs/bc_long/spf-s0.8-seed0" and trained[3][4] == "runs/bc_row/rpf-s1.0-seed0"
     assert (checkpoints / "table1" / "spf-s0.8-seed2.pt").read_text() == "seed 2"
     assert shipped_file(checkpoints, "spf-s0.8").read_text() == "seed 1" and shipped["spf-s0.8"]["seed"] == 1
     trained.clear()
-    table1.train_missing([table1.ROW_BY_NAME["spf-s0.8"]], [0, 1, 2], [], checkpoints, False)
+    table1_rows.train_missing([table1_rows.ROW_BY_NAME["spf-s0.8"]], [0, 1, 2], [], checkpoints, False)
     assert trained == []  # finished runs are not trained again
 
 
@@ -198,7 +199,7 @@ def test_from_checkpoints_trains_nothing_but_ships_finished_bc_and_dagger_runs(t
         dagger_val = 0.9 - val / 10  # seed 0 is DAgger's best
         (dagger / "results.json").write_text(json.dumps({"best": {"round": 2, "val_success": dagger_val, "val_spl": 0.5}}))
     checkpoints = tmp_path / "checkpoints"
-    shipped = table1.train_missing([table1.ROW_BY_NAME["spf-s0.8"]], [0, 1, 2], [], checkpoints, False, train=False)
+    shipped = table1_rows.train_missing([table1_rows.ROW_BY_NAME["spf-s0.8"]], [0, 1, 2], [], checkpoints, False, train=False)
     assert shipped["spf-s0.8"]["seed"] == 2 and shipped_file(checkpoints, "spf-s0.8").read_text() == "bc seed 2"
     assert shipped["dagger-spf-s0.8"]["seed"] == 0
     assert shipped_file(checkpoints, "dagger-spf-s0.8").read_text() == "dagger seed 0"
@@ -207,16 +208,16 @@ def test_from_checkpoints_trains_nothing_but_ships_finished_bc_and_dagger_runs(t
 
 
 def test_dagger_column_reads_the_dagger_presets_run_directories():
-    assert table1.dagger_run_dir(table1.ROW_BY_NAME["spf-s0.8"], 2) == Path("runs/dagger_long/spf-s0.8-seed2")
-    assert table1.dagger_run_dir(table1.ROW_BY_NAME["rpf-s1"], 0) == Path("runs/dagger_rpf/rpf-s1.0-seed0")
-    assert table1.dagger_run_dir(table1.ROW_BY_NAME["spf-s0.4"], 0) is None
+    assert table1_rows.dagger_run_dir(table1_rows.ROW_BY_NAME["spf-s0.8"], 2) == Path("runs/dagger_long/spf-s0.8-seed2")
+    assert table1_rows.dagger_run_dir(table1_rows.ROW_BY_NAME["rpf-s1"], 0) == Path("runs/dagger_rpf/rpf-s1.0-seed0")
+    assert table1_rows.dagger_run_dir(table1_rows.ROW_BY_NAME["spf-s0.4"], 0) is None
     # each DAgger preset starts from the BC run of its row's schedule
     from spf_rl.train.dagger import DAggerConfig
 
     for name in ("spf-s0.8", "rpf-s1"):
-        row = table1.ROW_BY_NAME[name]
+        row = table1_rows.ROW_BY_NAME[name]
         dagger = load_config(DAggerConfig, "dagger", ["seed=1"], preset=row.dagger_preset)
-        bc = table1.row_config(row, 1, [], quick=False)
+        bc = table1_rows.row_config(row, 1, [], quick=False)
         assert Path(dagger.checkpoint) == Path(bc.output_dir) / "best.pt" and dagger.bc_data == bc.data
 
 
@@ -256,20 +257,20 @@ def test_summary_puts_a_model_scored_at_several_sparsities_on_one_line():
     assert "| Random, at 0.4 / 1 | `r` | 2 of 3 | 0.600 / 0.700 | 0.590 / 0.690 | - | - |" in text
 
 
-@pytest.mark.parametrize("row", [row for row in table1.ROWS if row.dagger_preset], ids=lambda row: row.name)
+@pytest.mark.parametrize("row", [row for row in table1_rows.ROWS if row.dagger_preset], ids=lambda row: row.name)
 def test_every_dagger_preset_starts_from_its_rows_run(row):
     """A row's DAgger preset starts from that row's own BC run (per seed), so the DAgger column is the row's."""
     from spf_rl.train.dagger import DAggerConfig
 
     for seed in (0, 2):
         dagger = load_config(DAggerConfig, "dagger", [f"seed={seed}"], preset=row.dagger_preset)
-        bc = table1.row_config(row, seed, [], quick=False)
+        bc = table1_rows.row_config(row, seed, [], quick=False)
         assert Path(dagger.checkpoint) == Path(bc.output_dir) / "best.pt"
         assert dagger.bc_data.num_episodes == bc.data.num_episodes
 
 
 def test_the_pointer_row_trains_spf_with_rpfs_pointer_rule():
-    config = table1.row_config(table1.ROW_BY_NAME["spf_rpf_pointer-s0.8"], 1, [], quick=False)
+    config = table1_rows.row_config(table1_rows.ROW_BY_NAME["spf_rpf_pointer-s0.8"], 1, [], quick=False)
     assert (config.model.name, config.model.sparsity, config.model.pointer_update) == ("spf", 0.8, "rpf")
     assert config.output_dir.endswith("spf_rpf_pointer-s0.8-seed1")
 
@@ -278,9 +279,9 @@ def test_the_long_pointer_row_is_the_bc_pointer_long_preset():
     """The row trains exactly what ``python recipes/bc.py --preset bc_pointer_long`` trains (one schedule, one run dir)."""
     from spf_rl.train.bc import BCConfig
 
-    row = table1.row_config(table1.ROW_BY_NAME["spf_rpf_pointer_long-s0.8"], 1, [], quick=False)
+    row = table1_rows.row_config(table1_rows.ROW_BY_NAME["spf_rpf_pointer_long-s0.8"], 1, [], quick=False)
     assert row == load_config(BCConfig, "bc", ["seed=1"], preset="bc_pointer_long")
-    assert table1.row_config(table1.ROW_BY_NAME["spf-s0.8"], 1, [], quick=False).optim == row.optim
+    assert table1_rows.row_config(table1_rows.ROW_BY_NAME["spf-s0.8"], 1, [], quick=False).optim == row.optim
 
 
 def _lost_dagger_seed(tmp_path: Path) -> Path:
@@ -314,7 +315,7 @@ def test_a_seed_without_run_results_is_scored_on_its_runs_validation_episodes(
         calls.append((line, seed, checkpoint.name, config.split, config.num_episodes, config.seed))
         return lost_seed_val, lost_seed_val
 
-    shipped = table1.train_missing([table1.ROW_BY_NAME["rpf_original-s1"]], [0, 1, 2], [], checkpoints, False,
+    shipped = table1_rows.train_missing([table1_rows.ROW_BY_NAME["rpf_original-s1"]], [0, 1, 2], [], checkpoints, False,
                                    train=False, validate=validate)
     assert calls == [("dagger-rpf_original-s1", 0, "dagger-rpf_original-s1-seed0.pt", "val", 300, 1)]
     assert shipped["dagger-rpf_original-s1"] == {"seed": shipped_seed, "val_success": [lost_seed_val, 0.88][shipped_seed],
@@ -333,7 +334,7 @@ def test_cached_validation_scores_once_and_rereads_the_cache(tmp_path, monkeypat
     episodes = [{key: 0 for key in table1_report.RECORD_KEYS} | {"success": s, "spl": s / 2} for s in (1, 0, 1, 1)]
     monkeypatch.setattr(spf_rl.hub, "policy_from_checkpoint", lambda path, device: ("policy", None))
     monkeypatch.setattr(spf_rl.train.evaluation, "evaluate_policy", lambda policy, config, progress: ({}, episodes))
-    validate = table1.cached_validation(tmp_path / "eval", "cpu")
+    validate = table1_rows.cached_validation(tmp_path / "eval", "cpu")
     assert validate("dagger-x", 0, checkpoint, default_val_config()) == (0.75, 0.375)
     monkeypatch.setattr(spf_rl.train.evaluation, "evaluate_policy", lambda *a, **k: pytest.fail("must read the cache"))
     assert validate("dagger-x", 0, checkpoint, default_val_config()) == (0.75, 0.375)
@@ -345,7 +346,7 @@ def test_a_seed_without_run_results_blocks_reshipping_its_line(tmp_path, monkeyp
     score: the shipped file stays."""
     monkeypatch.chdir(tmp_path)
     checkpoints = _lost_dagger_seed(tmp_path)
-    shipped = table1.train_missing([table1.ROW_BY_NAME["rpf_original-s1"]], [0, 1, 2], [], checkpoints, False, train=False)
+    shipped = table1_rows.train_missing([table1_rows.ROW_BY_NAME["rpf_original-s1"]], [0, 1, 2], [], checkpoints, False, train=False)
     assert shipped["rpf_original-s1"]["seed"] == 1
     assert "dagger-rpf_original-s1" not in shipped
     assert shipped_file(checkpoints, "dagger-rpf_original-s1").read_text() == "dagger seed 0, run lost"

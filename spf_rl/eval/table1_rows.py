@@ -1,0 +1,333 @@
+"""The rows of Table 1 and the runs behind them: what each row trains, how the seeds of its
+finished runs become per-seed checkpoints and a shipped name, and how every checkpoint is
+scored on the table's episode sets (cached per episode). ``recipes/table1.py`` is the
+command line; :mod:`spf_rl.eval.table1` turns the records into the table.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from envs.atomic_io import atomic_write
+from spf_rl.config import load_config
+from spf_rl.eval.table1 import Line, cache_entry, cached_records
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RowSpec:
+    """A row of Table 1: what is trained, with which schedule, and the paper's numbers."""
+
+    name: str
+    label: str
+    model: str
+    sparsity: float
+    preset: str | None
+    overrides: tuple[str, ...] = ()
+    paper: tuple[float | None, float | None] = (None, None)
+    eval_sparsities: tuple[float, ...] = ()
+    dagger_preset: str | None = None  # the DAgger preset (recipes/configs/) whose runs give the DAgger column
+
+
+#: Sparsities the random-sparsity model is evaluated at.
+RANDOM_EVAL_SPARSITIES = (0.4, 0.6, 0.8, 1.0)
+RANDOM_MODEL = "spf_random"
+#: Paper: Table 1 (Habitat, MP3D), (success, SPL).
+ROWS = (
+    RowSpec("spf-s0.4", "SPF sparsity 0.4", "spf", 0.4, "bc_row", ("model=spf", "sparsity=0.4"), (0.782, 0.683)),
+    RowSpec("spf-s0.6", "SPF sparsity 0.6", "spf", 0.6, "bc_row", ("model=spf", "sparsity=0.6"), (0.803, 0.724)),
+    RowSpec("spf-s0.8", "SPF sparsity 0.8", "spf", 0.8, "bc_long", ("model=spf", "sparsity=0.8"), (0.819, 0.737),
+            dagger_preset="dagger_long"),
+    RowSpec("rpf-s1", "SPF at sparsity 1 (RPF as SPF)", "rpf", 1.0, "bc_row", ("model=rpf", "sparsity=1"),
+            dagger_preset="dagger_rpf"),
+    RowSpec("rpf_original-s1", "RPF (original)", "rpf_original", 1.0, "bc_row", ("model=rpf_original", "sparsity=1"),
+            (0.833, 0.752), dagger_preset="dagger_rpf_original"),
+    RowSpec("spf_rpf_pointer-s0.8", "SPF 0.8 with RPF's pointer rule (beyond the paper)", "spf", 0.8, "bc_row",
+            ("model=spf", "sparsity=0.8", "model.pointer_update=rpf",
+             "output_dir=runs/ablation/spf_rpf_pointer-s0.8-seed${seed}"), dagger_preset="dagger_spf_rpf_pointer"),
+    RowSpec("spf_rpf_pointer_long-s0.8", "SPF 0.8 with RPF's pointer rule, long schedule (beyond the paper)", "spf", 0.8,
+            "bc_long", ("model=spf", "sparsity=0.8", "model.pointer_update=rpf",
+                        "output_dir=runs/ablation/spf_rpf_pointer_long-s0.8-seed${seed}"),
+            dagger_preset="dagger_pointer_long"),
+    RowSpec("action_only-s0", "RPF action only", "action_only", 0.0, "bc_row", ("model=action_only",), (0.782, 0.648)),
+    RowSpec("open_loop", "open-loop replay", "open_loop", 0.0, None),
+    RowSpec("spf_random-s0.2-1", "SPF random sparsity 0.2-1", RANDOM_MODEL, 0.8, "bc_row", ("model=spf_random",),
+            eval_sparsities=RANDOM_EVAL_SPARSITIES),
+)
+ROW_BY_NAME = {row.name: row for row in ROWS}
+#: Ordering claims, each "a > b" on the shared episodes: (a, b, text); lines absent from a run are skipped.
+CLAIMS = (
+    ("spf-s0.8", "action_only-s0", "SPF 0.8 beats action-only"),
+    ("spf-s0.6", "spf-s0.4", "SPF 0.6 beats SPF 0.4"),
+    ("spf-s0.8", "spf-s0.6", "SPF 0.8 beats SPF 0.6"),
+    ("rpf-s1", "spf-s0.8", "full memory (SPF at sparsity 1) beats SPF 0.8"),
+    ("rpf_original-s1", "action_only-s0", "the original RPF beats action-only"),
+    ("spf-s0.8", "open_loop", "SPF 0.8 beats open-loop replay"),
+    ("action_only-s0", "open_loop", "action-only beats open-loop replay"),
+    ("dagger-spf-s0.8", "spf-s0.8", "DAgger improves SPF 0.8"),
+    ("dagger-rpf-s1", "rpf-s1", "DAgger improves SPF at sparsity 1"),
+    ("dagger-rpf_original-s1", "rpf_original-s1", "DAgger improves the original RPF"),
+    ("dagger-spf_rpf_pointer-s0.8", "spf_rpf_pointer-s0.8", "DAgger improves SPF 0.8 with RPF's pointer rule"),
+    ("spf_rpf_pointer_long-s0.8", "spf-s0.8", "RPF's pointer rule improves SPF 0.8 (both on the long schedule)"),
+    ("dagger-spf_rpf_pointer_long-s0.8", "spf_rpf_pointer_long-s0.8",
+     "DAgger improves SPF 0.8 with RPF's pointer rule (long schedule)"),
+    ("dagger-spf_rpf_pointer_long-s0.8", "dagger-spf-s0.8", "with DAgger, RPF's pointer rule improves SPF 0.8 (long schedule)"),
+    # one model, one schedule, only the memory it is given changes: the sparsity order without confounders
+    ("spf_random-s0.2-1@0.6", "spf_random-s0.2-1@0.4", "random sparsity: 0.6 beats 0.4"),
+    ("spf_random-s0.2-1@0.8", "spf_random-s0.2-1@0.6", "random sparsity: 0.8 beats 0.6"),
+    ("spf_random-s0.2-1@1", "spf_random-s0.2-1@0.8", "random sparsity: 1 beats 0.8"),
+    ("spf_random-s0.2-1@1", "spf_random-s0.2-1@0.4", "random sparsity: 1 beats 0.4"),
+)
+SETS = ("test", "extended")
+#: Houses of the extended test set.
+EXTENDED_HOUSES = 100
+#: --quick: episodes per set, and where everything goes.
+QUICK_EPISODES = 8
+QUICK_DIR = Path("runs/table1_quick")
+
+
+def checkpoint_name(model: str, sparsity) -> str:
+    """File name of a model's checkpoint: ``spf-s0.4.pt``, or ``spf_random-s0.2-1.pt`` for a range ``(0.2, 1.0)``."""
+    if isinstance(sparsity, (tuple, list)):
+        return f"{model}-s" + "-".join(f"{s:g}" for s in sparsity) + ".pt"
+    return f"{model}-s{sparsity:g}.pt"
+
+
+def seed_checkpoint(checkpoints: Path, line: str, seed: int) -> Path:
+    """Per-seed checkpoint of a line (a row, or ``dagger-<row>``): ``<checkpoints>/table1/<line>-seed<S>.pt``."""
+    return checkpoints / "table1" / f"{line}-seed{seed}.pt"
+
+
+def table_lines(rows: list[RowSpec], demo_length: int, image_size: int) -> list[Line]:
+    """The lines of the table: one per row, one per evaluated sparsity of the random model, and DAgger lines."""
+    from spf_rl.train.bc import model_memory_bytes
+
+    def memory(model: str, sparsity: float) -> int:
+        return demo_length if model == "open_loop" else model_memory_bytes(model, demo_length, sparsity, image_size)
+
+    lines = []
+    for row in rows:
+        common = dict(row=row.name, model=row.model, paper_success=row.paper[0], paper_spl=row.paper[1])
+        if row.eval_sparsities:
+            for s in row.eval_sparsities:
+                lines.append(Line(name=f"{row.name}@{s:g}", label=f"{row.label}, at {s:g}", sparsity=s,
+                                  memory_bytes=memory(row.model, s), checkpoint_stem=row.name, **common))
+        else:
+            lines.append(Line(name=row.name, label=row.label, sparsity=row.sparsity,
+                              memory_bytes=memory(row.model, row.sparsity), checkpoint_stem=row.name, **common))
+        if row.dagger_preset:
+            lines.append(Line(name=f"dagger-{row.name}", label=f"DAgger from {row.label}", sparsity=row.sparsity,
+                              memory_bytes=memory(row.model, row.sparsity), checkpoint_stem=f"dagger-{row.name}",
+                              dagger_of=row.name, row=row.name, model=row.model))
+    return lines
+
+
+# ---------------------------------------------------------------------- configs
+def preset_of(row: RowSpec, quick: bool) -> str | None:
+    """The training schedule of a row: its preset, or ``bc_quick`` for every row with ``--quick``."""
+    return "bc_quick" if quick and row.preset else row.preset
+
+
+def row_config(row: RowSpec, seed: int, overrides: list[str], quick: bool):
+    """The ``BCConfig`` of one row and seed: the row's preset (``bc_quick`` with ``--quick``) and overrides."""
+    from spf_rl.train.bc import BCConfig
+
+    items = [*row.overrides, f"seed={seed}", *overrides]
+    if quick:
+        items.append(f"output_dir={QUICK_DIR}/runs/{row.name}-seed{seed}")
+    return load_config(BCConfig, "bc", items, preset=preset_of(row, quick))
+
+
+def eval_sets(overrides: list[str], quick: bool) -> dict:
+    """``{"test": EvalConfig, "extended": EvalConfig}``: ``bc_long``'s test config, and the same on 100 houses."""
+    from spf_rl.train.bc import BCConfig
+    from spf_rl.train.evaluation import with_episode_sizes
+
+    base = load_config(BCConfig, "bc", overrides, preset="bc_long")
+    test = with_episode_sizes(base.test, base.data)
+    if quick:
+        test = dataclasses.replace(test, num_episodes=QUICK_EPISODES, num_agents=QUICK_EPISODES)
+    return {"test": test, "extended": dataclasses.replace(test, num_houses=EXTENDED_HOUSES)}
+
+
+# --------------------------------------------------------------------- training
+def copy_atomic(source: Path, target: Path) -> None:
+    target.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(target, lambda handle: handle.write(source.read_bytes()), binary=True)
+
+
+def dagger_config(row: RowSpec, seed: int):
+    """The ``DAggerConfig`` of a row's DAgger run for ``seed`` (its DAgger preset), if the row has one."""
+    if row.dagger_preset is None:
+        return None
+    from spf_rl.train.dagger import DAggerConfig
+
+    return load_config(DAggerConfig, "dagger", [f"seed={seed}"], preset=row.dagger_preset)
+
+
+def dagger_run_dir(row: RowSpec, seed: int) -> Path | None:
+    """The run directory of a row's DAgger run for ``seed`` (its preset's ``output_dir``), if the row has one."""
+    config = dagger_config(row, seed)
+    return None if config is None else Path(config.output_dir)
+
+
+def run_validation(line: str, row: RowSpec, seed: int, overrides: list[str], quick: bool):
+    """The validation episodes the run of ``line`` (a row, or ``dagger-<row>``) and ``seed`` picked its checkpoint on."""
+    from spf_rl.train.evaluation import with_episode_sizes
+
+    if line == row.name:
+        config = row_config(row, seed, overrides, quick)
+        return with_episode_sizes(config.val, config.data)
+    config = dagger_config(row, seed)
+    return with_episode_sizes(config.val, config.env)
+
+
+def shipped_names(checkpoints: Path) -> dict[str, str]:
+    """The shipped names of a checkpoint directory's manifest (none before its first)."""
+    from spf_rl.hub import MANIFEST_NAME, read_manifest
+
+    return read_manifest(checkpoints)["names"] if (checkpoints / MANIFEST_NAME).is_file() else {}
+
+
+def ship_best(checkpoints: Path, line: str, scores: dict) -> dict | None:
+    """Ship the per-seed checkpoint of the seed with the best validation ``(success, spl)`` as the name
+    ``line``: the manifest maps the name to that file (no copy: each file is stored once)."""
+    from spf_rl.hub import write_manifest
+
+    if not scores:
+        return None
+    seed = max(scores, key=lambda s: (*scores[s], -s))
+    target = seed_checkpoint(checkpoints, line, seed).relative_to(checkpoints).as_posix()
+    write_manifest(checkpoints, {**shipped_names(checkpoints), line: target})
+    logger.info("%s: seed %d is the best by validation (success %.3f): shipped as %s", line, seed, scores[seed][0], target)
+    return {"seed": seed, "val_success": scores[seed][0], "val_spl": scores[seed][1]}
+
+
+def train_missing(
+    rows: list[RowSpec], seeds: list[int], overrides: list[str], checkpoints: Path, quick: bool, train: bool = True,
+    validate: Callable[[str, int, Path, object], tuple[float, float]] | None = None,
+) -> dict:
+    """Train (or resume) every missing row x seed (with ``train``), copy the best checkpoint of every finished
+    BC and DAgger run to its per-seed name, and ship each line's best seed by validation; returns ``{line: shipped}``.
+
+    A per-seed checkpoint whose run directory has no results (e.g. a run directory that was lost) is scored
+    with ``validate(line, seed, checkpoint, val_config)`` -> ``(success, spl)`` on its run's validation
+    episodes; without ``validate`` its score is unknown, and its line is not re-shipped (its shipped
+    checkpoint is left as it is)."""
+    from spf_rl.train.bc import train_bc
+
+    shipped = {}
+    for row in (row for row in rows if row.preset):
+        scores, dagger_scores = {}, {}
+        unscored: dict[str, list[int]] = {row.name: [], f"dagger-{row.name}": []}
+        for seed in seeds:
+            config = row_config(row, seed, overrides, quick)
+            run_dir, target = Path(config.output_dir), seed_checkpoint(checkpoints, row.name, seed)
+            if train and not (run_dir / "results.json").exists() and not target.exists():
+                logger.info("training %s seed %d in %s (preset %s)", row.name, seed, run_dir, preset_of(row, quick))
+                train_bc(config)
+            if (run_dir / "results.json").exists():
+                if not target.exists():
+                    copy_atomic(run_dir / "best.pt", target)
+                best = json.loads((run_dir / "results.json").read_text())["val_best"]
+                scores[seed] = (best["success"], best["spl"])
+            elif target.exists():
+                unscored[row.name].append(seed)
+            dagger_dir = None if quick else dagger_run_dir(row, seed)  # --quick trains no DAgger
+            if dagger_dir and (dagger_dir / "results.json").exists():
+                dagger_target = seed_checkpoint(checkpoints, f"dagger-{row.name}", seed)
+                if not dagger_target.exists():
+                    copy_atomic(dagger_dir / "best.pt", dagger_target)
+                best = json.loads((dagger_dir / "results.json").read_text())["best"]
+                dagger_scores[seed] = (best["val_success"], best["val_spl"])
+            elif dagger_dir and seed_checkpoint(checkpoints, f"dagger-{row.name}", seed).exists():
+                unscored[f"dagger-{row.name}"].append(seed)
+        for line, line_scores in ((row.name, scores), (f"dagger-{row.name}", dagger_scores)):
+            while validate is not None and unscored[line]:
+                seed = unscored[line].pop()
+                val_config = run_validation(line, row, seed, overrides, quick)
+                line_scores[seed] = validate(line, seed, seed_checkpoint(checkpoints, line, seed), val_config)
+            if unscored[line]:  # a seed's validation score is unknown: it may be the best, so ship nothing new
+                logger.warning(
+                    "%s: seed(s) %s have a checkpoint in %s/table1 but no run results (validation unknown): "
+                    "the name %s is left as it is", line, unscored[line], checkpoints, line,
+                )
+                continue
+            if (picked := ship_best(checkpoints, line, line_scores)) is not None:
+                shipped[line] = picked
+    if checkpoints.is_dir():  # per-seed files copied above are listed too
+        from spf_rl.hub import write_manifest
+
+        write_manifest(checkpoints, shipped_names(checkpoints))
+    return shipped
+
+
+# ------------------------------------------------------------------- evaluation
+def eval_config(config, line: Line):
+    """The evaluation config of a line: open-loop replay ignores the camera, so its (same) episodes are not rendered."""
+    return dataclasses.replace(config, render=False) if line.model == "open_loop" else config
+
+
+def evaluate_line(line: Line, checkpoint: Path | None, config, device: str) -> list[dict]:
+    """Per-episode records of one line (and checkpoint) on one evaluation set."""
+    from spf_rl.hub import policy_from_checkpoint
+    from spf_rl.modules import OpenLoopPolicy
+    from spf_rl.train.evaluation import evaluate_policy
+
+    if checkpoint is None:
+        policy = OpenLoopPolicy()
+    else:
+        policy = policy_from_checkpoint(checkpoint, expected_model_type=line.model, device=device)[0]
+        if line.model == RANDOM_MODEL:
+            policy.set_sparsity(line.sparsity)
+    return evaluate_policy(policy, config, progress=False)[1]
+
+
+def evaluate_all(
+    lines: list[Line], seeds: list[int], sets: dict, checkpoints: Path, eval_dir: Path, device: str
+) -> tuple[dict, list[dict]]:
+    """Records ``{line: {set: {seed: records}}}`` of every line x seed x set whose checkpoint exists, from
+    the cache or evaluated now (then cached), and the list of what is missing."""
+    evaluations: dict = {line.name: {name: {} for name in sets} for line in lines}
+    missing = []
+    for line in lines:
+        line_seeds = [None] if line.model == "open_loop" else seeds
+        for seed in line_seeds:
+            checkpoint = None if seed is None else seed_checkpoint(checkpoints, line.checkpoint_stem, seed)
+            if checkpoint is not None and not checkpoint.exists():
+                entry = {"line": line.checkpoint_stem, "seed": seed, "checkpoint": str(checkpoint)}
+                missing += [entry] if entry not in missing else []  # the random model's lines share checkpoints
+                continue
+            for set_name, config in sets.items():
+                config = eval_config(config, line)
+                def evaluate(line=line, seed=seed, set_name=set_name, config=config, checkpoint=checkpoint):
+                    logger.info("evaluating %s seed %s on the %s set (%d episodes)", line.name, seed, set_name,
+                                config.num_episodes)
+                    return evaluate_line(line, checkpoint, config, device)
+
+                entry = cache_entry(line.name, seed, set_name, config, checkpoint, eval_dir)
+                evaluations[line.name][set_name][seed] = cached_records(*entry, evaluate)
+    return evaluations, missing
+
+
+def cached_validation(eval_dir: Path, device: str) -> Callable[[str, int, Path, object], tuple[float, float]]:
+    """``validate`` for :func:`train_missing`: a checkpoint's (success, SPL) on validation episodes, cached."""
+    from spf_rl.hub import policy_from_checkpoint
+    from spf_rl.train.evaluation import evaluate_policy
+
+    def validate(line: str, seed: int, checkpoint: Path, config) -> tuple[float, float]:
+        def evaluate() -> list[dict]:
+            logger.info("%s seed %d has no run results: scoring it on %d validation episodes", line, seed,
+                        config.num_episodes)
+            return evaluate_policy(policy_from_checkpoint(checkpoint, device=device)[0], config, progress=False)[1]
+
+        records = cached_records(*cache_entry(line, seed, "val", config, checkpoint, eval_dir), evaluate)
+        return (sum(float(r["success"]) for r in records) / len(records),
+                sum(float(r["spl"]) for r in records) / len(records))
+
+    return validate
