@@ -178,7 +178,7 @@ def teach_route(parser: argparse.ArgumentParser, args: argparse.Namespace, house
             return demonstration_from_waypoints(house, args.parsed_waypoints, start=start, length=length)
     except RouteError as err:
         parser.error(f"--{'actions' if args.parsed_actions is not None else 'waypoints'}: {err}")
-    from teach_keys import record_with_keyboard
+    from spf_rl.teach.keyboard import record_with_keyboard
 
     demo = record_with_keyboard(house, start or default_start(house), length)
     if demo is None:
@@ -195,7 +195,7 @@ def main(argv: list[str] | None = None) -> dict:
     house, start, policy, config = check_args(parser, args)
     demo = teach_route(parser, args, house, start, config.demo_length)
 
-    from teach_utils import repeat_route, results, write_map, write_video
+    from spf_rl.teach.repeat import repeat_route, results, write_map, write_video
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

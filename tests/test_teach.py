@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import teach
-from teach_keys import NO_KEY, ascii_map, decode_escape, handle_key
-from teach_utils import route_letters
 
 from envs import RouteRecorder, demonstration_from_actions, demonstration_from_waypoints
 from envs.expert import FORWARD, TURN_LEFT
 from envs.scenes import build_house
+from spf_rl.teach.keyboard import NO_KEY, ascii_map, decode_escape, handle_key
+from spf_rl.teach.repeat import route_letters
 
 HOUSE = "0"
 START = "7.5,1.5,0"

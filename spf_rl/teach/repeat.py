@@ -1,4 +1,4 @@
-"""What ``recipes/teach.py`` does once it has a route: the policy repeats it, then video, map and JSON.
+"""A taught route repeated by a policy, then video, map and JSON (``recipes/teach.py`` is the command line).
 
 * :func:`repeat_route`: a batched :class:`~envs.nav_env.PathFollowEnv` of one agent
   per repeat, every agent playing the taught demonstration under its own actuation

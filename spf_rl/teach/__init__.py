@@ -1,0 +1,3 @@
+"""Teaching a route: record it with the keyboard (:mod:`spf_rl.teach.keyboard`), let a policy
+repeat it and draw what happened (:mod:`spf_rl.teach.repeat`). ``recipes/teach.py`` is the
+command line."""
