@@ -189,7 +189,7 @@ def test_collected_datasets_match_the_hand_loop_datasets_in_distribution(tmp_pat
     as its committed results record them."""
     from pathlib import Path
 
-    recorded = json.loads((Path(__file__).parents[1] / "results/bc/bc_row-spf-s0.8-seed0.json").read_text())
+    recorded = json.loads((Path(__file__).parents[1] / "runs/bc_row/spf-s0.8-seed0/results.json").read_text())
     old = recorded["dataset"]
     assert recorded["config"]["data"]["num_episodes"] == old["episodes"] == 4000
     config = DatasetConfig(**{**recorded["config"]["data"], "num_episodes": 96, "chunk_size": 32})
