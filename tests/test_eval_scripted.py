@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import math
 
+import pytest
+
 from spf_rl.eval.scripted import run_one, score
 
 ENV = {"num_agents": 2, "num_houses": 2, "render": False, "emit_demo_frames": False, "with_expert": True, "demo_length": 10}
@@ -29,3 +31,8 @@ def test_score_summarises_records_with_intervals():
     assert row["episodes"] == 4 and row["success"] == 0.75 and math.isclose(row["spl"], 0.675)
     assert row["success_ci95"][0] <= 0.75 <= row["success_ci95"][1]
     assert row["mean_path_length_m"] == 3.0
+
+
+def test_an_unknown_policy_is_refused_before_any_work():
+    with pytest.raises(ValueError, match=r"policy_name must be one of \('expert', 'open_loop'\), got 'random'"):
+        run_one("train", "random", "none", 4, ENV, seed=0, resamples=200, progress=False)

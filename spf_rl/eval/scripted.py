@@ -66,7 +66,14 @@ def score(records: list[dict], seed: int, resamples: int) -> dict:
 
 
 def run_one(split: str, policy_name: str, noise: str, episodes: int, env_kwargs: dict, seed: int, resamples: int, progress: bool) -> dict:
-    """Score one (split, policy, noise) run; module-level so worker processes can run it."""
+    """Score one (split, policy, noise) run; module-level so worker processes can run it.
+
+    Raises:
+        ValueError: a ``policy_name`` not in :data:`POLICIES` (before any work; the env checks
+            ``split``, ``noise`` and ``env_kwargs``).
+    """
+    if policy_name not in POLICIES:
+        raise ValueError(f"policy_name must be one of {POLICIES}, got {policy_name!r}.")
     torch.set_num_threads(1)
     env = make_path_follow_env(noise, split=split, **env_kwargs)
     env.set_seed(seed)
