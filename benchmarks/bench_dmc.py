@@ -49,6 +49,7 @@ from envs.atomic_io import atomic_write_json
 from envs.demos import apply_motion, nominal_motion
 from envs.dmc import load
 from envs.dmc_physics import HousePhysics, agent_house_model
+from envs.house_mesh import house_model
 from envs.nav_env import DEFAULT_MAX_STEPS, PathFollowEnv
 from envs.render import FirstPersonRenderer
 from envs.scenes import build_house, split_seeds
@@ -147,7 +148,7 @@ def bench_dmc(
     house_seeds = split_seeds("train", num_houses)
     for house_seed in house_seeds:  # compile once per process, outside the timed chunks
         agent_house_model(house_seed)
-        build_house(house_seed).model
+        house_model(build_house(house_seed))
     wrapped = DMControlWrapper(load(seed=seed, **env_kwargs))
     path_follow_env = PathFollowEnv("train", **env_kwargs)
     first_person, dm_control_camera = _render_paths(house_seeds[0], image_size, seed)

@@ -82,8 +82,19 @@ def make_bench_env(**kwargs: Any):
     torch.set_num_threads(1)
     env = make_path_follow_env(**kwargs)
     for seed in env.base_env.house_seeds:
-        build_house(seed).model
+        compile_house_model(seed)
     return env
+
+
+def compile_house_model(seed: int) -> None:
+    """Compile a house's MuJoCo model now (it is cached with the house), outside any timed loop."""
+    house = build_house(seed)
+    try:
+        from envs.house_mesh import house_model
+    except ImportError:  # bench_pipeline's baseline tree, where the layout compiled its own model
+        house.model  # noqa: B018  (the property compiles it)
+        return
+    house_model(house)
 
 
 def make_bench_env_without_demo_frames(**kwargs: Any):

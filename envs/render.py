@@ -69,7 +69,7 @@ def _close_open_renderers() -> None:
     for renderer in list(_OPEN_RENDERERS):
         try:
             renderer.close()
-        except Exception:
+        except Exception:  # best effort at exit
             logger.debug("could not close a renderer at exit", exc_info=True)
 
 
@@ -142,7 +142,7 @@ def create_gl_context(width: int, height: int):
         gl_module = importlib.import_module(f"mujoco.{backend}") if backend != "glfw" else importlib.import_module("mujoco.glfw")
         context = gl_module.GLContext(width, height)
         context.make_current()
-    except Exception as err:
+    except Exception as err:  # re-raised with advice
         alternative = "osmesa" if backend == "egl" else "egl"
         raise RendererUnavailableError(
             f"Could not create a MuJoCo OpenGL context with MUJOCO_GL={backend!r} ({err}). "

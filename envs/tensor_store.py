@@ -165,7 +165,7 @@ class TensorStore:
     def _open(self) -> TensorDict:
         try:
             data = TensorDict.load_memmap(self.root / _DATA_DIR)
-        except Exception as err:
+        except Exception as err:  # any failure to map means a damaged store
             raise self._fail(f"cannot read the tensors ({err}).") from err
         expected = self.empty(self.config)
         present = set(data.keys(include_nested=True, leaves_only=True))

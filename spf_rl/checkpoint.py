@@ -104,7 +104,7 @@ def load_checkpoint(
         raise CheckpointError(f"checkpoint {path} does not exist.")
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
-    except Exception as err:
+    except Exception as err:  # any unpickling failure means a bad file
         raise CheckpointError(f"checkpoint {path} is corrupt or not a checkpoint ({type(err).__name__}: {err}).") from err
     if not isinstance(payload, dict) or payload.get("format_version") != CHECKPOINT_FORMAT_VERSION:
         raise CheckpointError(f"checkpoint {path} has an unknown format (expected version {CHECKPOINT_FORMAT_VERSION}).")

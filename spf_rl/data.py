@@ -330,7 +330,7 @@ class EpisodeDataset(TensorStore):
         demos = DemoStore.build(demos_root(root), config.demo_store_config(), progress=progress, num_workers=num_workers)
         generate = functools.partial(generate_chunk, demos=str(demos.root))
         dataset = cls.create(root, config, generate, config.chunk_size, num_workers=num_workers, progress=progress)
-        dataset.demos
+        dataset.demos  # refuses a demonstration store of another configuration now
         return dataset
 
     def replay_buffer(self, batch_size: int, seed: int = 0, drop_last: bool = False) -> TensorDictReplayBuffer:

@@ -203,7 +203,7 @@ def test_concurrent_builds_of_one_store_take_turns(tmp_path):
     def build():
         try:
             results.append(_store(root, episodes=3))
-        except Exception as err:
+        except Exception as err:  # reported below
             errors.append(err)
 
     threads = [threading.Thread(target=build) for _ in range(2)]
