@@ -79,10 +79,9 @@ class TrainingRun:
         optim: OptimConfig,
         total_steps: int,
         keep_epochs: bool = False,
-        loss_fn: Callable[..., tuple[torch.Tensor, torch.Tensor]] | None = None,
+        *,
+        loss_fn: Callable[..., tuple[torch.Tensor, torch.Tensor]],
     ) -> None:
-        if loss_fn is None:
-            raise ValueError("loss_fn is required: the batch loss, e.g. spf_rl.train.bc.bc_loss.")
         self.loss_fn = loss_fn
         self.model_type, self.policy_config, self.policy, self.optim = model_type, policy_config, policy, optim
         self.optimizer = torch.optim.Adam(policy.parameters(), lr=optim.lr, weight_decay=optim.weight_decay)
