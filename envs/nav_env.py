@@ -13,7 +13,10 @@ limit (:func:`~envs.follow.default_max_steps`: ``ceil(5/3 n)``, 50 for n = 30).
 Protocol (the paper's, Sec. 4.1; :mod:`envs.follow`): forward 0.3 m, turns of 20 deg
 (and STOP with ``stop_action=True``); success, SPL, termination and the dense reward
 are :class:`~envs.follow.FollowRules`'; the final step reports ``success``, ``spl``,
-``goal_distance`` and ``path_length``.
+``goal_distance`` and ``path_length``, and how closely the path followed the route
+(:mod:`envs.path_fidelity`): ``ndtw`` and ``sdtw`` against the demonstrated positions,
+with the success radius as threshold, and ``path_length_ratio`` (travelled over
+demonstrated length); ``wall_hits`` counts the forward steps a wall cut short.
 
 Per-episode data (``demo_frames``, ``demo_actions``) is emitted at every step
 (``ParallelEnv`` drops keys that only ``_reset`` emits). ``success_lab`` is the RPF
@@ -62,11 +65,13 @@ from envs.follow import (
 )
 from envs.homing import FOLLOW, check_task
 from envs.house_grid import check_demo_length
+from envs.path_fidelity import path_fidelity
 from envs.playlist import DemonstrationPlaylist, EpisodeSource
 from envs.render import FirstPersonRenderer
 from envs.scenes import House
 from envs.specs import NUM_DEMO_ACTIONS, NUM_RGB_CHANNELS, path_follow_specs
 from envs.transforms import ACTUATION_NOISE_KEY
+from envs.user_demos import WALL_CONTACT_TOLERANCE_M
 
 logger = logging.getLogger(__name__)
 
@@ -243,6 +248,10 @@ class PathFollowEnv(EnvBase):
         self._episode_index = np.zeros(count, dtype=np.int64)
         self._demo_id, self._house_seed = np.zeros(count, dtype=np.int64), np.zeros(count, dtype=np.int64)
         self._success, self._spl = np.zeros(count, dtype=bool), np.zeros(count)
+        # positions since the episode's start (start included), and the path-fidelity scores
+        self._trail = np.zeros((count, self.max_steps + 1, 2))
+        self._fidelity = np.zeros((count, 3))  # ndtw, sdtw, path_length_ratio
+        self._wall_hits = np.zeros(count, dtype=np.int64)
         # (count, 0, ...) when the frames are not emitted: the per-episode copies cost nothing
         self._demo_frames = torch.zeros(
             (count, n if self.emit_demo_frames else 0, size, size, NUM_RGB_CHANNELS), dtype=torch.uint8
@@ -317,6 +326,9 @@ class PathFollowEnv(EnvBase):
         self._shortest[index] = demo.shortest_length_m
         self._success[index] = False
         self._spl[index] = 0.0
+        self._trail[index, 0] = demo.start_pose[:2]
+        self._fidelity[index] = 0.0
+        self._wall_hits[index] = 0
         demo_actions[index] = torch.from_numpy(demo.actions)
         if self.demo_store is not None:
             stored = self.demo_store.frames[self._demo_id[index]]
@@ -341,10 +353,13 @@ class PathFollowEnv(EnvBase):
         if noise is not None:
             motion += check_actuation_noise(noise, self._count, self.batch_size)
         previous = self._distance.copy()
-        self._path_length += move_agents(self._houses, self._pose, motion)
+        travelled = move_agents(self._houses, self._pose, motion)
+        self._path_length += travelled
+        self._wall_hits += travelled < np.hypot(motion[:, 0], motion[:, 1]) - WALL_CONTACT_TOLERANCE_M
         for index in range(self._count):
             self._distance[index] = self._demos[index].end_field.at(self._pose[index])
         self._steps += 1
+        self._trail[np.arange(self._count), np.minimum(self._steps, self.max_steps)] = self._pose[:, :2]
         outcome = self.rules.score(
             action=action,
             distance_m=self._distance,
@@ -356,6 +371,12 @@ class PathFollowEnv(EnvBase):
         )
         self._success, self._spl = outcome.success, outcome.spl
         self._lab_success = outcome.done & lab_success(self._pose[:, :2], self._end_xy, self._start_xy)
+        for index in np.flatnonzero(outcome.done):
+            scores = path_fidelity(
+                self._trail[index, : min(self._steps[index], self.max_steps) + 1], self._demos[index].poses[:, :2],
+                bool(outcome.success[index]), self.success_radius_m,
+            )
+            self._fidelity[index] = scores["ndtw"], scores["sdtw"], scores["path_length_ratio"]
         pixels = torch.empty((self._count, self.image_size, self.image_size, NUM_RGB_CHANNELS), dtype=torch.uint8)
         self._render(range(self._count), out=pixels.numpy())
         self._pixels = pixels
@@ -367,20 +388,22 @@ class PathFollowEnv(EnvBase):
     ) -> TensorDictBase:
         count = self._count
         # one array per dtype; every key is a view of one of them (casts as ``astype`` would)
-        floats = np.empty((count, 8 if reward is not None else 7), dtype=np.float32)
+        floats = np.empty((count, 11 if reward is not None else 10), dtype=np.float32)
         floats[:, 0] = self._distance
         floats[:, 1] = self._path_length
         floats[:, 2] = self._shortest
         floats[:, 3] = self._spl
         floats[:, 4:7] = self._pose
+        floats[:, 7:10] = self._fidelity
         if reward is not None:
-            floats[:, 7] = reward
-        ints = np.empty((count, 5), dtype=np.int64)
+            floats[:, 10] = reward
+        ints = np.empty((count, 6), dtype=np.int64)
         ints[:, 0] = self._steps
         ints[:, 1] = self._episode_seed
         ints[:, 2] = self._demo_id
         ints[:, 3] = self._episode_index
         ints[:, 4] = self._house_seed
+        ints[:, 5] = self._wall_hits
         bools = np.empty((count, 5), dtype=bool)
         bools[:, 4] = self._lab_success
         bools[:, 0] = self._success
@@ -410,9 +433,13 @@ class PathFollowEnv(EnvBase):
             "terminated": bool_columns[..., 2:3],
             "truncated": bool_columns[..., 3:4],
             "success_lab": bool_columns[..., 4:5],
+            "ndtw": float_columns[..., 7:8],
+            "sdtw": float_columns[..., 8:9],
+            "path_length_ratio": float_columns[..., 9:10],
+            "wall_hits": int_columns[..., 5:6],
         }
         if reward is not None:
-            out["reward"] = float_columns[..., 7:8]
+            out["reward"] = float_columns[..., 10:11]
         if self.emit_demo_frames:
             out["demo_frames"] = demo_frames
         if self.demo_store is not None:

@@ -151,8 +151,8 @@ def episode_record(final: TensorDictBase) -> dict:
     """How an episode ended, from one agent's last ``"next"`` tensordict.
 
     Returns:
-        success, spl, goal_distance (m), path_length (m), shortest_path_length (m),
-        steps, episode_seed and house_seed (the house the episode was played in, the key
+        success, success_lab, spl, goal_distance (m), path_length (m), shortest_path_length (m),
+        ndtw, sdtw, path_length_ratio, wall_hits (:mod:`envs.path_fidelity`), steps, episode_seed and house_seed (the house the episode was played in, the key
         of per-house statistics such as :func:`spf_rl.stats.hierarchical_bootstrap_ci`),
         as Python scalars.
     """
@@ -163,6 +163,10 @@ def episode_record(final: TensorDictBase) -> dict:
         "goal_distance": float(final["goal_distance"].item()),
         "path_length": float(final["path_length"].item()),
         "shortest_path_length": float(final["shortest_path_length"].item()),
+        "ndtw": float(final["ndtw"].item()),
+        "sdtw": float(final["sdtw"].item()),
+        "path_length_ratio": float(final["path_length_ratio"].item()),
+        "wall_hits": int(final["wall_hits"].item()),
         "steps": int(final["step_count"].item()),
         "episode_seed": int(final["episode_seed"].item()),
         "house_seed": int(final["house_seed"].item()),

@@ -35,6 +35,10 @@ PRIVILEGED_KEYS: tuple[str, ...] = (
     "success",
     "success_lab",
     "spl",
+    "ndtw",
+    "sdtw",
+    "path_length_ratio",
+    "wall_hits",
 )
 #: Done keys: ``terminated`` = success (or STOP), ``truncated`` = step limit.
 DONE_KEYS = ("done", "terminated", "truncated")
@@ -85,6 +89,12 @@ def path_follow_specs(
         "success": flag(),
         "success_lab": flag(),
         "spl": unbounded(1),
+        # path fidelity (envs.path_fidelity), reported on an episode's last step (0 before it)
+        "ndtw": unbounded(1),
+        "sdtw": unbounded(1),
+        "path_length_ratio": unbounded(1),
+        # forward steps a wall has cut short since the episode's start
+        "wall_hits": unbounded(1, dtype=torch.int64),
         # also an observation (always zero in outputs), so that batched envs carry the
         # state key to the root, as TorchRL's primers do for recurrent states
         ACTUATION_NOISE_KEY: actuation_noise_spec(shape, device),

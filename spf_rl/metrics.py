@@ -19,6 +19,9 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["summarize"]
 
+#: Per-episode values summarised beside success and SPL when every record has them: the RPF
+#: lab code's success, and how closely the path followed the route (envs.path_fidelity).
+OPTIONAL_METRICS = ("success_lab", "ndtw", "sdtw", "path_length_ratio", "wall_hits")
 #: Defaults of the summaries' bootstrap intervals.
 DEFAULT_CONFIDENCE = 0.95
 DEFAULT_NUM_RESAMPLES = 2000
@@ -41,12 +44,15 @@ def summarize(
 
     Returns:
         dict with ``episodes``, ``success``, ``success_ci``, ``spl``, ``spl_ci``, and
-        ``success_lab`` / ``success_lab_ci`` when every record has ``"success_lab"``.
+        ``<key>`` / ``<key>_ci`` for each key of :data:`OPTIONAL_METRICS` that every
+        record has (``success_lab``, ``ndtw``, ``sdtw``, ``path_length_ratio``, ``wall_hits``).
 
     Examples:
         >>> out = summarize([{"success": 1, "spl": 0.8}, {"success": 0, "spl": 0.0}])
         >>> out["episodes"], out["success"], out["spl"]
         (2, 0.5, 0.4)
+        >>> summarize([{"success": 1, "spl": 0.8, "ndtw": 0.9}, {"success": 0, "spl": 0.0, "ndtw": 0.5}])["ndtw"]
+        0.7
     """
     records = list(records)
     for i, r in enumerate(records):
@@ -63,7 +69,8 @@ def summarize(
         "spl": float(p.mean()) if p.size else nan,
         "spl_ci": bootstrap_ci(p, confidence, num_resamples, seed),
     }
-    if records and all("success_lab" in r for r in records):  # the RPF lab code's criterion, beside ours
-        lab = np.asarray([float(r["success_lab"]) for r in records], dtype=np.float64)
-        summary["success_lab"], summary["success_lab_ci"] = float(lab.mean()), bootstrap_ci(lab, confidence, num_resamples, seed)
+    for key in OPTIONAL_METRICS:
+        if records and all(key in r for r in records):
+            values = np.asarray([float(r[key]) for r in records], dtype=np.float64)
+            summary[key], summary[f"{key}_ci"] = float(values.mean()), bootstrap_ci(values, confidence, num_resamples, seed)
     return summary

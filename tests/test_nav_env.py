@@ -6,6 +6,7 @@ from functools import partial
 import numpy as np
 import pytest
 import torch
+from tensordict import TensorDictBase
 from torchrl.collectors import Collector
 from torchrl.envs import ParallelEnv, SerialEnv, TransformedEnv, check_env_specs
 
@@ -200,3 +201,45 @@ def test_episode_records_name_the_house_each_episode_was_played_in():
     records = run_episodes(env, OpenLoopReplay(), 12)
     assert [r["house_seed"] for r in records] == [played[r["episode_index"]] for r in records]
     assert len({r["house_seed"] for r in records}) > 1  # several houses, so the check can fail
+
+
+def _play(env: PathFollowEnv, actions) -> TensorDictBase:
+    """Reset ``env`` (unbatched) and take ``actions`` until the episode ends; the last ``"next"``."""
+    td = env.reset()
+    for action in actions:
+        td["action"] = torch.tensor(int(action))
+        td = env.step(td)["next"]
+        if td["done"].item():
+            break
+    return td
+
+
+def test_path_fidelity_of_a_replay_a_shortcut_and_a_wall():
+    from envs.path_fidelity import path_fidelity
+    from envs.user_demos import demonstration_from_waypoints
+
+    demo = demonstration_from_waypoints(0, [(7.5, 1.5), (9.5, 1.5), (9.5, 3.5)])  # an L: along x, then up
+    replay_env = PathFollowEnv(demonstrations=[demo], demo_length=demo.length, render=False)
+    replay = _play(replay_env, demo.actions)
+    steps = int(replay["step_count"].item())
+    expected = path_fidelity(demo.poses[: steps + 1, :2], demo.poses[:, :2], True, replay_env.success_radius_m)
+    assert replay["success"].item() and replay["wall_hits"].item() == 0
+    for key, value in expected.items():  # the env scores the positions it drove through
+        assert replay[key].item() == pytest.approx(value, rel=1e-5), key
+    assert replay["ndtw"].item() > 0.9 and replay["path_length_ratio"].item() <= 1.0
+
+    expert_env = PathFollowEnv(demonstrations=[demo], demo_length=demo.length, render=False, with_expert=True)
+    td, final = expert_env.reset(), None
+    while final is None or not final["done"].item():  # the expert heads for the end: it cuts the corner
+        td["action"] = td["expert_action"]
+        final = td = expert_env.step(td)["next"]
+    assert final["success"].item() and final["path_length_ratio"].item() < 0.9 * replay["path_length_ratio"].item()
+    assert final["ndtw"].item() < replay["ndtw"].item() - 0.2  # success, but not the route that was shown
+    assert final["sdtw"].item() == pytest.approx(final["ndtw"].item())
+
+    # turn to face the wall 0.3 m behind the start, then press forward: the first step fits, the others hit
+    wall = _play(replay_env, [TURN_LEFT] * 9 + [0] * 4)
+    assert wall["wall_hits"].item() == 3
+    spin = _play(replay_env, [TURN_LEFT] * replay_env.max_steps)  # fails: no SDTW, and a path of length 0
+    assert not spin["success"].item() and spin["sdtw"].item() == 0.0 and spin["path_length_ratio"].item() == 0.0
+    assert 0.0 < spin["ndtw"].item() < 0.5

@@ -7,16 +7,12 @@ from pathlib import Path
 
 import pytest
 
-from spf_rl.config import load_config
-from spf_rl.eval import table1_rows
 from spf_rl.train.bc import BCConfig, train_bc
 from spf_rl.train.dagger import DAGGER_RESUME_FREE, DAggerConfig, default_dagger_val_config, train_dagger
 from spf_rl.train.ppo import train_ppo
 from spf_rl.train.ppo_config import PPO_RESUME_FREE, PPOConfig
 from spf_rl.train.run import OptimConfig
 from spf_rl.train.run_config import BC_RESUME_FREE, EXECUTION_KEYS, changed_settings, config_dict, write_run_config
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def started_run(directory: Path, config) -> Path:
@@ -90,24 +86,3 @@ def test_free_settings_name_real_config_fields():
             assert has_setting(settings, name), f"{type(config).__name__} has no setting {name}"
     for name in EXECUTION_KEYS:
         assert any(has_setting(config_dict(config), name) for config, _ in recipes), name
-
-
-def test_committed_runs_resume_under_their_presets():
-    """``python recipes/bc.py|dagger.py --preset P seed=S`` would accept each committed Table 1 run
-    directory (its ``config.json``) if it were resumed."""
-
-    checked = 0
-    for row in table1_rows.ROWS:
-        for seed in (0, 1, 2):
-            configs = []
-            if row.preset:
-                configs.append((table1_rows.row_config(row, seed, [], quick=False), BC_RESUME_FREE))
-            if row.dagger_preset:
-                configs.append((load_config(DAggerConfig, "dagger", [f"seed={seed}"], preset=row.dagger_preset), DAGGER_RESUME_FREE))
-            for config, free in configs:
-                path = ROOT / config.output_dir / "config.json"  # kept in git; resume state (last.pt) is not
-                if path.is_file():
-                    changed = changed_settings(json.loads(path.read_text()), config_dict(config), (*EXECUTION_KEYS, *free))
-                    assert changed == [], f"{config.output_dir}: {changed}"
-                    checked += 1
-    assert checked >= 40  # every row with a preset has committed runs (42 today)
