@@ -23,66 +23,12 @@ import argparse
 import logging
 from pathlib import Path
 
-from envs.atomic_io import atomic_write_json
 from envs.scenes import SPLIT_SEED_OFFSETS
 from envs.transforms import DEFAULT_NOISE, NOISE_PRESETS
-from spf_rl.device import DEFAULT_DEVICE, DEVICE_CHOICES, module_device, resolve_device
-from spf_rl.hub import CHECKPOINT_DIR, list_checkpoints
+from spf_rl.device import DEFAULT_DEVICE, DEVICE_CHOICES, resolve_device
+from spf_rl.eval.checkpoints import EvalOptions, evaluate_checkpoints, expand_targets
 
 SPLITS = tuple(SPLIT_SEED_OFFSETS)
-
-
-def evaluate_path(path: str, args: argparse.Namespace) -> dict:
-    """Evaluate one checkpoint file (or ``open_loop``) and return its results dict."""
-    import envs  # noqa: F401
-    from spf_rl.hub import policy_from_checkpoint, resolve_checkpoint
-    from spf_rl.modules.open_loop import OpenLoopPolicy
-    from spf_rl.train.bc import model_memory_bytes
-    from spf_rl.train.evaluation import EvalConfig, evaluate_policy
-
-    if path == "open_loop":
-        policy, model_type, demo_length, image_size, sparsity = OpenLoopPolicy(), "open_loop", args.demo_length, args.image_size, 0.0
-        memory = demo_length
-    else:
-        policy, payload = policy_from_checkpoint(
-            resolve_checkpoint(path), expected_model_type=args.model_type, device=args.device
-        )
-        config = payload["model_config"]
-        model_type = payload["model_type"]
-        demo_length, image_size, sparsity = config.demo_length, config.image_size[0], config.effective_sparsity
-        if args.sparsity is not None:
-            if config.sparsity_range is None:
-                raise ValueError(
-                    f"--sparsity applies to random-sparsity models (model type 'spf_random') only; {path} holds a "
-                    f"{model_type!r} model with a fixed sparsity {sparsity:g}."
-                )
-            policy.set_sparsity(args.sparsity)
-            sparsity = args.sparsity
-        memory = model_memory_bytes(model_type, demo_length, sparsity, image_size)
-    eval_config = EvalConfig(
-        split=args.split,
-        num_episodes=args.episodes,
-        noise=args.noise,
-        seed=args.seed,
-        num_agents=args.num_agents,
-        demo_length=demo_length,
-        max_steps=args.max_steps,
-        image_size=image_size,
-        render=path != "open_loop",
-        store_root=args.store_root or None,
-        num_collectors=args.num_collectors,
-    )
-    summary, records = evaluate_policy(policy, eval_config, progress=not args.no_progress)
-    return {
-        "checkpoint": path,
-        "model": model_type,
-        "sparsity": sparsity,
-        "memory_bytes": memory,
-        "device": str(module_device(policy)),  # the CPU for open-loop replay, which has no weights
-        **summary,
-        "eval": vars(eval_config),
-        "episodes_records": records,
-    }
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
@@ -124,37 +70,18 @@ def main(argv: list[str] | None = None) -> list[dict]:
     if args.num_collectors <= 0:
         parser.error(f"--num-collectors must be a positive int, got {args.num_collectors}")
     try:
-        args.device = resolve_device(args.device, name="--device")
+        device = resolve_device(args.device, name="--device")
+        targets = expand_targets(args.paths)
     except ValueError as err:
         parser.error(str(err))
-
-    targets: list[str] = []
-    for path in args.paths:
-        if path == "open_loop":
-            targets.append(path)
-        elif Path(path).is_dir():
-            found = sorted(str(p) for p in Path(path).rglob("*.pt"))
-            if not found:
-                parser.error(f"directory {path} holds no *.pt checkpoint")
-            targets += found
-        else:
-            targets.append(path)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    shipped = set(list_checkpoints()) if CHECKPOINT_DIR.is_dir() else set()
+    options = EvalOptions(
+        split=args.split, episodes=args.episodes, noise=args.noise, seed=args.seed, num_agents=args.num_agents,
+        max_steps=args.max_steps, demo_length=args.demo_length, image_size=args.image_size, sparsity=args.sparsity,
+        model_type=args.model_type, device=device, store_root=args.store_root, num_collectors=args.num_collectors,
+        progress=not args.no_progress,
+    )
     results = []
-    for target in targets:
-        result = evaluate_path(target, args)
-        if target == "open_loop":
-            name = target
-        elif target in shipped:
-            name = f"checkpoints_{target}"
-        else:
-            name = Path(target).with_suffix("").as_posix().replace("/", "_").strip("_.")
-        if args.sparsity is not None and target != "open_loop":
-            name += f"-at{args.sparsity:g}"
-        destination = out / f"{name}-{args.split}-{args.noise}-seed{args.seed}.json"
-        atomic_write_json(destination, result)
+    for target, result, destination in evaluate_checkpoints(targets, options, Path(args.out)):
         print(f"{target}: success {result['success']:.3f} {result['success_ci']}  SPL {result['spl']:.3f} -> {destination}")
         results.append(result)
     return results

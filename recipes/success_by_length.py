@@ -21,27 +21,8 @@ import argparse
 import logging
 from pathlib import Path
 
-from envs.atomic_io import atomic_write_json
 from envs.scenes import SPLIT_SEED_OFFSETS
 from envs.transforms import DEFAULT_NOISE, NOISE_PRESETS
-
-logger = logging.getLogger("success_by_length")
-
-#: File names written in --out.
-JSON_NAME, FIGURE_NAME = "success_by_length.json", "success_by_length.png"
-
-
-def label_of(path_or_name: str) -> str:
-    """How the JSON and the figure name a checkpoint: a shipped name, or ``<run dir>/<file>``.
-
-    Examples:
-        >>> label_of("spf-s0.8"), label_of("runs/bc_lengths/spf-s0.8-seed0/best.pt")
-        ('spf-s0.8', 'spf-s0.8-seed0/best')
-    """
-    path = Path(path_or_name)
-    if path.suffix != ".pt":
-        return path_or_name
-    return f"{path.parent.name}/{path.stem}" if path.parent.name else path.stem
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -71,7 +52,7 @@ def main(argv: list[str] | None = None) -> dict:
     if args.episodes <= 0 or args.num_agents <= 0:
         parser.error(f"--episodes and --num-agents must be positive ints, got {args.episodes}, {args.num_agents}.")
     from spf_rl.checkpoint import CheckpointError
-    from spf_rl.hub import load_policy
+    from spf_rl.eval.by_length import load_policies, success_by_length
     from spf_rl.train.evaluation import EvalConfig
 
     try:
@@ -79,28 +60,12 @@ def main(argv: list[str] | None = None) -> dict:
             split=args.split, num_episodes=args.episodes, noise=args.noise, seed=args.seed,
             num_agents=args.num_agents, num_houses=args.num_houses, render=not args.no_render,
         )
-        policies = {label_of(name): load_policy(name, device=args.device).policy for name in args.checkpoints}
+        policies = load_policies(args.checkpoints, device=args.device)
     except (ValueError, FileNotFoundError, CheckpointError) as err:
         parser.error(str(err))
 
-    from spf_rl.train.lengths import evaluate_lengths
-    from spf_rl.viz import plot_if_available, plot_success_by_length
-
-    results = {}
-    for label, policy in policies.items():
-        logger.info("%s at lengths %s", label, args.lengths)
-        results[label], _ = evaluate_lengths(policy, args.lengths, config, progress=not args.quiet)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    content = {
-        "recipe": "recipes/success_by_length.py",
-        "setup": {key: getattr(args, key) for key in ("lengths", "episodes", "split", "num_houses", "noise", "seed")},
-        "render": not args.no_render,
-        "results": results,
-    }
-    atomic_write_json((out / JSON_NAME), content)
-    plot_if_available(plot_success_by_length, results, out / FIGURE_NAME, title=f"success against route length ({args.noise} noise)")
-    for label, rows in results.items():
+    content = success_by_length(policies, args.lengths, config, Path(args.out), progress=not args.quiet)
+    for label, rows in content["results"].items():
         print(label + ": " + ", ".join(f"n={row['demo_length']} success {row['success']:.2f} SPL {row['spl']:.2f}" for row in rows))
     return content
 

@@ -5,38 +5,34 @@ Rows (``--rows`` names them; each is also the stem of its shipped checkpoint):
 * ``spf-s0.4``, ``spf-s0.6``, ``spf-s0.8``: SPF at sparsity 0.4 / 0.6 / 0.8;
 * ``rpf-s1``: SPF at sparsity 1 (RPF as SPF: full memory, SPF's network);
 * ``rpf_original-s1``: the original RPF (the RPF lab code's memory network);
-* ``spf_rpf_pointer-s0.8`` and ``spf_rpf_pointer_long-s0.8``: SPF 0.8 with RPF's pointer
-  rule, on the ``bc_row`` and the long schedule (beyond the paper);
+* ``spf_rpf_pointer-s0.8`` and ``spf_rpf_pointer_long-s0.8``: SPF 0.8 with RPF's pointer rule, on the ``bc_row``
+  and the long schedule (beyond the paper);
 * ``action_only-s0``: RPF action only; ``open_loop``: open-loop replay (no training);
-* ``spf_random-s0.2-1``: one model trained with a random sparsity per episode in
-  [0.2, 1], evaluated at each of :data:`RANDOM_EVAL_SPARSITIES` (one table line each).
+* ``spf_random-s0.2-1``: one model trained with a random sparsity per episode in [0.2, 1], evaluated at each of
+  :data:`~spf_rl.eval.table1_rows.RANDOM_EVAL_SPARSITIES` (one table line each).
 
-Every learned row is trained with each of ``--seeds`` (default 0, 1, 2) under the
-``paper`` noise: SPF 0.8 with the long schedule (``--preset bc_long``, 20,000 gradient
-steps), every other row with ``--preset bc_row`` (5,000 steps); run directories
-``runs/bc_long/<model>-s<sparsity>-seed<S>`` and ``runs/bc_row/...`` (the presets'
-``output_dir``; an interrupted run resumes). A finished run's ``best.pt`` (best by
-validation) is copied to ``checkpoints/table1/<row>-seed<S>.pt``, and the seed with
-the best validation success of each row becomes the row's shipped name ``<row>``
-(``checkpoints/manifest.json`` maps the name to that file). DAgger checkpoints (a DAgger column for the rows with a
-:attr:`RowSpec.dagger_preset`) are never trained here: a finished run of the row's DAgger
-preset (``python recipes/dagger.py --preset dagger_long|dagger_rpf|... seed=S``) is copied to
-``checkpoints/table1/dagger-<row>-seed<S>.pt`` (or put one there yourself), and its best
-seed by validation is shipped as ``dagger-<row>``. ``--from-checkpoints`` trains
-nothing, but still copies and ships what finished runs left. A per-seed checkpoint
-whose run directory is gone (no ``results.json``) is scored on its run's own validation
-episodes (cached in ``results/eval/table1/val/``), so that shipping stays by validation.
+Every learned row is trained with each of ``--seeds`` (default 0, 1, 2) under the ``paper`` noise: SPF 0.8 with
+the long schedule (``--preset bc_long``, 20,000 gradient steps), every other row with ``--preset bc_row`` (5,000
+steps); run directories ``runs/bc_long/<model>-s<sparsity>-seed<S>`` and ``runs/bc_row/...`` (the presets'
+``output_dir``; an interrupted run resumes). A finished run's ``best.pt`` (best by validation) is copied to
+``checkpoints/table1/<row>-seed<S>.pt``, and the seed with the best validation success of each row becomes the
+row's shipped name ``<row>`` (``checkpoints/manifest.json`` maps the name to that file). DAgger checkpoints (a
+DAgger column for the rows with a :attr:`~spf_rl.eval.table1_rows.RowSpec.dagger_preset`) are never trained here:
+a finished run of the row's DAgger preset (``python recipes/dagger.py --preset dagger_long|dagger_rpf|... seed=S``)
+is copied to ``checkpoints/table1/dagger-<row>-seed<S>.pt`` (or put one there yourself), and its best seed by
+validation is shipped as ``dagger-<row>``. ``--from-checkpoints`` trains nothing, but still copies and ships what
+finished runs left. A per-seed checkpoint whose run directory is gone (no ``results.json``) is scored on its run's
+own validation episodes (cached in ``results/eval/table1/val/``), so that shipping stays by validation.
 
-Every checkpoint is scored on the same episodes: the ``test`` set (``bc_long``'s test
-config: 1,000 episodes of the 18 test houses, seed 2, ``paper`` noise) and the
-``extended`` set (the same with 100 test-split houses). Per-episode records are cached
-in ``results/eval/table1/<set>/<line>-seed<S>.json``, keyed by the evaluation config and
-the checkpoint's SHA-256, so a rerun evaluates only what is missing or changed.
-Seeds without a checkpoint are listed as missing, never silently dropped.
+Every checkpoint is scored on the same episodes: the ``test`` set (``bc_long``'s test config: 1,000 episodes of
+the 18 test houses, seed 2, ``paper`` noise) and the ``extended`` set (the same with 100 test-split houses).
+Per-episode records are cached in ``results/eval/table1/<set>/<line>-seed<S>.json``, keyed by the evaluation
+config and the checkpoint's SHA-256, so a rerun evaluates only what is missing or changed. Seeds without a
+checkpoint are listed as missing, never silently dropped.
 
-Writes ``results/table1.json``, ``results/table1.md`` and ``results/table1.png``
-(:mod:`table1_report`): mean +- sd over seeds, house-level bootstrap intervals, paired
-bootstrap tests of the ordering claims (:data:`CLAIMS`), both success criteria.
+Writes ``results/table1.json``, ``results/table1.md`` and ``results/table1.png`` (:mod:`spf_rl.eval.table1`):
+mean +- sd over seeds, house-level bootstrap intervals, paired bootstrap tests of the ordering claims
+(:data:`~spf_rl.eval.table1_rows.CLAIMS`), both success criteria.
 
 Usage::
 
@@ -50,60 +46,33 @@ from __future__ import annotations
 
 import argparse
 import logging
+from collections.abc import Callable
 from pathlib import Path
 
-from spf_rl.config import load_config
-from spf_rl.eval.table1 import build_table, write_reports
-from spf_rl.eval.table1_rows import (
-    CLAIMS,
-    QUICK_DIR,
-    QUICK_EPISODES,
-    ROW_BY_NAME,
-    SETS,
-    cached_validation,
-    eval_sets,
-    evaluate_all,
-    preset_of,
-    row_config,
-    table_lines,
-    train_missing,
-)
-
-logger = logging.getLogger("table1")
+from spf_rl.eval.table1_rows import QUICK_DIR, QUICK_EPISODES, ROW_BY_NAME, SETS, Table1Options, parse_names, parse_seeds, reproduce
 
 
-# ------------------------------------------------------------------------- options
-def comma_list(allowed: tuple[str, ...], what: str):
-    def parse(text: str) -> list[str]:
-        items = [item.strip() for item in text.split(",") if item.strip()]
-        unknown = [item for item in items if item not in allowed]
-        if unknown or not items:
-            raise argparse.ArgumentTypeError(f"unknown {what} {unknown or text!r}; allowed: {', '.join(allowed)}")
-        return list(dict.fromkeys(items))
+def arg_type(parse: Callable, *params) -> Callable[[str], object]:
+    """``parse(text, *params)`` as an argparse type: its ``ValueError`` is the option's one error line."""
+    def parse_arg(text: str):
+        try:
+            return parse(text, *params)
+        except ValueError as err:
+            raise argparse.ArgumentTypeError(str(err)) from None
 
-    return parse
-
-
-def seed_list(text: str) -> list[int]:
-    try:
-        seeds = [int(item) for item in text.split(",") if item.strip()]
-    except ValueError:
-        seeds = []
-    if not seeds or any(seed < 0 for seed in seeds):
-        raise argparse.ArgumentTypeError(f"seeds must be comma-separated integers >= 0 (e.g. 0,1,2), got {text!r}")
-    return sorted(set(seeds))
+    return parse_arg
 
 
-def parse_args(argv: list[str] | None) -> argparse.Namespace:
+def parse_args(argv: list[str] | None) -> Table1Options:
     """The options, all checked before any work (a bad one exits with a message naming it)."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument(
         "--from-checkpoints", action="store_true",
         help="train nothing: score the checkpoints there are (finished runs are still copied and shipped)",
     )
-    parser.add_argument("--rows", type=comma_list(tuple(ROW_BY_NAME), "row"), default=list(ROW_BY_NAME))
-    parser.add_argument("--seeds", type=seed_list, default=[0, 1, 2])
-    parser.add_argument("--sets", type=comma_list(SETS, "set"), default=list(SETS))
+    parser.add_argument("--rows", type=arg_type(parse_names, tuple(ROW_BY_NAME), "row"), default=list(ROW_BY_NAME))
+    parser.add_argument("--seeds", type=arg_type(parse_seeds), default=[0, 1, 2])
+    parser.add_argument("--sets", type=arg_type(parse_names, SETS, "set"), default=list(SETS))
     parser.add_argument(
         "--quick", action="store_true",
         help=f"smoke run: {QUICK_EPISODES} episodes per set, bc_quick training, all under {QUICK_DIR}/",
@@ -114,42 +83,20 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--num-resamples", type=int, default=10_000, help="bootstrap resamples")
     parser.add_argument("overrides", nargs="*", help="key=value overrides for every training run (as for bc.py)")
     args = parser.parse_args(argv)
-    if args.num_resamples < 1:
-        parser.error(f"argument --num-resamples: must be >= 1, got {args.num_resamples}")
-    if any(item.split("=", 1)[0] == "seed" for item in args.overrides):
-        parser.error("the override seed=... is not allowed: choose the training seeds with --seeds (e.g. --seeds 0,1,2)")
-    root = QUICK_DIR if args.quick else Path(".")
-    args.checkpoints = args.checkpoints or root / "checkpoints"
-    args.eval_dir = args.eval_dir or (root / "eval" if args.quick else Path("results/eval/table1"))
-    args.out = args.out or (root / "results" if args.quick else Path("results"))
-    try:  # bad overrides are refused here, before any work
-        args.eval_sets = eval_sets(args.overrides, args.quick)
-        for row in (ROW_BY_NAME[name] for name in args.rows if ROW_BY_NAME[name].preset):
-            row_config(row, args.seeds[0], args.overrides, args.quick)
+    try:
+        return Table1Options(
+            rows=args.rows, seeds=args.seeds, sets=args.sets, overrides=args.overrides, quick=args.quick,
+            from_checkpoints=args.from_checkpoints, checkpoints=args.checkpoints, eval_dir=args.eval_dir, out=args.out,
+            num_resamples=args.num_resamples,
+        )
     except ValueError as err:
-        parser.error(f"overrides: {err}")
-    return args
+        parser.error(str(err))
 
 
 def main(argv: list[str] | None = None) -> dict:
-    args = parse_args(argv)
+    options = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    from spf_rl.device import resolve_device
-    from spf_rl.train.bc import BCConfig
-
-    base = load_config(BCConfig, "bc", args.overrides, preset="bc_long")
-    device = str(resolve_device(base.device))
-    rows = [ROW_BY_NAME[name] for name in args.rows]
-    shipped = train_missing(rows, args.seeds, args.overrides, args.checkpoints, args.quick, train=not args.from_checkpoints,
-                            validate=cached_validation(args.eval_dir, device))
-    sets = {name: args.eval_sets[name] for name in args.sets}
-    lines = table_lines(rows, base.data.demo_length, base.data.image_size)
-    evaluations, missing = evaluate_all(lines, args.seeds, sets, args.checkpoints, args.eval_dir, device)
-    table = build_table(lines, evaluations, sets, args.seeds, CLAIMS, missing, args.num_resamples)
-    table["shipped"] = shipped
-    table["schedules"] = {row.name: preset_of(row, args.quick) for row in rows}
-    write_reports(table, args.out)
-    return table
+    return reproduce(options)
 
 
 if __name__ == "__main__":

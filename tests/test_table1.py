@@ -67,7 +67,7 @@ def test_table_from_cached_records_counts_seeds_and_tests_the_claims(tmp_path, m
     })
     monkeypatch.setattr(table1_rows, "evaluate_line", lambda *a: pytest.fail("everything is cached: nothing to evaluate"))
     # the checkpoints have no run results: each is scored on validation (here a stub) and the best one shipped
-    monkeypatch.setattr(table1, "cached_validation", lambda eval_dir, device: lambda line, seed, path, config: (seed / 10, 0.0))
+    monkeypatch.setattr(table1_rows, "cached_validation", lambda eval_dir, device: lambda line, seed, path, config: (seed / 10, 0.0))
     table = table1.main(options(tmp_path, "--from-checkpoints", "--rows", ROWS, "--sets", "test"))
     assert table["shipped"]["spf-s0.8"]["seed"] == 2 and table["shipped"]["action_only-s0"]["seed"] == 1
 

@@ -14,7 +14,7 @@ from envs import RouteRecorder, demonstration_from_actions, demonstration_from_w
 from envs.expert import FORWARD, TURN_LEFT
 from envs.scenes import build_house
 from spf_rl.teach.keyboard import NO_KEY, ascii_map, decode_escape, handle_key
-from spf_rl.teach.repeat import route_letters
+from spf_rl.teach.repeat import DEFAULT_CHECKPOINT, DEFAULT_HOMING_CHECKPOINT, route_letters
 
 HOUSE = "0"
 START = "7.5,1.5,0"
@@ -47,7 +47,7 @@ def test_headless_run_writes_video_map_and_json(taught):
         assert isinstance(record["success"], bool) and 0.0 <= record["spl"] <= 1.0
         assert record["spl"] > 0 or not record["success"]
     assert saved["route"]["actions"] == ROUTE and saved["route"]["steps"] == 30
-    assert saved["checkpoint"] == teach.DEFAULT_CHECKPOINT and saved["noise"] == "paper"
+    assert saved["checkpoint"] == DEFAULT_CHECKPOINT and saved["noise"] == "paper"
     assert saved["summary"]["episodes"] == 4
     # four repeats under their own noise are not all the same path
     assert len({r["path_length"] for r in saved["repeats"]}) > 1
@@ -90,7 +90,7 @@ def test_homing_brings_the_route_back_to_its_start(tmp_path):
     content = teach.main(headless(tmp_path, "--actions", ROUTE, "--repeats", "2", "--seed", "3", "--no-video", "--homing"))
     route, home = content["route"], content["homing"]
     assert content["task"] == "homing" and content["max_steps"] == 50 and route["actions"] == ROUTE
-    assert content["checkpoint"] == teach.DEFAULT_HOMING_CHECKPOINT  # the homing policy brings routes home
+    assert content["checkpoint"] == DEFAULT_HOMING_CHECKPOINT  # the homing policy brings routes home
     # the env's homing demonstration: from the route's end, facing back, to the route's start
     taught = demonstration_from_actions(0, (7.5, 1.5, 0.0), ROUTE)
     np.testing.assert_allclose(home["start"][:2], taught.poses[-1, :2])
@@ -106,8 +106,8 @@ def route_of(argv: list[str]):
     """The demonstration the CLI builds from ``argv`` (no repeats)."""
     parser = teach.build_parser()
     args = parser.parse_args(argv)
-    house, start, _, config = teach.check_args(parser, args)
-    return teach.teach_route(parser, args, house, start, config.demo_length)
+    _, demo, _, _ = teach.setup(parser, args)
+    return demo
 
 
 def test_waypoints_give_the_planned_route(tmp_path):

@@ -6,17 +6,37 @@ Each (split, policy, noise) run plays :func:`envs.scripted.run_episodes` on a ba
 env with a fixed seed (agent ``i``'s k-th episode depends only on the seed, ``i`` and
 ``k``), without rendering. Means come with 95% percentile bootstrap intervals
 (:func:`spf_rl.stats.bootstrap_ci`).
+
+* :func:`run_one`: one run; :func:`run_study`: every (split, run) pair, serially or in
+  worker processes, the JSON rewritten after each run (a partial study keeps its rows);
+* :func:`parse_runs`, :func:`check_splits`, :func:`default_output`: the study's options;
+* :func:`study_setup`: the set-up written with the numbers; :func:`markdown_table`: the rows as a table.
 """
 from __future__ import annotations
 
+import logging
 import time
+from collections.abc import Iterable, Sequence
+from pathlib import Path
 
 import numpy as np
 import torch
 
+from envs.atomic_io import atomic_write_json
+from envs.demos import DEFAULT_DEMO_LENGTH
 from envs.factory import make_path_follow_env
+from envs.homing import FOLLOW
+from envs.scenes import SPLIT_SEED_OFFSETS, build_house
 from envs.scripted import ExpertPolicy, OpenLoopReplay, run_episodes
+from envs.transforms import NOISE_PRESETS
 from spf_rl.stats import bootstrap_ci
+
+logger = logging.getLogger(__name__)
+
+#: The recipe named in the JSON.
+RECIPE = "recipes/expert_stats.py"
+#: File name of the paper's study (follow, n = 30); others are ``expert_stats_<task>_n<n>.json`` beside it.
+RESULTS_NAME = "expert_stats.json"
 
 #: The policies :func:`run_one` scores.
 POLICIES = ("expert", "open_loop")
@@ -86,3 +106,165 @@ def run_one(split: str, policy_name: str, noise: str, episodes: int, env_kwargs:
     row["seconds"] = elapsed
     row["episode_seeds_checksum"] = int(sum(r["episode_seed"] % 1_000_003 for r in records))
     return row
+
+
+def parse_runs(runs: Iterable[str]) -> list[tuple[str, str]]:
+    """``"policy:noise"`` items -> ``(policy, noise)`` pairs, every one checked before any episode is played.
+
+    Raises:
+        ValueError: an item that is not ``POLICY:NOISE`` with a policy of :data:`POLICIES` and a noise preset.
+
+    Examples:
+        >>> parse_runs(["expert:paper", "open_loop:none"])
+        [('expert', 'paper'), ('open_loop', 'none')]
+    """
+    pairs = []
+    for run in runs:
+        policy_name, _, noise = run.partition(":")
+        if policy_name not in POLICIES or noise not in NOISE_PRESETS:
+            raise ValueError(
+                f"--runs: {run!r} must be POLICY:NOISE with POLICY in (expert, open_loop) and NOISE in {sorted(NOISE_PRESETS)}"
+            )
+        pairs.append((policy_name, noise))
+    return pairs
+
+
+def check_splits(splits: Iterable[str]) -> None:
+    """Raise ``ValueError`` naming the first split that is not a house split.
+
+    Examples:
+        >>> check_splits(["train", "test"])
+        >>> check_splits(["train", "dev"])
+        Traceback (most recent call last):
+        ...
+        ValueError: --splits: 'dev' is not one of ['train', 'val', 'test']
+    """
+    for split in splits:
+        if split not in SPLIT_SEED_OFFSETS:
+            raise ValueError(f"--splits: {split!r} is not one of {list(SPLIT_SEED_OFFSETS)}")
+
+
+def default_output(results_path: Path, task: str, demo_length: int | None) -> Path:
+    """``results_path`` for the paper's study (follow, n = 30), else ``expert_stats_<task>_n<n>.json`` beside it.
+
+    Examples:
+        >>> default_output(Path("results/expert_stats.json"), "homing", None).name
+        'expert_stats_homing_n30.json'
+        >>> default_output(Path("results/expert_stats.json"), "follow", 30).name
+        'expert_stats.json'
+    """
+    length = demo_length or DEFAULT_DEMO_LENGTH
+    paper = task == FOLLOW and length == DEFAULT_DEMO_LENGTH
+    return results_path if paper else results_path.with_name(f"expert_stats_{task}_n{length}.json")
+
+
+def study_env_kwargs(num_agents: int, task: str, demo_length: int | None = None) -> dict:
+    """Keyword arguments of the study's envs: no rendering, the expert's labels, ``demo_length`` if given.
+
+    Examples:
+        >>> study_env_kwargs(25, "follow", 50)["demo_length"], study_env_kwargs(25, "follow")["render"]
+        (50, False)
+    """
+    env_kwargs: dict = {"num_agents": num_agents, "render": False, "emit_demo_frames": False, "with_expert": True, "task": task}
+    if demo_length is not None:
+        env_kwargs["demo_length"] = demo_length
+    return env_kwargs
+
+
+def study_setup(split: str, env_kwargs: dict, episodes: int, seed: int, resamples: int) -> dict:
+    """The set-up written with the numbers, read off an env of ``split`` made with ``env_kwargs``."""
+    base = make_path_follow_env("none", split=split, **{**env_kwargs, "num_agents": 1}).base_env
+    return {
+        "episodes_per_run": episodes,
+        "num_agents": env_kwargs["num_agents"],
+        "seed": seed,
+        "task": base.task,
+        "demo_length": base.demo_length,
+        "max_steps": base.max_steps,
+        "house_size_m": list(build_house(base.house_seeds[0]).size_m),
+        "stop_action": base.stop_action,
+        "success_radius": f"max({base.success_radius_m} m, {base.success_fraction} x initial geodesic distance)",
+        "render": False,
+        "ci": f"95% percentile bootstrap of the mean, {resamples} resamples, numpy default_rng(seed)",
+        "episodes": "identical across policies and noise presets of a split (same env seed and batch size; "
+        "episode_seeds_checksum is equal within a split)",
+        "open_loop": "replays the demonstration's actions, then turns left after the demonstration",
+    }
+
+
+def run_study(
+    splits: Sequence[str],
+    runs: Sequence[tuple[str, str]],
+    output: Path,
+    *,
+    episodes: int,
+    env_kwargs: dict,
+    seed: int = 0,
+    resamples: int = 10_000,
+    jobs: int = 1,
+) -> dict:
+    """Score every (split, policy, noise) run and write the JSON to ``output`` after each one.
+
+    Args:
+        splits: house splits (:func:`check_splits`).
+        runs: ``(policy, noise)`` pairs (:func:`parse_runs`).
+        output: the JSON file, rewritten after every run so that a partial study keeps its rows.
+        episodes: episodes per run.
+        env_kwargs: the envs' keyword arguments (:func:`study_env_kwargs`).
+        seed: env seed (fixes the episodes) and bootstrap seed.
+        resamples: bootstrap resamples.
+        jobs: worker processes (runs are independent); ``1``: this process, with progress bars.
+
+    Returns:
+        The JSON content: ``recipe``, ``setup`` (:func:`study_setup`), ``notes`` and ``results``
+        (one row per run, split-major, in the order given).
+    """
+    results: list[dict] = []
+    content = {
+        "recipe": RECIPE,
+        "setup": study_setup(splits[0], env_kwargs, episodes, seed, resamples),
+        "notes": list(NOTES),
+        "results": results,
+    }
+    tasks = [(split, policy_name, noise) for split in splits for policy_name, noise in runs]
+    common = (episodes, env_kwargs, seed, resamples)
+
+    def collect(rows: Iterable[dict]) -> None:
+        for row in rows:  # in task order
+            results.append(row)
+            logger.info(
+                "%s %s %s: success %.3f, SPL %.3f (%.0f s)",
+                row["split"], row["policy"], row["noise"], row["success"], row["spl"], row["seconds"],
+            )
+            output.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write_json(output, content)
+
+    if jobs <= 1:
+        collect(run_one(*task, *common, True) for task in tasks)
+    else:
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(jobs) as pool:
+            collect(pool.map(run_one, *zip(*[(*task, *common, False) for task in tasks])))
+    return content
+
+
+def markdown_table(rows: Iterable[dict]) -> str:
+    """The rows of :func:`run_study` as a markdown table: success and SPL with their intervals, mean steps.
+
+    Examples:
+        >>> row = {"split": "test", "policy": "expert", "noise": "paper", "success": 0.98, "success_ci95": [0.97, 0.99],
+        ...        "spl": 0.95, "spl_ci95": [0.94, 0.96], "mean_steps": 21.04}
+        >>> print(markdown_table([row]))
+        | split | policy | noise | success [95% CI] | SPL [95% CI] | mean steps |
+        |---|---|---|---|---|---|
+        | test | expert | paper | 0.980 [0.970, 0.990] | 0.950 [0.940, 0.960] | 21.0 |
+    """
+    lines = ["| split | policy | noise | success [95% CI] | SPL [95% CI] | mean steps |", "|---|---|---|---|---|---|"]
+    for row in rows:
+        (sl, sh), (pl, ph) = row["success_ci95"], row["spl_ci95"]
+        lines.append(
+            f"| {row['split']} | {row['policy']} | {row['noise']} | {row['success']:.3f} [{sl:.3f}, {sh:.3f}] | "
+            f"{row['spl']:.3f} [{pl:.3f}, {ph:.3f}] | {row['mean_steps']:.1f} |"
+        )
+    return "\n".join(lines)

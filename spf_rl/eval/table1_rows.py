@@ -1,20 +1,21 @@
 """The rows of Table 1 and the runs behind them: what each row trains, how the seeds of its
 finished runs become per-seed checkpoints and a shipped name, and how every checkpoint is
 scored on the table's episode sets (cached per episode). ``recipes/table1.py`` is the
-command line; :mod:`spf_rl.eval.table1` turns the records into the table.
+command line (:class:`Table1Options`, :func:`parse_names`, :func:`parse_seeds`, then
+:func:`reproduce`); :mod:`spf_rl.eval.table1` turns the records into the table.
 """
 from __future__ import annotations
 
 import dataclasses
 import json
 import logging
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from envs.atomic_io import atomic_write
 from spf_rl.config import load_config
-from spf_rl.eval.table1 import Line, cache_entry, cached_records
+from spf_rl.eval.table1 import Line, build_table, cache_entry, cached_records, write_reports
 
 logger = logging.getLogger(__name__)
 
@@ -331,3 +332,136 @@ def cached_validation(eval_dir: Path, device: str) -> Callable[[str, int, Path, 
                 sum(float(r["spl"]) for r in records) / len(records))
 
     return validate
+
+
+# ---------------------------------------------------------------------- the run
+def parse_names(text: str, allowed: Sequence[str], what: str) -> list[str]:
+    """Comma-separated names, each one of ``allowed``; repeats dropped, the order kept.
+
+    Raises:
+        ValueError: an unknown name (or none), naming ``what`` and the allowed names.
+
+    Examples:
+        >>> parse_names("extended, test,extended", SETS, "set")
+        ['extended', 'test']
+        >>> parse_names("test,val", SETS, "set")
+        Traceback (most recent call last):
+        ...
+        ValueError: unknown set ['val']; allowed: test, extended
+    """
+    items = [item.strip() for item in text.split(",") if item.strip()]
+    unknown = [item for item in items if item not in allowed]
+    if unknown or not items:
+        raise ValueError(f"unknown {what} {unknown or text!r}; allowed: {', '.join(allowed)}")
+    return list(dict.fromkeys(items))
+
+
+def parse_seeds(text: str) -> list[int]:
+    """Comma-separated training seeds, sorted, repeats dropped.
+
+    Raises:
+        ValueError: not comma-separated integers >= 0.
+
+    Examples:
+        >>> parse_seeds("2,0,2")
+        [0, 2]
+    """
+    try:
+        seeds = [int(item) for item in text.split(",") if item.strip()]
+    except ValueError:
+        seeds = []
+    if not seeds or any(seed < 0 for seed in seeds):
+        raise ValueError(f"seeds must be comma-separated integers >= 0 (e.g. 0,1,2), got {text!r}")
+    return sorted(set(seeds))
+
+
+@dataclass(frozen=True)
+class Table1Options:
+    """What a Table 1 run does (``recipes/table1.py``'s options), checked when made, before any work.
+
+    Attributes:
+        rows: row names (:data:`ROW_BY_NAME`), in table order as given.
+        seeds: training seeds.
+        sets: evaluation sets (:data:`SETS`).
+        overrides: ``key=value`` overrides for every training run (never ``seed=``: see ``seeds``).
+        quick: smoke run: :data:`QUICK_EPISODES` episodes per set, ``bc_quick`` training, all under :data:`QUICK_DIR`.
+        from_checkpoints: train nothing: score the checkpoints there are (finished runs are still copied and shipped).
+        checkpoints: the checkpoint directory; ``None``: ``checkpoints/`` (quick: under :data:`QUICK_DIR`).
+        eval_dir: the per-episode cache; ``None``: ``results/eval/table1/`` (quick: under :data:`QUICK_DIR`).
+        out: where ``table1.{json,md,png}`` go; ``None``: ``results/`` (quick: under :data:`QUICK_DIR`).
+        num_resamples: bootstrap resamples.
+        eval_sets: (made from the others) the evaluation configs of :data:`SETS` (:func:`eval_sets`).
+
+    Raises:
+        ValueError: a bad option, naming it (``num_resamples`` below 1, a ``seed=`` override, an
+            override the configs refuse).
+
+    Examples:
+        >>> options = Table1Options(rows=("open_loop",), quick=True)
+        >>> options.checkpoints.as_posix(), options.eval_dir.as_posix(), options.out.as_posix()
+        ('runs/table1_quick/checkpoints', 'runs/table1_quick/eval', 'runs/table1_quick/results')
+        >>> Table1Options(overrides=("seed=3",))
+        Traceback (most recent call last):
+        ...
+        ValueError: the override seed=... is not allowed: choose the training seeds with --seeds (e.g. --seeds 0,1,2)
+    """
+
+    rows: tuple[str, ...] = tuple(ROW_BY_NAME)
+    seeds: tuple[int, ...] = (0, 1, 2)
+    sets: tuple[str, ...] = SETS
+    overrides: tuple[str, ...] = ()
+    quick: bool = False
+    from_checkpoints: bool = False
+    checkpoints: Path | None = None
+    eval_dir: Path | None = None
+    out: Path | None = None
+    num_resamples: int = 10_000
+    eval_sets: dict = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        def put(name: str, value) -> None:
+            object.__setattr__(self, name, value)
+
+        for name in ("rows", "seeds", "sets", "overrides"):
+            put(name, tuple(getattr(self, name)))
+        if self.num_resamples < 1:
+            raise ValueError(f"argument --num-resamples: must be >= 1, got {self.num_resamples}")
+        if any(item.split("=", 1)[0] == "seed" for item in self.overrides):
+            raise ValueError("the override seed=... is not allowed: choose the training seeds with --seeds (e.g. --seeds 0,1,2)")
+        root = QUICK_DIR if self.quick else Path(".")
+        put("checkpoints", Path(self.checkpoints) if self.checkpoints else root / "checkpoints")
+        put("eval_dir", Path(self.eval_dir) if self.eval_dir else (root / "eval" if self.quick else Path("results/eval/table1")))
+        put("out", Path(self.out) if self.out else (root / "results" if self.quick else Path("results")))
+        try:  # bad overrides are refused here, before any work
+            put("eval_sets", eval_sets(list(self.overrides), self.quick))
+            for row in (ROW_BY_NAME[name] for name in self.rows if ROW_BY_NAME[name].preset):
+                row_config(row, self.seeds[0], list(self.overrides), self.quick)
+        except ValueError as err:
+            raise ValueError(f"overrides: {err}") from err
+
+
+def reproduce(options: Table1Options) -> dict:
+    """Train what is missing (unless ``options.from_checkpoints``), copy and ship finished runs, score every
+    checkpoint on the sets (cached per episode), and write ``table1.{json,md,png}`` to ``options.out``.
+
+    Returns:
+        The table (:func:`spf_rl.eval.table1.build_table`), with ``shipped`` (line -> the seed shipped and
+        its validation scores) and ``schedules`` (row -> training preset).
+    """
+    from spf_rl.device import resolve_device
+    from spf_rl.train.bc import BCConfig
+
+    overrides, seeds = list(options.overrides), list(options.seeds)
+    base = load_config(BCConfig, "bc", overrides, preset="bc_long")
+    device = str(resolve_device(base.device))
+    rows = [ROW_BY_NAME[name] for name in options.rows]
+    shipped = train_missing(rows, seeds, overrides, options.checkpoints, options.quick, train=not options.from_checkpoints,
+                            validate=cached_validation(options.eval_dir, device))
+    sets = {name: options.eval_sets[name] for name in options.sets}
+    lines = table_lines(rows, base.data.demo_length, base.data.image_size)
+    evaluations, missing = evaluate_all(lines, seeds, sets, options.checkpoints, options.eval_dir, device)
+    table = build_table(lines, evaluations, sets, seeds, CLAIMS, missing, options.num_resamples)
+    table["shipped"] = shipped
+    table["schedules"] = {row.name: preset_of(row, options.quick) for row in rows}
+    write_reports(table, options.out)
+    return table

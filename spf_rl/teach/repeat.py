@@ -13,12 +13,15 @@
   otherwise: :func:`spf_rl.viz.write_video`);
 * :func:`write_map`: the top-down map with the demonstration and every repeat;
 * :func:`results`: the JSON content: the route, the set-up and success and SPL per repeat
-  (and, for homing, the demonstration the env played).
+  (and, for homing, the demonstration the env played);
+* :class:`TeachOptions` and :func:`teach_and_repeat`: a whole run of ``recipes/teach.py``
+  after the route is taught: the repeats, then the map, the video and the JSON in the
+  output directory.
 """
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -27,14 +30,15 @@ from torchrl.envs import Compose, InitTracker, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from tqdm.auto import tqdm
 
+from envs.atomic_io import atomic_write_json
 from envs.demos import Demonstration
-from envs.follow import SUCCESS_FRACTION, SUCCESS_RADIUS_M
+from envs.follow import SUCCESS_FRACTION, SUCCESS_RADIUS_M, default_max_steps
 from envs.homing import FOLLOW, HOMING
 from envs.nav_env import PathFollowEnv
 from envs.render import draw_top_down_map
-from envs.scenes import build_house
+from envs.scenes import build_house, split_seeds
 from envs.scripted import episode_record
-from envs.transforms import ActuationNoise
+from envs.transforms import DEFAULT_NOISE, NOISE_PRESETS, ActuationNoise
 from envs.user_demos import ACTION_LETTERS
 from spf_rl.metrics import summarize
 from spf_rl.train.evaluation import greedy_on_device
@@ -56,6 +60,78 @@ TITLE_FONTSIZE = 10
 DEMO_ZORDER = 5
 #: Letter of each action in the JSON (the ``--actions`` alphabet).
 ACTION_LETTER = {action: letter for letter, action in ACTION_LETTERS.items()}
+#: The default policy: the best shipped SPF checkpoint (docs/results.md).
+DEFAULT_CHECKPOINT = "spf-s0.8"
+#: The default policy with homing: SPF 0.8 trained on homing episodes (python recipes/bc.py --preset bc_homing).
+DEFAULT_HOMING_CHECKPOINT = "homing-spf-s0.8"
+#: The default house: the first house of the test split (never seen in training).
+DEFAULT_HOUSE = split_seeds("test")[0]
+#: Default and largest number of repeats (one agent each, stepped together).
+DEFAULT_REPEATS = 8
+MAX_REPEATS = 64
+#: Default output directory.
+DEFAULT_OUT = "runs/teach"
+#: File names written in the output directory.
+JSON_NAME, MAP_NAME, VIDEO_STEM = "teach.json", "teach_map.png", "teach"
+
+
+@dataclass(frozen=True)
+class TeachOptions:
+    """The set-up of a teach-and-repeat run, checked when made (messages name ``recipes/teach.py``'s options).
+
+    Attributes:
+        house: house seed (default: the first test house).
+        noise: actuation-noise preset of the repeats.
+        seed: seed of the repeats' noise.
+        repeats: repeats, 1 to :data:`MAX_REPEATS`.
+        out: output directory (made by :func:`teach_and_repeat`).
+        checkpoint: a shipped name or a ``.pt`` path; ``None``: :data:`DEFAULT_CHECKPOINT`,
+            or :data:`DEFAULT_HOMING_CHECKPOINT` with ``homing``.
+        homing: bring the route home (from its end back to its start) instead of repeating it.
+        video: write the video (the slowest output).
+        progress: show a progress bar.
+
+    Raises:
+        ValueError: a value out of range, naming the option and the allowed values.
+
+    Examples:
+        >>> TeachOptions().checkpoint, TeachOptions(homing=True).checkpoint, TeachOptions(homing=True).task
+        ('spf-s0.8', 'homing-spf-s0.8', 'homing')
+        >>> TeachOptions(repeats=0)
+        Traceback (most recent call last):
+        ...
+        ValueError: --repeats must be in [1, 64], got 0.
+    """
+
+    house: int = DEFAULT_HOUSE
+    noise: str = DEFAULT_NOISE
+    seed: int = 0
+    repeats: int = DEFAULT_REPEATS
+    out: Path = field(default_factory=lambda: Path(DEFAULT_OUT))
+    checkpoint: str | None = None
+    homing: bool = False
+    video: bool = True
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        if self.noise not in NOISE_PRESETS:
+            raise ValueError(f"--noise must be one of {', '.join(sorted(NOISE_PRESETS))}, got {self.noise!r}.")
+        if self.seed < 0:
+            raise ValueError(f"--seed must be a non-negative int, got {self.seed}.")
+        if not 1 <= self.repeats <= MAX_REPEATS:
+            raise ValueError(f"--repeats must be in [1, {MAX_REPEATS}], got {self.repeats}.")
+        if self.house < 0:
+            raise ValueError(f"--house must be a non-negative int (a house seed), got {self.house}.")
+        object.__setattr__(self, "out", Path(self.out))
+        if self.out.exists() and not self.out.is_dir():
+            raise ValueError(f"--out must be a directory, but {self.out} is a file.")
+        if self.checkpoint is None:
+            object.__setattr__(self, "checkpoint", DEFAULT_HOMING_CHECKPOINT if self.homing else DEFAULT_CHECKPOINT)
+
+    @property
+    def task(self) -> str:
+        """The env's task: ``"homing"`` with :attr:`homing`, else ``"follow"``."""
+        return HOMING if self.homing else FOLLOW
 
 
 @dataclass
@@ -242,4 +318,41 @@ def results(demo: Demonstration, repeats: list[Repeat], setup: dict, played: Dem
         content[played.task] = route_json(played)
     content["repeats"] = [repeat.record for repeat in repeats]
     content["summary"] = summarize([repeat.record for repeat in repeats])
+    return content
+
+
+def teach_and_repeat(policy, demo: Demonstration, options: TeachOptions, *, image_size: int) -> dict:
+    """Repeat the taught route (or bring it home) and write the map, the video and the JSON in ``options.out``.
+
+    Args:
+        policy: the policy of ``options.checkpoint`` (:func:`spf_rl.load_policy`), in eval mode.
+        demo: the taught demonstration (:func:`spf_rl.teach.route.teach_route`), of the policy's ``demo_length``.
+        options: the run's set-up.
+        image_size: frame side, pixels (the policy's).
+
+    Returns:
+        The JSON content written to :data:`JSON_NAME` (:func:`results`, with ``"files"``: the
+        names of the map and, unless ``options.video`` is false, the video).
+    """
+    out = options.out
+    out.mkdir(parents=True, exist_ok=True)
+    task, max_steps = options.task, default_max_steps(demo.length)
+    logger.info("route: %d steps, %.2f m; %s %s it %d times under %s noise", demo.length, demo.shortest_length_m,
+                options.checkpoint, "brings it home" if options.homing else "repeats", options.repeats, options.noise)
+    repeats, demo_frames, played = repeat_route(
+        policy, demo, repeats=options.repeats, noise=options.noise, seed=options.seed, max_steps=max_steps,
+        image_size=image_size, progress=options.progress, task=task,
+    )
+    setup = {"checkpoint": options.checkpoint, "task": task, "noise": options.noise, "seed": options.seed, "max_steps": max_steps}
+    content = results(demo, repeats, setup, played)
+    successes = sum(r.record["success"] for r in repeats)
+    what = "bring it home" if options.homing else "succeed"
+    title = f"house {demo.house_seed}: {successes}/{len(repeats)} repeats {what} ({options.noise} noise)"
+    logger.info("drawing the map")
+    files = {"map": write_map(played, repeats, out / MAP_NAME, title).name}
+    if options.video:
+        logger.info("writing the video")
+        files["video"] = write_video(played, demo_frames, repeats[0], out / VIDEO_STEM, options.noise).name
+    content["files"] = files
+    atomic_write_json(out / JSON_NAME, content)
     return content

@@ -1,0 +1,89 @@
+"""The route to teach, from whichever of its three forms is given: actions, waypoints or the keyboard.
+
+:func:`teach_route` is the choice ``recipes/teach.py`` makes among ``--actions``,
+``--waypoints`` and the keyboard, on values already read from their text
+(:func:`envs.user_demos.parse_actions`, :func:`~envs.user_demos.parse_waypoints`,
+:func:`~envs.user_demos.parse_pose`):
+
+* actions are driven from ``start`` (the house's spawn point facing +x without one,
+  :func:`~envs.user_demos.default_start`) and must have exactly ``length`` steps;
+* waypoints are joined by the planner and the plan cropped to ``length`` steps; the
+  route starts at ``start`` if given, else at the first waypoint facing the second;
+* with neither, the route is recorded with the keyboard in this terminal
+  (:func:`spf_rl.teach.keyboard.record_with_keyboard`), from ``start`` or the spawn point.
+
+Examples:
+    >>> from envs.user_demos import parse_actions
+    >>> demo = teach_route(0, (7.5, 1.5, 0.0), actions=parse_actions("FFFFLF"), length=6)
+    >>> demo.length, route_source(parse_actions("FFFFLF"), None)
+    (6, 'actions')
+    >>> teach_route(0, (7.5, 1.5, 0.0), actions=parse_actions("FFF"), length=6)
+    Traceback (most recent call last):
+    ...
+    envs.user_demos.RouteError: the route has 3 steps; demonstrations must have exactly 6 steps here (the policy's demo_length): give 6 actions.
+"""
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+
+import numpy as np
+
+from envs.demos import Demonstration
+from envs.scenes import House
+from envs.user_demos import default_start, demonstration_from_actions, demonstration_from_waypoints, house_of
+
+logger = logging.getLogger(__name__)
+
+#: How a route is given: typed actions, typed waypoints, or recorded with the keyboard.
+ROUTE_SOURCES = ("actions", "waypoints", "keyboard")
+
+
+def route_source(actions: Sequence[int] | None, waypoints: Sequence[Sequence[float]] | None) -> str:
+    """Which of :data:`ROUTE_SOURCES` :func:`teach_route` uses: actions first, then waypoints, else the keyboard.
+
+    Examples:
+        >>> route_source(None, [(7.5, 1.5), (9.5, 1.5)]), route_source(None, None)
+        ('waypoints', 'keyboard')
+    """
+    if actions is not None:
+        return "actions"
+    return "waypoints" if waypoints is not None else "keyboard"
+
+
+def teach_route(
+    house: House | int,
+    start: Sequence[float] | None = None,
+    actions: Sequence[int] | np.ndarray | None = None,
+    waypoints: Sequence[Sequence[float]] | None = None,
+    *,
+    length: int,
+) -> Demonstration | None:
+    """The demonstration of ``length`` steps of the route given by ``actions``, ``waypoints`` or the keyboard.
+
+    Args:
+        house: the house (or its seed).
+        start: ``(x m, y m, heading deg)``, or ``None`` (actions and the keyboard: the
+            house's spawn point facing +x; waypoints: the first waypoint facing the second).
+        actions: the route's actions (ints, :func:`~envs.user_demos.parse_actions`), or ``None``.
+        waypoints: points ``(x m, y m)`` joined by the planner, or ``None`` (used when
+            ``actions`` is ``None``).
+        length: the policy's ``demo_length``: the steps of the demonstration.
+
+    Returns:
+        The demonstration, or ``None`` when the keyboard's user cancelled.
+
+    Raises:
+        RouteError: a refused route (into a wall, out of the house, too short, not
+            ``length`` steps), the message naming the step or waypoint.
+    """
+    source = route_source(actions, waypoints)
+    logger.debug("route from %s", source)
+    if source == "waypoints":
+        return demonstration_from_waypoints(house, waypoints, start=start, length=length)
+    start = default_start(house) if start is None else start
+    if source == "actions":
+        return demonstration_from_actions(house, start, actions, length=length)
+    from spf_rl.teach.keyboard import record_with_keyboard  # curses, only for the keyboard
+
+    return record_with_keyboard(house_of(house), start, length)
