@@ -19,6 +19,9 @@ headings in **degrees** (0 = +x, counter-clockwise; :attr:`Demonstration.poses
 <envs.demos.Demonstration.poses>` store radians). Steps and waypoints are numbered
 from 1 in error messages.
 
+Typed input (a command line's text) is read by :func:`parse_pose` (``"x,y,heading"``),
+:func:`parse_waypoints` (``"x,y;x,y;..."``) and :func:`parse_actions` (``"FFLR..."``).
+
 A route that is refused raises :class:`RouteError` (a ``ValueError``) naming the
 step or waypoint and why: a start or waypoint outside the house or inside a wall
 or furniture, a forward step that runs into a wall (the collision model shortens
@@ -74,7 +77,8 @@ ACTION_LETTERS: dict[str, int] = {"F": FORWARD, "L": TURN_LEFT, "R": TURN_RIGHT}
 ACTION_LABELS = {FORWARD: "F, forward", TURN_LEFT: "L, turn left", TURN_RIGHT: "R, turn right"}
 #: A forward step may lose this much of its length to the collision model (a glancing
 #: contact that slides along a wall), metres; a step shortened more runs into a wall.
-WALL_CONTACT_TOLERANCE_M = 0.05
+#: Half a step: the planner's own routes slide along walls by up to 0.13 m.
+WALL_CONTACT_TOLERANCE_M = FORWARD_STEP_M / 2
 #: A waypoint counts as reached when the planned route comes this close to it
 #: (geodesic, metres): one forward step, the planner's resolution.
 WAYPOINT_RADIUS_M = FORWARD_STEP_M
@@ -146,6 +150,61 @@ def parse_actions(actions: str | Sequence[int]) -> np.ndarray:
     return values.astype(np.int64)
 
 
+def parse_numbers(text: str, count: int, what: str) -> tuple[float, ...]:
+    """``count`` finite comma-separated numbers typed by a user (``"7.5, 1.5,90"``).
+
+    Args:
+        text: the numbers, comma-separated (spaces ignored).
+        count: how many there must be.
+        what: how the message names the input (``"--start (x m, y m, heading deg)"``).
+
+    Raises:
+        RouteError: not ``count`` finite numbers; the message names ``what`` and the form.
+
+    Examples:
+        >>> parse_numbers("7.5, 1.5,90", 3, "--start (x,y,heading)")
+        (7.5, 1.5, 90.0)
+        >>> parse_numbers("7.5,1.5", 3, "start")
+        Traceback (most recent call last):
+        ...
+        envs.user_demos.RouteError: start: expected 3 comma-separated numbers, got '7.5,1.5'.
+    """
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != count or not all(math.isfinite(v) for v in values):
+        raise RouteError(f"{what}: expected {count} comma-separated numbers, got {text!r}.")
+    return values
+
+
+def parse_pose(text: str, what: str = "start (x m, y m, heading deg)") -> tuple[float, float, float]:
+    """A typed start pose ``"x,y,heading"`` (metres, metres, degrees) -> ``(x, y, heading deg)``.
+
+    Raises:
+        RouteError: not three finite numbers, naming ``what`` (:func:`parse_numbers`).
+
+    Examples:
+        >>> parse_pose("7.5,1.5,0")
+        (7.5, 1.5, 0.0)
+    """
+    x, y, heading = parse_numbers(text, POSE_FIELDS, what)
+    return x, y, heading
+
+
+def parse_waypoints(text: str, what: str = "waypoints") -> list[tuple[float, float]]:
+    """Typed waypoints ``"x,y;x,y;..."`` (metres) -> a list of points; empty items are skipped.
+
+    Raises:
+        RouteError: a point that is not two finite numbers, named ``<what> point <i>`` (from 1).
+
+    Examples:
+        >>> parse_waypoints("7.5,1.5; 9.5,1.5")
+        [(7.5, 1.5), (9.5, 1.5)]
+    """
+    return [parse_numbers(p, 2, f"{what} point {i}") for i, p in enumerate(text.split(";"), 1) if p.strip()]
+
+
 def check_position(house: House, xy: Sequence[float], what: str) -> None:
     """Raise :class:`RouteError` unless the agent's disc fits at ``xy`` (metres) inside the house.
 
@@ -192,6 +251,9 @@ class RouteRecorder:
         house: the house (or its seed).
         start: ``(x m, y m, heading deg)``.
         max_steps: the most actions the route may hold (``None``: no limit).
+        contact_tolerance_m: a forward step may lose this much of its length to a glancing
+            contact (metres; default :data:`WALL_CONTACT_TOLERANCE_M`); a step shortened
+            more runs into a wall.
 
     Raises:
         RouteError: a start outside the house or inside a wall or furniture.
@@ -204,7 +266,19 @@ class RouteRecorder:
         (True, 0)
     """
 
-    def __init__(self, house: House | int, start: Sequence[float], max_steps: int | None = None) -> None:
+    def __init__(
+        self,
+        house: House | int,
+        start: Sequence[float],
+        max_steps: int | None = None,
+        *,
+        contact_tolerance_m: float = WALL_CONTACT_TOLERANCE_M,
+    ) -> None:
+        if not 0.0 <= contact_tolerance_m < FORWARD_STEP_M:
+            raise ValueError(
+                f"contact_tolerance_m must be in [0, {FORWARD_STEP_M}) metres (a forward step's length), got {contact_tolerance_m!r}."
+            )
+        self.contact_tolerance_m = float(contact_tolerance_m)
         self.house = house_of(house)
         pose = pose_from_degrees(start)
         check_position(self.house, pose[:2], "start")
@@ -257,7 +331,7 @@ class RouteRecorder:
             width, depth = self.house.size_m
             if not (0.0 <= target[0] < width and 0.0 <= target[1] < depth):
                 raise RouteError(f"{number} ({ACTION_LABELS[action]}) {where} leaves the house.")
-            if travelled[0] < FORWARD_STEP_M - WALL_CONTACT_TOLERANCE_M:
+            if travelled[0] < FORWARD_STEP_M - self.contact_tolerance_m:
                 raise RouteError(
                     f"{number} ({ACTION_LABELS[action]}) {where} runs into a wall or furniture: "
                     f"it moves {travelled[0]:.2f} m of {FORWARD_STEP_M:.2f} m."
@@ -427,6 +501,9 @@ __all__ = [
     "demonstration_from_actions",
     "demonstration_from_waypoints",
     "parse_actions",
+    "parse_numbers",
+    "parse_pose",
+    "parse_waypoints",
     "pose_from_degrees",
 ]
 

@@ -166,9 +166,10 @@ def test_path_fidelity_drops_turns_on_the_spot():
 def test_wall_hits_counts_steps_cut_short_by_more_than_the_tolerance():
     requested = np.array([0.3, 0.3, 0.3, 0.0, 0.3, 0.3])
     moved = np.array([0.3, 0.0, 0.26, 0.0, 0.24, 0.1])
-    assert wall_hits(requested, moved) == 3  # 0.0, 0.24 and 0.1 m; a 0.04 m glance and a turn do not count
-    assert wall_hits(requested, moved, tolerance_m=WALL_CONTACT_TOLERANCE_M) == 3
-    assert wall_hits(requested, moved, tolerance_m=0.1) == 2
+    assert wall_hits(requested, moved) == 2  # 0.0 and 0.1 m; 0.04 and 0.06 m glances and a turn do not count
+    assert WALL_CONTACT_TOLERANCE_M == 0.15  # the default: half a step
+    assert wall_hits(requested, moved, tolerance_m=0.05) == 3
+    assert wall_hits(requested, moved, tolerance_m=0.25) == 1
     assert wall_hits(requested, moved, tolerance_m=0.01) == 4
     assert wall_hits(np.zeros(0), np.zeros(0)) == 0
 
