@@ -13,6 +13,7 @@ import torch
 
 from envs.demo_store import DemoStore, check_store_matches
 from envs.house_grid import check_grid_size, default_grid_size_cells
+from envs.route_styles import RouteMixture
 from envs.scenes import split_seeds
 from envs.transforms import ACTUATION_NOISE_KEY, make_noise_model
 
@@ -62,6 +63,7 @@ def resolve_houses(
     success_radius_m: float,
     task: str = "follow",
     grid_size_cells: int | None = None,
+    route_style: RouteMixture | None = None,
 ) -> tuple[DemoStore | None, list[int]]:
     """The env's demo store (opened and verified when given as a directory) and its house seeds.
 
@@ -90,7 +92,9 @@ def resolve_houses(
             )
         # a directory is opened and verified (checksums) once per env process
         demo_store = demo_store if isinstance(demo_store, DemoStore) else DemoStore(demo_store)
-        check_store_matches(demo_store, split, num_houses, house_seeds, demo_length, image_size, success_radius_m, task, grid)
+        check_store_matches(
+            demo_store, split, num_houses, house_seeds, demo_length, image_size, success_radius_m, task, grid, route_style
+        )
         return demo_store, demo_store.config.house_seeds
     if not emit_demo_frames:
         raise ValueError(

@@ -9,7 +9,9 @@ sampled and rendered ahead of time and written to a directory as a
 
     <root>/meta.json     kind, format and env versions, configuration, SHA-256 of every tensor
     <root>/data/         frames [K, n, H, W, 3] uint8, actions [K, n], poses [K, n + 1, 3],
-                         house_seed [K], shortest_length_m [K]
+                         house_seed [K], shortest_length_m [K]; with a route style, also
+                         steps [K]: each demonstration's own length (padded to n: black
+                         frames, action 0 and the end pose repeated)
 
 A :class:`~envs.nav_env.PathFollowEnv` given ``demo_store=root`` draws each
 episode's demonstration from the store (a uniformly drawn ``demo_id``), renders
@@ -43,6 +45,7 @@ from envs.geodesic import DistanceField
 from envs.homing import FOLLOW, check_task, task_demonstration
 from envs.house_grid import check_demo_length, check_grid_size, default_grid_size_cells
 from envs.render import FirstPersonRenderer
+from envs.route_styles import RouteMixture, route_mixture_for
 from envs.scenes import build_house, split_seeds
 from envs.specs import NUM_RGB_CHANNELS
 from envs.tensor_store import StoreError, TensorStore
@@ -88,6 +91,10 @@ class DemoStoreConfig:
             store to the episodes kept (evaluation keeps ``0 .. K - 1`` only). Envs
             that share a numbering (``episode_offset``/``episode_stride``) must all
             get the same seed: ``set_seed(seed, static_seed=True)``.
+        route_style: the style of the routes (:mod:`envs.route_styles`: a style name or
+            ``"style=weight,..."``), ``None``: the planner's routes as the paper samples them.
+        route_lengths: ``(shortest, longest)`` steps of routes with ``route_style``
+            (``None``: ``demo_length``); shorter routes are padded to ``demo_length``.
     """
 
     num_demos: int = 1000
@@ -100,9 +107,16 @@ class DemoStoreConfig:
     task: str = FOLLOW
     grid_size_cells: int | None = None
     episodes_seed: int | None = None
+    route_style: str | None = None
+    route_lengths: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
         check_task(self.task, "DemoStoreConfig.task")
+        if self.route_lengths is not None and isinstance(self.route_lengths, Sequence):
+            self.route_lengths = tuple(self.route_lengths)  # a list when read back from meta.json
+        mixture = route_mixture_for(self.route_style, self.route_lengths, self.demo_length)
+        if mixture is not None:  # one spelling of each mixture, as meta.json and store names write it
+            self.route_style, self.route_lengths = mixture.spec, (mixture.min_length, mixture.max_length)
         if self.grid_size_cells is not None:
             check_grid_size(self.grid_size_cells, "DemoStoreConfig.grid_size_cells")
         check_demo_length(self.demo_length)
@@ -135,6 +149,8 @@ class DemoStoreConfig:
             image_size=episodes.image_size,
             task=episodes.task,
             episodes_seed=episodes.seed,
+            route_style=getattr(episodes, "route_style", None),
+            route_lengths=getattr(episodes, "route_lengths", None),
         )
 
     @property
@@ -146,31 +162,41 @@ class DemoStoreConfig:
     def house_seeds(self) -> list[int]:
         return split_seeds(self.split, self.num_houses, self.grid)
 
+    @property
+    def mixture(self) -> RouteMixture | None:
+        """The routes' :class:`~envs.route_styles.RouteMixture` (``None``: the planner's, of ``demo_length`` steps)."""
+        return route_mixture_for(self.route_style, self.route_lengths, self.demo_length)
+
 
 def sample_store_demonstration(config: DemoStoreConfig, index: int) -> Demonstration:
     """Demonstration ``index`` of a store, for its task: a pure function of ``(config.seed, index)``,
     or of the seed of episode ``index`` under ``config.episodes_seed`` when that is set."""
     if config.episodes_seed is not None:
         seed = episode_seed(seed_entropy(config.episodes_seed), index)
-        return episode_for_seed(seed, config.house_seeds, config.demo_length, config.min_route_length_m, config.task)[1]
+        return episode_for_seed(
+            seed, config.house_seeds, config.demo_length, config.min_route_length_m, config.task, config.mixture
+        )[1]
     rng = np.random.default_rng([config.seed, index])
     house = build_house(int(rng.choice(config.house_seeds)))
-    route = sample_demonstration(house, rng, config.demo_length, min_route_length_m=config.min_route_length_m)
+    if config.route_style is None:
+        route = sample_demonstration(house, rng, config.demo_length, min_route_length_m=config.min_route_length_m)
+    else:
+        _, route = config.mixture.sample(house, rng)
     return task_demonstration(route, config.task, house)
 
 
 def _empty(config: DemoStoreConfig) -> TensorDict:
     k, n, s = config.num_demos, config.demo_length, config.image_size
-    return TensorDict(
-        {
-            "frames": torch.zeros(k, n, s, s, NUM_RGB_CHANNELS, dtype=torch.uint8),
-            "actions": torch.zeros(k, n, dtype=torch.int64),
-            "poses": torch.zeros(k, n + 1, 3, dtype=torch.float64),
-            "house_seed": torch.zeros(k, dtype=torch.int64),
-            "shortest_length_m": torch.zeros(k, dtype=torch.float64),
-        },
-        batch_size=[k],
-    )
+    tensors = {
+        "frames": torch.zeros(k, n, s, s, NUM_RGB_CHANNELS, dtype=torch.uint8),
+        "actions": torch.zeros(k, n, dtype=torch.int64),
+        "poses": torch.zeros(k, n + 1, 3, dtype=torch.float64),
+        "house_seed": torch.zeros(k, dtype=torch.int64),
+        "shortest_length_m": torch.zeros(k, dtype=torch.float64),
+    }
+    if config.route_style is not None:  # routes of several lengths (stores without it: all n long)
+        tensors["steps"] = torch.zeros(k, dtype=torch.int64)
+    return TensorDict(tensors, batch_size=[k])
 
 
 def make_demo_chunk(config: DemoStoreConfig, chunk: int) -> TensorDict:
@@ -178,14 +204,17 @@ def make_demo_chunk(config: DemoStoreConfig, chunk: int) -> TensorDict:
     first = chunk * DEMO_CHUNK_ROWS
     indices = range(first, min(first + DEMO_CHUNK_ROWS, config.num_demos))
     out = _empty(dataclasses.replace(config, num_demos=len(indices)))
-    n = config.demo_length
     renderer = _chunk_renderer(config.image_size)
     for row, index in enumerate(indices):
         demo = sample_store_demonstration(config, index)
         house = build_house(demo.house_seed)
-        renderer.render_many([house] * n, demo.poses[:n], out=out["frames"][row].numpy())
-        out["actions"][row] = torch.from_numpy(demo.actions)
-        out["poses"][row] = torch.from_numpy(demo.poses)
+        n = demo.length  # padded after it: black frames, action 0, the end pose repeated
+        renderer.render_many([house] * n, demo.poses[:n], out=out["frames"][row, :n].numpy())
+        out["actions"][row, :n] = torch.from_numpy(demo.actions)
+        out["poses"][row] = torch.from_numpy(demo.poses[-1])
+        out["poses"][row, : n + 1] = torch.from_numpy(demo.poses)
+        if "steps" in out.keys():
+            out["steps"][row] = n
         out["house_seed"][row] = demo.house_seed
         out["shortest_length_m"][row] = demo.shortest_length_m
     return out
@@ -276,6 +305,13 @@ class DemoStore(TensorStore):
         return self.data.get("poses")
 
     @property
+    def steps(self) -> torch.Tensor:
+        """``[K]`` int64 length of each demonstration, steps (all ``n`` in a store without a route style)."""
+        if "steps" in self.data.keys():
+            return self.data.get("steps")
+        return torch.full((len(self),), self.config.demo_length, dtype=torch.int64)
+
+    @property
     def house_seeds(self) -> torch.Tensor:
         """``[K]`` house seed of each demonstration."""
         return self.data.get("house_seed")
@@ -350,13 +386,14 @@ class DemoStore(TensorStore):
                 otherwise computed (one Dijkstra run).
         """
         house_seed = int(self.house_seeds[demo_id])
-        poses = self.poses[demo_id].numpy().copy()
+        steps = int(self.steps[demo_id])
+        poses = self.poses[demo_id, : steps + 1].numpy().copy()
         if end_field is None:
             end_field = build_house(house_seed).graph.distance_field(poses[-1, :2])
         return Demonstration(
             house_seed=house_seed,
             poses=poses,
-            actions=self.actions[demo_id].numpy().copy(),
+            actions=self.actions[demo_id, :steps].numpy().copy(),
             end_field=end_field,
             shortest_length_m=float(self.shortest_lengths_m[demo_id]),
             task=self.config.task,
@@ -373,10 +410,12 @@ def check_store_matches(
     success_radius_m: float,
     task: str = FOLLOW,
     grid_size_cells: int | None = None,
+    route_style: RouteMixture | None = None,
 ) -> None:
     """Raise ``ValueError`` when the env's arguments disagree with the demo store's configuration.
 
-    ``grid_size_cells`` is the env's grid (``None``: the default for ``demo_length``).
+    ``grid_size_cells`` is the env's grid (``None``: the default for ``demo_length``);
+    ``route_style`` the env's routes (``None``: the planner's).
     """
     config = store.config
     if house_seeds is not None:
@@ -395,6 +434,10 @@ def check_store_matches(
         mismatches.append(f"demo_length={demo_length} (store: {config.demo_length})")
     if image_size != config.image_size:
         mismatches.append(f"image_size={image_size} (store: {config.image_size})")
+    if route_style != config.mixture:
+        ours = None if route_style is None else f"{route_style.spec!r} of {route_style.min_length}-{route_style.max_length} steps"
+        theirs = None if config.route_style is None else f"{config.route_style!r} of {config.route_lengths[0]}-{config.route_lengths[1]} steps"
+        mismatches.append(f"route_style={ours} (store: {theirs})")
     needed = default_min_route_length_m(demo_length, success_radius_m)
     if config.min_route_length_m < needed - 1e-9:
         mismatches.append(

@@ -33,6 +33,7 @@ import numpy as np
 from envs.demos import DEFAULT_SUCCESS_RADIUS_M, Demonstration, sample_demonstration
 from envs.expert import STOP
 from envs.homing import FOLLOW, task_demonstration
+from envs.route_styles import RouteMixture
 from envs.scenes import House, build_house
 
 #: Success: within max(SUCCESS_RADIUS_M, SUCCESS_FRACTION x initial distance) of the end.
@@ -70,6 +71,7 @@ def episode_for_seed(
     demo_length: int,
     min_route_length_m: float,
     task: str = FOLLOW,
+    route_style: RouteMixture | None = None,
 ) -> tuple[House, Demonstration]:
     """The house and demonstration of an episode seed.
 
@@ -81,10 +83,13 @@ def episode_for_seed(
     Args:
         episode_seed: the episode's seed, in ``[0, MAX_EPISODE_SEED)``.
         house_seeds: the houses to draw from (a split's seeds).
-        demo_length: demonstration length n, steps.
+        demo_length: demonstration length n, steps (with ``route_style``: the longest).
         min_route_length_m: routes ending this close to their start (geodesic, metres)
-            are re-drawn.
+            are re-drawn (planner routes without ``route_style``).
         task: ``"follow"`` or ``"homing"`` (:mod:`envs.homing`).
+        route_style: ``None``: the planner's routes of ``demo_length`` steps, as the paper
+            samples them; a :class:`~envs.route_styles.RouteMixture`: a style drawn by its
+            weights and a length drawn in its range (:mod:`envs.route_styles`).
 
     Examples:
         >>> house, demo = episode_for_seed(7, [0, 1], demo_length=5, min_route_length_m=0.6)
@@ -95,7 +100,10 @@ def episode_for_seed(
     """
     rng = np.random.default_rng(episode_seed)
     house = build_house(int(rng.choice(house_seeds)))
-    route = sample_demonstration(house, rng, demo_length, min_route_length_m=min_route_length_m)
+    if route_style is None:
+        route = sample_demonstration(house, rng, demo_length, min_route_length_m=min_route_length_m)
+    else:
+        _, route = route_style.sample(house, rng)
     return house, task_demonstration(route, task, house)
 
 
@@ -166,6 +174,7 @@ class FollowRules:
         path_length_m: float | np.ndarray,
         shortest_length_m: float | np.ndarray,
         steps: int | np.ndarray,
+        max_steps: int | np.ndarray | None = None,
     ) -> StepOutcome:
         """Score a step that has just been taken.
 
@@ -177,10 +186,13 @@ class FollowRules:
             path_length_m: length travelled since the start, this step included, metres.
             shortest_length_m: geodesic length of the route, metres.
             steps: steps taken, this one included.
+            max_steps: the episode limit, steps, where it is not :attr:`max_steps` (per
+                agent, for demonstrations of several lengths: :func:`default_max_steps`).
         """
         inside = np.asarray(distance_m) <= self.radius(initial_distance_m)
         terminated = (np.asarray(action) == STOP) if self.stop_action else inside
-        truncated = (np.asarray(steps) >= self.max_steps) & ~terminated
+        limit = self.max_steps if max_steps is None else np.asarray(max_steps)
+        truncated = (np.asarray(steps) >= limit) & ~terminated
         success = (terminated | truncated) & inside
         denominator = np.maximum(np.maximum(path_length_m, shortest_length_m), MIN_SPL_DENOMINATOR_M)
         spl = np.where(success, shortest_length_m / denominator, 0.0)

@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 import torch
@@ -68,6 +68,7 @@ from envs.house_grid import check_demo_length
 from envs.path_fidelity import path_fidelity
 from envs.playlist import DemonstrationPlaylist, EpisodeSource
 from envs.render import FirstPersonRenderer
+from envs.route_styles import RouteMixture, route_mixture_for
 from envs.scenes import House
 from envs.specs import NUM_DEMO_ACTIONS, NUM_RGB_CHANNELS, path_follow_specs
 from envs.transforms import ACTUATION_NOISE_KEY
@@ -115,9 +116,17 @@ class PathFollowEnv(EnvBase):
             match the env's. Adds the ``demo_id`` observation.
         emit_demo_frames: emit ``demo_frames`` at every step (default). ``False`` leaves them
             out; it needs ``demo_store`` (policies look them up by ``demo_id``) or ``render=False``.
-        demonstrations: routes of ``demo_length`` steps to play instead of sampled ones
+        demonstrations: routes of 1 to ``demo_length`` steps to play instead of sampled ones
             (:class:`~envs.playlist.DemonstrationPlaylist`; ``reset(demonstration=demo)``);
             a homing env plays their homing demonstrations.
+        route_style: the style of sampled routes (:mod:`envs.route_styles`): ``"planner"``,
+            ``"tour"``, ``"driven"``, a mixture of them by weight (``{"planner": 0.5,
+            "driven": 0.5}`` or ``"planner=0.5,driven=0.5"``) or a
+            :class:`~envs.route_styles.RouteMixture`. ``None`` (default): the planner's
+            routes as the paper samples them.
+        route_lengths: ``(shortest, longest)`` steps of sampled routes with ``route_style``,
+            each route's length drawn uniformly in it (``None``: ``demo_length`` exactly);
+            ``longest`` is at most ``demo_length``, to which shorter demonstrations are padded.
         episode_offset, episode_stride: episode numbering (:mod:`envs.episode_numbering`): agent
             ``i``'s ``k``-th episode is number ``offset + stride * (i + k * N)``, its seed a
             function of the env seed and that number alone; emitted as ``episode_index``. They
@@ -156,12 +165,16 @@ class PathFollowEnv(EnvBase):
         demo_store: DemoStore | str | os.PathLike | None = None,
         emit_demo_frames: bool = True,
         demonstrations: Sequence[Demonstration] | None = None,
+        route_style: str | Mapping[str, float] | RouteMixture | None = None,
+        route_lengths: tuple[int, int] | None = None,
         episode_offset: int = 0,
         episode_stride: int = 1,
         seed: int | None = None,
         device: torch.device | str = "cpu",
     ) -> None:
         check_demo_length(demo_length)
+        route_mixture = route_mixture_for(route_style, route_lengths, demo_length)
+        self._fixed_max_steps = max_steps is not None
         max_steps = default_max_steps(demo_length) if max_steps is None else max_steps
         check_positive_int("max_steps", max_steps)
         check_positive_int("image_size", image_size)
@@ -174,8 +187,9 @@ class PathFollowEnv(EnvBase):
             )
         demo_store, house_seeds = resolve_houses(
             split, num_houses, house_seeds, demo_store, emit_demo_frames or not render, demo_length, image_size, success_radius_m,
-            self.task, grid_size_cells,
+            self.task, grid_size_cells, route_mixture,
         )
+        self.route_style = route_mixture
         batch_size = torch.Size([] if num_agents is None else [num_agents])
         super().__init__(device=device, batch_size=batch_size)
         self.split = split
@@ -206,7 +220,7 @@ class PathFollowEnv(EnvBase):
         self._playlist = DemonstrationPlaylist(demonstrations, self.demo_length, self._count, demo_store is not None, self.task)
         self._source = EpisodeSource(
             house_seeds, self.demo_length, default_min_route_length_m(self.demo_length, self.success_radius_m),
-            self.task, self._playlist, demo_store,
+            self.task, self._playlist, demo_store, route_mixture,
         )
         self._cpu = self.device is not None and torch.device(self.device).type == "cpu"
         self.numbering = EpisodeNumbering(self._count, episode_offset, episode_stride)
@@ -244,6 +258,9 @@ class PathFollowEnv(EnvBase):
         self._initial_distance = np.ones(count)
         self._start_xy, self._end_xy, self._lab_success = np.zeros((count, 2)), np.zeros((count, 2)), np.zeros(count, dtype=bool)
         self._shortest = np.zeros(count)
+        # each demonstration's own length (<= demo_length, to which it is padded) and episode limit
+        self._demo_steps = np.full(count, n, dtype=np.int64)
+        self._max_steps = np.full(count, self.max_steps, dtype=np.int64)
         self._episode_seed = np.zeros(count, dtype=np.int64)
         self._episode_index = np.zeros(count, dtype=np.int64)
         self._demo_id, self._house_seed = np.zeros(count, dtype=np.int64), np.zeros(count, dtype=np.int64)
@@ -324,12 +341,15 @@ class PathFollowEnv(EnvBase):
         self._initial_distance[index] = self._distance[index]
         self._start_xy[index], self._end_xy[index], self._lab_success[index] = demo.start_pose[:2], demo.end_xy, False
         self._shortest[index] = demo.shortest_length_m
+        steps = self._demo_steps[index] = demo.length
+        self._max_steps[index] = self.max_steps if self._fixed_max_steps else default_max_steps(steps)
         self._success[index] = False
         self._spl[index] = 0.0
         self._trail[index, 0] = demo.start_pose[:2]
         self._fidelity[index] = 0.0
         self._wall_hits[index] = 0
-        demo_actions[index] = torch.from_numpy(demo.actions)
+        demo_actions[index, :steps] = torch.from_numpy(demo.actions)
+        demo_actions[index, steps:] = 0  # padding: demo_steps says where the demonstration ends
         if self.demo_store is not None:
             stored = self.demo_store.frames[self._demo_id[index]]
             if self.emit_demo_frames:
@@ -339,8 +359,9 @@ class PathFollowEnv(EnvBase):
         if not self.emit_demo_frames:  # unrendered (checked): blank frames, none emitted
             pixels[index] = 0
             return
-        # rendered straight into the (n, H, W, 3) tensor
-        self._render([index] * self.demo_length, demo.poses[: self.demo_length], out=demo_frames[index].numpy())
+        # rendered straight into the (n, H, W, 3) tensor; black padding after the demonstration
+        self._render([index] * steps, demo.poses[:steps], out=demo_frames[index, :steps].numpy())
+        demo_frames[index, steps:] = 0
         pixels[index] = demo_frames[index, 0]  # the agent starts on the demo's first pose
 
     # ------------------------------------------------------------------- step
@@ -368,6 +389,7 @@ class PathFollowEnv(EnvBase):
             path_length_m=self._path_length,
             shortest_length_m=self._shortest,
             steps=self._steps,
+            max_steps=self._max_steps,
         )
         self._success, self._spl = outcome.success, outcome.spl
         self._lab_success = outcome.done & lab_success(self._pose[:, :2], self._end_xy, self._start_xy)
@@ -397,13 +419,14 @@ class PathFollowEnv(EnvBase):
         floats[:, 7:10] = self._fidelity
         if reward is not None:
             floats[:, 10] = reward
-        ints = np.empty((count, 6), dtype=np.int64)
+        ints = np.empty((count, 7), dtype=np.int64)
         ints[:, 0] = self._steps
         ints[:, 1] = self._episode_seed
         ints[:, 2] = self._demo_id
         ints[:, 3] = self._episode_index
         ints[:, 4] = self._house_seed
         ints[:, 5] = self._wall_hits
+        ints[:, 6] = self._demo_steps
         bools = np.empty((count, 5), dtype=bool)
         bools[:, 4] = self._lab_success
         bools[:, 0] = self._success
@@ -419,6 +442,7 @@ class PathFollowEnv(EnvBase):
             ACTUATION_NOISE_KEY: self._zero_noise,
             "pixels": pixels,
             "demo_actions": demo_actions,
+            "demo_steps": int_columns[..., 6:7],
             "step_count": int_columns[..., 0:1],
             "episode_seed": int_columns[..., 1:2],
             "episode_index": int_columns[..., 3:4],

@@ -20,6 +20,7 @@ from envs.demos import Demonstration
 from envs.follow import episode_for_seed
 from envs.geodesic import DistanceField
 from envs.homing import FOLLOW, HOMING, check_task, task_demonstration
+from envs.route_styles import RouteMixture
 from envs.scenes import House, build_house
 from envs.specs import NUM_DEMO_ACTIONS
 
@@ -41,7 +42,7 @@ class DemonstrationPlaylist:
 
     Args:
         demonstrations: the list (``None`` or empty: the env samples its routes).
-        demo_length: the env's demonstration length n, which every one must have.
+        demo_length: the env's demonstration length n: every one has 1 to n steps (padded to n).
         num_agents: agents of the env (1 for an unbatched env).
         with_store: the env draws from a demo store, which given demonstrations cannot join.
         task: the env's task: with ``"homing"`` each given route (a follow
@@ -90,11 +91,12 @@ class DemonstrationPlaylist:
             raise ValueError(f"{name} cannot be combined with demo_store: the store fixes the demonstrations.")
         if not isinstance(demonstration, Demonstration):
             raise ValueError(f"{name} must be an envs.demos.Demonstration, got {type(demonstration).__name__}.")
-        if demonstration.length != self.demo_length or demonstration.poses.shape != (self.demo_length + 1, 3):
+        length = demonstration.length
+        if not 1 <= length <= self.demo_length or demonstration.poses.shape != (length + 1, 3):
             raise ValueError(
-                f"{name} has {demonstration.length} steps; this env plays demonstrations of exactly "
-                f"demo_length={self.demo_length} steps (the shipped policies need 30): crop or re-record it, "
-                "or build the env with its length."
+                f"{name} has {length} steps (poses {demonstration.poses.shape}); this env plays demonstrations of "
+                f"1 to demo_length={self.demo_length} steps, padded to {self.demo_length} (demo_steps gives each "
+                "one's own length): crop it, or build the env with a demo_length of at least its length."
             )
         actions = demonstration.actions
         if actions.min(initial=0) < 0 or actions.max(initial=0) >= NUM_DEMO_ACTIONS:
@@ -137,6 +139,8 @@ class EpisodeSource:
         task: ``"follow"`` or ``"homing"``.
         playlist: the given demonstrations.
         demo_store: the store to draw from (its task must be ``task``), or ``None``.
+        route_style: sampled routes' styles and lengths (:class:`~envs.route_styles.RouteMixture`);
+            ``None``: the planner's routes of ``demo_length`` steps.
 
     Examples:
         >>> playlist = DemonstrationPlaylist(None, demo_length=5, num_agents=1)
@@ -154,7 +158,9 @@ class EpisodeSource:
         task: str,
         playlist: DemonstrationPlaylist,
         demo_store: DemoStore | None = None,
+        route_style: RouteMixture | None = None,
     ) -> None:
+        self.route_style = route_style
         self.house_seeds = list(house_seeds)
         self.demo_length = demo_length
         self.min_route_length_m = min_route_length_m
@@ -177,7 +183,9 @@ class EpisodeSource:
                 demo_id = int(np.random.default_rng(episode_seed).integers(len(self.demo_store)))
             demo = self.stored_demonstration(demo_id)
             return build_house(demo.house_seed), demo, demo_id
-        house, demo = episode_for_seed(episode_seed, self.house_seeds, self.demo_length, self.min_route_length_m, self.task)
+        house, demo = episode_for_seed(
+            episode_seed, self.house_seeds, self.demo_length, self.min_route_length_m, self.task, self.route_style
+        )
         return house, demo, 0
 
     def env_seed(self, seed: int | None) -> int | None:

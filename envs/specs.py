@@ -15,7 +15,7 @@ observation spec no longer contains them.
 from __future__ import annotations
 
 import torch
-from torchrl.data import Categorical, Composite, Unbounded
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs.transforms import ExcludeTransform
 
 from envs.transforms import ACTUATION_NOISE_KEY, actuation_noise_spec
@@ -77,6 +77,8 @@ def path_follow_specs(
         # copy and check slow for batched envs.
         "pixels": unbounded(size, size, NUM_RGB_CHANNELS, dtype=torch.uint8),
         "demo_actions": Categorical(NUM_DEMO_ACTIONS, shape=(*shape, n), dtype=torch.int64, device=device),
+        # the demonstration's own length, steps (1 to n): frames and actions after it are padding
+        "demo_steps": Bounded(1, n, shape=(*shape, 1), dtype=torch.int64, device=device),
         "step_count": unbounded(1, dtype=torch.int64),
         "episode_seed": unbounded(1, dtype=torch.int64),
         "episode_index": unbounded(1, dtype=torch.int64),

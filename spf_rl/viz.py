@@ -306,3 +306,22 @@ def watch(
         plt.close(fig)
         write_gif(frames, out / f"rollout_{index}.gif")
     return record
+
+
+def plot_route_styles(house, routes: dict[str, list], path: str | Path, title: str = "route styles") -> Path:
+    """One top-down map per route style, with that style's sample routes on it, to a PNG.
+
+    Args:
+        house: the :class:`~envs.scenes.House` the routes were drawn in.
+        routes: ``{style: [Demonstration, ...]}`` (:mod:`envs.route_styles`).
+        path: output PNG.
+        title: the figure's title.
+    """
+    from envs.render import draw_top_down_map
+
+    plt = pyplot()
+    fig, axes = plt.subplots(1, len(routes), figsize=(4.5 * len(routes), 4.8), squeeze=False)
+    for ax, (style, demos) in zip(axes[0], routes.items()):
+        paths = {f"route {i}: {demo.length} steps": demo.poses[:, :2] for i, demo in enumerate(demos, 1)}
+        draw_top_down_map(house, paths=paths, ax=ax, title=style)
+    return save_figure(fig, path, title)

@@ -48,7 +48,8 @@ def test_the_policy_is_the_sequence_of_its_parts(make) -> None:
     torch.testing.assert_close(by_hand["logits"], whole["logits"], rtol=0, atol=0)
     torch.testing.assert_close(by_hand["next", "eta"], whole["next", "eta"], rtol=0, atol=0)
     # every key a part writes is declared, and every key it reads is an input or an earlier output
-    available = {"pixels", "demo_frames", "demo_actions", "is_init", "spf_hidden", "eta", "memory_features"}
+    # ("demo_steps", each demonstration's length, is an optional input)
+    available = {"pixels", "demo_frames", "demo_actions", "demo_steps", "is_init", "spf_hidden", "eta", "memory_features"}
     for part in parts:
         assert set(part.in_keys) <= available, (type(part).__name__, part.in_keys)
         available |= set(part.out_keys)

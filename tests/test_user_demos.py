@@ -9,6 +9,7 @@ from torchrl.envs import Compose, InitTracker, TransformedEnv
 from envs import PathFollowEnv, RouteError, RouteRecorder, demonstration_from_actions, demonstration_from_waypoints
 from envs.demos import drive_expert
 from envs.expert import FORWARD, TURN_LEFT
+from envs.follow import default_max_steps
 from envs.playlist import DemonstrationPlaylist
 from envs.scenes import build_house
 from envs.scripted import OpenLoopReplay
@@ -163,8 +164,8 @@ def test_playlist_cycles_and_reset_overrides():
 
 def test_given_demonstrations_are_checked():
     demo = route_demo()
-    with pytest.raises(ValueError, match=r"demonstrations\[0\] has 14 steps; this env plays demonstrations of exactly demo_length=30"):
-        PathFollowEnv(house_seeds=[HOUSE], demo_length=30, render=False, demonstrations=[demo])
+    with pytest.raises(ValueError, match=r"demonstrations\[0\] has 14 steps .*; this env plays demonstrations of 1 to demo_length=5"):
+        PathFollowEnv(house_seeds=[HOUSE], demo_length=5, render=False, demonstrations=[demo])
     env = PathFollowEnv(house_seeds=[HOUSE], demo_length=5, render=False)
     with pytest.raises(ValueError, match="demonstration has 14 steps"):
         env.reset(demonstration=demo)
@@ -172,3 +173,18 @@ def test_given_demonstrations_are_checked():
         env.reset(demonstration="FFF")
     with pytest.raises(ValueError, match="cannot be combined with demo_store"):
         DemonstrationPlaylist([demo], demo_length=demo.length, num_agents=1, with_store=True)
+
+
+def test_shorter_demonstrations_are_padded_and_played_at_their_own_length():
+    demo = route_demo()  # 14 steps
+    short, padded = (PathFollowEnv(house_seeds=[HOUSE], demo_length=n, demonstrations=[demo]) for n in (demo.length, 30))
+    td_short, td = short.reset(), padded.reset()
+    assert td["demo_steps"].item() == demo.length == td_short["demo_steps"].item()
+    assert td["demo_frames"].shape[0] == 30 and torch.equal(td["demo_frames"][: demo.length], td_short["demo_frames"])
+    assert not td["demo_frames"][demo.length :].any() and not td["demo_actions"][demo.length :].any()
+    assert td["demo_actions"][: demo.length].tolist() == demo.actions.tolist()
+    assert padded.observation_spec["demo_steps"].is_in(td["demo_steps"])
+    for _ in range(default_max_steps(demo.length)):  # the limit is the demonstration's own: ceil(5/3 * 14) = 24
+        td["action"] = torch.tensor(1)  # spinning: truncated at the limit
+        td = padded.step(td)["next"]
+    assert td["truncated"].item() and td["step_count"].item() == 24

@@ -24,6 +24,8 @@ from spf_rl.modules.memory import (
     memory_indices,
     memory_length,
     memory_mask,
+    padded_memory_indices,
+    padded_memory_mask,
     validate_sparsity,
     validate_sparsity_range,
 )
@@ -31,8 +33,10 @@ from spf_rl.modules.open_loop import OpenLoopPolicy
 from spf_rl.modules.policy import SPFPolicy
 from spf_rl.modules.rpf import RPFAttention, SlotMLP
 from spf_rl.modules.sparse_memory import SparseMemory
+from spf_rl.modules.td_utils import DEMO_STEPS_KEY
 
 __all__ = [
+    "DEMO_STEPS_KEY",
     "ImageEncoder",
     "MemoryAttention",
     "MemoryEncoder",
@@ -55,6 +59,8 @@ __all__ = [
     "memory_indices",
     "memory_length",
     "memory_mask",
+    "padded_memory_indices",
+    "padded_memory_mask",
     "soft_action_memory",
     "validate_sparsity",
     "validate_sparsity_range",

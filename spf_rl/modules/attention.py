@@ -12,6 +12,11 @@ as eq. 2, over all ``n`` demonstration actions (every action is in memory). It i
 differentiable in ``eta``, unlike the hard window (which only sees
 ``floor(eta)``); this is how the action-only baseline's pointer gets a gradient,
 in the spirit of the action memory of RPF (Kumar et al. 2019).
+
+A demonstration of ``n_i`` steps padded to ``n`` (the optional ``demo_steps`` input)
+ends at ``n_i``: the window's centre is clamped to ``[0, n_i - 1]``, positions from
+``n_i`` on are zero one-hots, the soft action memory sums over ``0 .. n_i - 1`` only,
+and memory slots past the demonstration get weight 0 (``lengths`` below).
 """
 from __future__ import annotations
 
@@ -24,7 +29,8 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import nn
 
-from spf_rl.modules.td_utils import flat_or_zeros, init_flags, with_batch_dim
+from spf_rl.modules.memory import padded_memory_indices, validate_sparsity
+from spf_rl.modules.td_utils import DEMO_STEPS_KEY, demo_lengths, flat_or_zeros, init_flags, with_batch_dim
 
 logger = logging.getLogger(__name__)
 
@@ -43,7 +49,8 @@ def attention_weights(
 
     Args:
         eta (torch.Tensor): pointer, shape ``[*, 1]`` (0-based, float).
-        indices (torch.Tensor): memory indices ``M*``, shape ``[l]`` (0-based).
+        indices (torch.Tensor): memory indices ``M*``, shape ``[l]`` (0-based), or ``[*, l]``
+            (one set per row, e.g. :func:`~spf_rl.modules.memory.padded_memory_indices`).
         mask (torch.Tensor, optional): boolean ``[*, l]`` (or broadcastable); the
             weights of the slots where it is false are exactly 0. Defaults to all
             slots kept.
@@ -63,34 +70,56 @@ def attention_weights(
 
 
 def action_window(
-    demo_actions: torch.Tensor, eta: torch.Tensor, k: int, num_classes: int
+    demo_actions: torch.Tensor,
+    eta: torch.Tensor,
+    k: int,
+    num_classes: int,
+    lengths: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """One-hot demo actions at ``floor(eta)-k .. floor(eta)+k``, zero-padded outside the demo.
 
     ``floor(eta)`` is clamped to ``[0, n - 1]`` first; window positions outside
-    ``[0, n - 1]`` get an all-zero one-hot.
+    ``[0, n - 1]`` get an all-zero one-hot. With ``lengths``, each row's demonstration
+    ends at its ``n_i``: ``n_i`` replaces ``n`` (the padding actions are never read).
 
     Args:
         demo_actions (torch.Tensor): int64 ``[*, n]`` demo actions.
         eta (torch.Tensor): pointer ``[*, 1]`` (0-based, float).
         k (int): half-width of the window.
         num_classes (int): number of action classes (one-hot size).
+        lengths (torch.Tensor, optional): int ``[*, 1]``, each demonstration's number of
+            steps ``n_i`` in ``[1, n]``. Defaults to ``n`` for every row.
 
     Returns:
         torch.Tensor: float tensor ``[*, 2k + 1, num_classes]``.
+
+    Examples:
+        >>> import torch
+        >>> acts = torch.tensor([[0, 1, 2, 9]])  # 3 steps, padded with 9
+        >>> action_window(acts, torch.tensor([[5.0]]), 1, 3, lengths=torch.tensor([[3]])).argmax(-1).tolist()
+        [[1, 2, 0]]
+        >>> action_window(acts, torch.tensor([[5.0]]), 1, 3, lengths=torch.tensor([[3]])).sum(-1).tolist()
+        [[1.0, 1.0, 0.0]]
     """
     n = demo_actions.shape[-1]
-    centre = eta.detach().floor().long().clamp(0, n - 1)  # [*, 1]
     offsets = torch.arange(-k, k + 1, device=eta.device)
-    pos = centre + offsets  # [*, 2k+1]
-    valid = (pos >= 0) & (pos < n)
-    acts = demo_actions.gather(-1, pos.clamp(0, n - 1))
+    if lengths is None:
+        centre = eta.detach().floor().long().clamp(0, n - 1)  # [*, 1]
+        pos = centre + offsets  # [*, 2k+1]
+        valid = (pos >= 0) & (pos < n)
+        acts = demo_actions.gather(-1, pos.clamp(0, n - 1))
+    else:
+        last = lengths.to(device=eta.device, dtype=torch.long) - 1  # [*, 1]
+        centre = torch.minimum(eta.detach().floor().long().clamp(min=0), last)
+        pos = centre + offsets
+        valid = (pos >= 0) & (pos <= last)
+        acts = demo_actions.gather(-1, torch.minimum(pos.clamp(min=0), last))
     onehot = F.one_hot(acts, num_classes).to(eta.dtype)
     return onehot * valid.unsqueeze(-1).to(eta.dtype)
 
 
 def soft_action_memory(
-    demo_actions: torch.Tensor, eta: torch.Tensor, num_classes: int
+    demo_actions: torch.Tensor, eta: torch.Tensor, num_classes: int, lengths: torch.Tensor | None = None
 ) -> torch.Tensor:
     """Soft-attended action memory ``sum_j exp(-|eta - j|) onehot(a_j)`` over all ``n`` demo actions.
 
@@ -101,6 +130,9 @@ def soft_action_memory(
         demo_actions (torch.Tensor): int64 ``[*, n]`` demo actions.
         eta (torch.Tensor): pointer ``[*, 1]`` (0-based, float).
         num_classes (int): number of action classes (one-hot size).
+        lengths (torch.Tensor, optional): int ``[*, 1]``, each demonstration's number of
+            steps ``n_i``: the sum runs over ``j < n_i`` (the padding is never read).
+            Defaults to ``n`` for every row.
 
     Returns:
         torch.Tensor: float tensor ``[*, num_classes]``.
@@ -109,10 +141,17 @@ def soft_action_memory(
         >>> import torch
         >>> soft_action_memory(torch.tensor([[0, 1, 1]]), torch.tensor([[1.0]]), 2)
         tensor([[0.3679, 1.3679]])
+        >>> soft_action_memory(torch.tensor([[0, 1, 7]]), torch.tensor([[1.0]]), 2, lengths=torch.tensor([[2]]))
+        tensor([[0.3679, 1.0000]])
     """
     n = demo_actions.shape[-1]
     positions = torch.arange(n, device=eta.device)
-    weights = attention_weights(eta, positions)  # [*, n]
+    if lengths is None:
+        weights = attention_weights(eta, positions)  # [*, n]
+    else:
+        steps = positions < lengths.to(eta.device)  # [*, n]
+        weights = attention_weights(eta, positions, steps)
+        demo_actions = demo_actions.masked_fill(~steps, 0)
     onehot = F.one_hot(demo_actions.long(), num_classes).to(eta.dtype)  # [*, n, C]
     return (weights.unsqueeze(-1) * onehot).sum(-2)
 
@@ -184,15 +223,16 @@ class PointerAttention(nn.Module):
         demo_actions: torch.Tensor,
         eta: torch.Tensor,
         mask: torch.Tensor | None = None,
+        lengths: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor | None, torch.Tensor]:
         """Return the soft weights ``[*, l]`` (``None`` when action-only; 0 where ``mask``
-        is false) and the window ``[*, 2k+1, C]``."""
+        is false) and the window ``[*, 2k+1, C]`` (of demonstrations of ``lengths`` steps, if given)."""
         if demo_actions.dtype != torch.long:
             demo_actions = demo_actions.long()
         weights = (
             None if self.action_only or indices is None else attention_weights(eta, indices, mask)
         )
-        return weights, action_window(demo_actions, eta, self.k, self.num_action_classes)
+        return weights, action_window(demo_actions, eta, self.k, self.num_action_classes, lengths)
 
     def forward(
         self,
@@ -202,12 +242,13 @@ class PointerAttention(nn.Module):
         eta: torch.Tensor,
         return_window: bool = False,
         mask: torch.Tensor | None = None,
+        lengths: torch.Tensor | None = None,
     ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
         """Compute ``mu``.
 
         Args:
             memory_features (torch.Tensor or None): ``[*, l, D]`` (``None`` when action-only).
-            indices (torch.Tensor or None): memory indices ``M*`` ``[l]``.
+            indices (torch.Tensor or None): memory indices ``M*`` ``[l]`` (or ``[*, l]``, per row).
             demo_actions (torch.Tensor): int64 ``[*, n]``.
             eta (torch.Tensor): pointer ``[*, 1]`` (0-based, float).
             return_window (bool, optional): also return the action window
@@ -216,11 +257,15 @@ class PointerAttention(nn.Module):
                 to. The weights of the other slots are exactly 0 (set before they
                 multiply the features), so those features do not reach ``mu``.
                 Defaults to all slots.
+            lengths (torch.Tensor, optional): int ``[*, 1]``, each demonstration's number
+                of steps ``n_i`` (demonstrations padded to ``n``): the action window and
+                the soft action memory end at ``n_i`` (the memory slots past it are
+                ``mask``'s to hide). Defaults to ``n`` for every row.
 
         Returns:
             torch.Tensor: ``mu`` of shape ``[*, out_dim]`` (and the window if asked).
         """
-        weights, window = self.weights_and_window(indices, demo_actions, eta, mask)
+        weights, window = self.weights_and_window(indices, demo_actions, eta, mask, lengths)
         parts = []
         if not self.action_only:
             if memory_features is None or weights is None:
@@ -236,7 +281,7 @@ class PointerAttention(nn.Module):
         parts.append(window.flatten(-2))
         if self.soft_action_memory:
             parts.append(
-                soft_action_memory(demo_actions.long(), eta, self.num_action_classes)
+                soft_action_memory(demo_actions.long(), eta, self.num_action_classes, lengths)
             )
         mu = self.psi(torch.cat(parts, -1))
         return (mu, window) if return_window else mu
@@ -253,13 +298,26 @@ class MemoryAttention(TensorDictModuleBase):
     :class:`~spf_rl.modules.SPFPolicy` (:meth:`attend` on tensors); this module is
     its single-step form.
 
+    With the optional ``demo_steps`` input (each row's demonstration length ``n_i``,
+    demonstrations padded to ``n``), the demonstration ends at ``n_i``: the action
+    window and soft action memory stop there (``lengths`` of
+    :meth:`PointerAttention.forward`), and no slot past it is attended. The slots'
+    demo indices are those :class:`~spf_rl.modules.SparseMemory` lays out: with
+    ``sparsity`` (a fixed-sparsity memory), ``memory_indices(n_i, sparsity)`` in the
+    first slots; without, ``indices`` (one slot per frame), those ``>= n_i`` masked.
+
     Args:
         attention (PointerAttention): the fusion layer psi and its settings.
         indices (torch.Tensor, optional): demo index of each memory slot (``M*``);
             ``None`` for the action-only baseline.
 
     Keyword Args:
+        sparsity (float, optional): the fixed sparsity ``indices`` were chosen at
+            (``indices == memory_indices(n, sparsity)``); ``None`` (default) for a memory
+            with a slot per demo frame (random sparsity) or no memory.
         eta_key, is_init_key, memory_key, memory_mask_key, demo_actions_key (NestedKey): inputs.
+        demo_steps_key (NestedKey, optional): optional input, each demonstration's length
+            ``n_i`` (int64 ``[1]``); ``None``: never read. Defaults ``"demo_steps"``.
         mu_key, action_window_key, eta_used_key (NestedKey): outputs. Defaults ``"mu"``,
             ``"action_window"``, ``"eta_used"``.
 
@@ -272,6 +330,8 @@ class MemoryAttention(TensorDictModuleBase):
         ...                  "demo_actions": torch.randint(0, 3, (2, 10))}, batch_size=[2])
         >>> attend(td)["mu"].shape, td["action_window"].shape
         (torch.Size([2, 16]), torch.Size([2, 5, 3]))
+        >>> attend.in_keys
+        ['eta', 'is_init', 'demo_actions', 'memory_features', 'demo_steps']
     """
 
     def __init__(
@@ -279,6 +339,7 @@ class MemoryAttention(TensorDictModuleBase):
         attention: PointerAttention,
         indices: torch.Tensor | None,
         *,
+        sparsity: float | None = None,
         eta_key: NestedKey = "eta",
         is_init_key: NestedKey = "is_init",
         memory_key: NestedKey = "memory_features",
@@ -287,15 +348,18 @@ class MemoryAttention(TensorDictModuleBase):
         mu_key: NestedKey = "mu",
         action_window_key: NestedKey = "action_window",
         eta_used_key: NestedKey = "eta_used",
+        demo_steps_key: NestedKey | None = DEMO_STEPS_KEY,
     ) -> None:
         super().__init__()
         self.attention = attention
+        self.sparsity = None if sparsity is None else validate_sparsity(sparsity)
         self.register_buffer("indices", None if indices is None else torch.as_tensor(indices, dtype=torch.long), persistent=False)
         self.eta_key, self.is_init_key, self.demo_actions_key = eta_key, is_init_key, demo_actions_key
         self.memory_key = None if indices is None else memory_key
         self.memory_mask_key = memory_mask_key
         self.mu_key, self.action_window_key, self.eta_used_key = mu_key, action_window_key, eta_used_key
-        optional = [key for key in (self.memory_key, memory_mask_key) if key is not None]
+        self.demo_steps_key = demo_steps_key
+        optional = [key for key in (self.memory_key, memory_mask_key, demo_steps_key) if key is not None]
         self.in_keys = [eta_key, is_init_key, demo_actions_key, *optional]
         self.out_keys = [mu_key, action_window_key, eta_used_key]
 
@@ -305,9 +369,21 @@ class MemoryAttention(TensorDictModuleBase):
         demo_actions: torch.Tensor,
         eta: torch.Tensor,
         mask: torch.Tensor | None = None,
+        lengths: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """``mu`` ``[*, out_dim]`` and the action window ``[*, 2k+1, C]`` on tensors."""
-        return self.attention(memory, self.indices, demo_actions, eta, return_window=True, mask=mask)
+        """``mu`` ``[*, out_dim]`` and the action window ``[*, 2k+1, C]`` on tensors; ``lengths``
+        (int ``[*, 1]``, optional): each row's demonstration length ``n_i``."""
+        if lengths is None:
+            return self.attention(memory, self.indices, demo_actions, eta, return_window=True, mask=mask)
+        indices = self.indices
+        if indices is not None:
+            lengths = lengths.to(indices.device)
+            if self.sparsity is None:
+                used = indices < lengths  # [*, l]
+            else:
+                indices, used = padded_memory_indices(lengths, demo_actions.shape[-1], self.sparsity)
+            mask = used if mask is None else mask.to(dtype=torch.bool) & used
+        return self.attention(memory, indices, demo_actions, eta, return_window=True, mask=mask, lengths=lengths)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """One step: read ``eta`` (0 where ``is_init``), write ``mu``, ``action_window``, ``eta_used``."""
@@ -316,13 +392,14 @@ class MemoryAttention(TensorDictModuleBase):
     def _forward_step(self, td: TensorDictBase) -> TensorDictBase:
         batch = td.batch_size
         demo_actions = td.get(self.demo_actions_key).long()
+        lengths = demo_lengths(td, self.demo_steps_key, demo_actions.shape[-1], batch)
         memory = td.get(self.memory_key) if self.memory_key is not None else None
         like = memory if memory is not None else torch.zeros((), device=demo_actions.device)
         eta = flat_or_zeros(td.get(self.eta_key, None), (*batch, 1), like)
         is_init = init_flags(td, self.is_init_key, eta.device)
         eta = torch.where(is_init.unsqueeze(-1), torch.zeros_like(eta), eta)
         mask = td.get(self.memory_mask_key) if self.memory_mask_key is not None else None
-        mu, window = self.attend(memory, demo_actions, eta, mask)
+        mu, window = self.attend(memory, demo_actions, eta, mask, lengths)
         td.set(self.mu_key, mu)
         td.set(self.action_window_key, window)
         td.set(self.eta_used_key, eta)

@@ -2,7 +2,8 @@
 
 ``h_{t+1}, b, logits = pi(h_t, mu_t, phi(o_t), a_window)`` with ``pi`` a GRU cell,
 then the pointer update ``eta_{t+1} = eta_t + tanh(b)`` (the paper) or
-``min(eta_t + 1 + tanh(b), n - 1)`` (the RPF authors' code).
+``min(eta_t + 1 + tanh(b), n - 1)`` (the RPF authors' code; ``n_i - 1`` for a
+demonstration of ``n_i`` steps padded to ``n``, the optional ``demo_steps`` input).
 
 Why not torchrl's :class:`~torchrl.modules.GRUModule`: in sequence mode it runs
 ``nn.GRU`` over inputs known for every step in advance. Here the GRU input at
@@ -24,7 +25,7 @@ from torchrl.data import Unbounded
 from torchrl.envs import TensorDictPrimer
 
 from spf_rl.modules.config import POINTER_UPDATES
-from spf_rl.modules.td_utils import flat_or_zeros, init_flags, next_key, with_batch_dim
+from spf_rl.modules.td_utils import DEMO_STEPS_KEY, demo_lengths, flat_or_zeros, init_flags, next_key, with_batch_dim
 
 __all__ = ["SPFCell"]
 
@@ -50,6 +51,9 @@ class SPFCell(TensorDictModuleBase):
 
     Keyword Args:
         mu_key, pixel_features_key, action_window_key, eta_used_key, is_init_key (NestedKey): inputs.
+        demo_steps_key (NestedKey, optional): optional input, each demonstration's length
+            ``n_i`` (int64 ``[1]``, padded to ``demo_length``): the ``"rpf"`` rule caps the
+            pointer at ``n_i - 1``. ``None``: never read. Defaults ``"demo_steps"``.
         hidden_key, eta_key (NestedKey): recurrent state. Defaults ``"spf_hidden"``, ``"eta"``.
         logits_key, features_key (NestedKey): outputs. Defaults ``"logits"``, ``"features"``.
 
@@ -64,6 +68,9 @@ class SPFCell(TensorDictModuleBase):
         (torch.Size([2, 3]), torch.Size([2, 1]))
         >>> sorted(cell.make_tensordict_primer().primers.keys())
         ['eta', 'spf_hidden']
+        >>> rpf = SPFCell((16, 8, 15), hidden_size=32, num_actions=3, demo_length=10, pointer_update="rpf")
+        >>> rpf.update_pointer(torch.tensor([[3.5], [3.5]]), torch.full((2, 1), 10.0), torch.tensor([[4], [10]])).tolist()
+        [[3.0], [5.5]]
     """
 
     def __init__(
@@ -85,6 +92,7 @@ class SPFCell(TensorDictModuleBase):
         eta_key: NestedKey = "eta",
         logits_key: NestedKey = "logits",
         features_key: NestedKey = "features",
+        demo_steps_key: NestedKey | None = DEMO_STEPS_KEY,
     ) -> None:
         super().__init__()
         if pointer_update not in POINTER_UPDATES:
@@ -102,7 +110,10 @@ class SPFCell(TensorDictModuleBase):
         self.eta_used_key, self.is_init_key = eta_used_key, is_init_key
         self.hidden_key, self.eta_key = hidden_key, eta_key
         self.logits_key, self.features_key = logits_key, features_key
-        self.in_keys = [mu_key, pixel_features_key, action_window_key, eta_used_key, is_init_key, hidden_key]
+        self.demo_steps_key = demo_steps_key
+        self.in_keys = [mu_key, pixel_features_key, action_window_key, eta_used_key, is_init_key, hidden_key] + (
+            [demo_steps_key] if demo_steps_key is not None else []
+        )
         self.out_keys = [logits_key, features_key, next_key(hidden_key), next_key(eta_key)]
 
     def make_tensordict_primer(self) -> TensorDictPrimer:
@@ -110,18 +121,28 @@ class SPFCell(TensorDictModuleBase):
         specs = {self.hidden_key: Unbounded(shape=(self.hidden_size,)), self.eta_key: Unbounded(shape=(1,))}
         return TensorDictPrimer(specs, expand_specs=True)
 
-    def update_pointer(self, eta: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-        """Pointer update (eq. 4, or the RPF code's clipped version)."""
+    def update_pointer(self, eta: torch.Tensor, b: torch.Tensor, lengths: torch.Tensor | None = None) -> torch.Tensor:
+        """Pointer update (eq. 4, or the RPF code's clipped version, capped at ``n - 1``, or at
+        ``n_i - 1`` per row with ``lengths``, int ``[*, 1]``)."""
         if self.pointer_update == "paper":
             return eta + torch.tanh(b)
-        return torch.clamp(eta + 1.0 + torch.tanh(b), max=float(self.demo_length - 1))
+        if lengths is None:
+            return torch.clamp(eta + 1.0 + torch.tanh(b), max=float(self.demo_length - 1))
+        return torch.minimum(eta + 1.0 + torch.tanh(b), (lengths.to(eta.device) - 1).to(eta.dtype))
 
     def step(
-        self, mu: torch.Tensor, phi: torch.Tensor, window: torch.Tensor, eta: torch.Tensor, h: torch.Tensor
+        self,
+        mu: torch.Tensor,
+        phi: torch.Tensor,
+        window: torch.Tensor,
+        eta: torch.Tensor,
+        h: torch.Tensor,
+        lengths: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """One step on flat tensors -> (logits, next hidden state, next pointer)."""
+        """One step on flat tensors -> (logits, next hidden state, next pointer); ``lengths``
+        (int ``[*, 1]``, optional): each row's demonstration length."""
         h_next = self.gru(torch.cat([mu, phi, window.flatten(-2)], -1), h)
-        return self.logits_head(h_next), h_next, self.update_pointer(eta, self.pointer_head(h_next))
+        return self.logits_head(h_next), h_next, self.update_pointer(eta, self.pointer_head(h_next), lengths)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """One step: hidden state reset where ``is_init``, then eqs. 3-4."""
@@ -134,12 +155,14 @@ class SPFCell(TensorDictModuleBase):
         h = torch.where(init_flags(td, self.is_init_key, mu.device).unsqueeze(-1), torch.zeros_like(h), h)
         eta = td.get(self.eta_used_key)
         flat = mu.reshape(-1, mu.shape[-1]).shape[0]
+        lengths = demo_lengths(td, self.demo_steps_key, self.demo_length, batch)
         logits, h_next, eta_next = self.step(
             mu.reshape(flat, -1),
             td.get(self.pixel_features_key).reshape(flat, -1),
             td.get(self.action_window_key).reshape(flat, *td.get(self.action_window_key).shape[-2:]),
             eta.reshape(flat, 1),
             h.reshape(flat, self.hidden_size),
+            None if lengths is None else lengths.reshape(flat, 1),
         )
         td.set(self.logits_key, logits.reshape(*batch, self.num_actions))
         td.set(self.features_key, h_next.reshape(*batch, self.hidden_size))

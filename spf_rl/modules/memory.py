@@ -7,6 +7,7 @@ and the memory features (the frames at ``M*`` passed through the encoder phi).
 """
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import numbers
@@ -22,6 +23,8 @@ __all__ = [
     "memory_indices",
     "memory_length",
     "memory_mask",
+    "padded_memory_indices",
+    "padded_memory_mask",
     "validate_sparsity",
     "validate_sparsity_range",
 ]
@@ -155,6 +158,72 @@ def memory_mask(n: int, sparsity: float) -> torch.BoolTensor:
     mask = torch.zeros(_validate_n(n), dtype=torch.bool)
     mask[memory_indices(n, sparsity)] = True
     return mask
+
+
+@functools.lru_cache(maxsize=32)
+def _padded_tables(demo_length: int, sparsity: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Row ``n`` (1..demo_length) of each: ``M*(n, s)`` padded with 0 to ``l``, its validity, ``memory_mask(n, s)`` padded."""
+    slots = memory_length(demo_length, sparsity)
+    indices = torch.zeros(demo_length + 1, slots, dtype=torch.long)
+    valid = torch.zeros(demo_length + 1, slots, dtype=torch.bool)
+    masks = torch.zeros(demo_length + 1, demo_length, dtype=torch.bool)
+    for n in range(1, demo_length + 1):
+        kept = memory_indices(n, sparsity)
+        indices[n, : kept.numel()] = kept
+        valid[n, : kept.numel()] = True
+        masks[n, kept] = True
+    return indices, valid, masks
+
+
+def padded_memory_indices(
+    lengths: torch.Tensor, demo_length: int, sparsity: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each demonstration's memory indices ``M*(n_i, sparsity)`` in the ``l`` slots of a ``demo_length``-step memory.
+
+    For demonstrations padded to ``demo_length`` steps: a fixed-sparsity memory has
+    ``l = memory_length(demo_length, sparsity)`` slots; one of ``n_i`` steps fills the
+    first ``memory_length(n_i, sparsity) <= l`` of them with the frames at
+    ``memory_indices(n_i, sparsity)``, as a policy built for ``n_i`` steps would.
+
+    Args:
+        lengths (torch.Tensor): int ``[*, 1]``, the demonstrations' lengths ``n_i`` in ``[1, demo_length]``.
+        demo_length (int): the padded length.
+        sparsity (float): fraction of frames kept, in ``(0, 1]``.
+
+    Returns:
+        tuple of torch.Tensor: ``indices`` ``[*, l]`` (int64, 0 in the unused slots) and
+        ``valid`` ``[*, l]`` (bool, true in the used slots), on ``lengths``' device.
+
+    Examples:
+        >>> indices, valid = padded_memory_indices(torch.tensor([[3], [6]]), 6, 0.5)
+        >>> indices.tolist(), valid.tolist()
+        ([[0, 2, 0], [0, 2, 5]], [[True, True, False], [True, True, True]])
+    """
+    indices, valid, _ = _padded_tables(_validate_n(demo_length), validate_sparsity(sparsity))
+    rows = lengths.reshape(lengths.shape[:-1]).long()
+    return indices.to(lengths.device)[rows], valid.to(lengths.device)[rows]
+
+
+def padded_memory_mask(lengths: torch.Tensor, demo_length: int, sparsity: float) -> torch.Tensor:
+    """:func:`memory_mask` of each demonstration of ``n_i`` steps, padded with false to ``demo_length``.
+
+    The slot mask of a random-sparsity memory (one slot per frame of the padded
+    demonstration): true at ``memory_indices(n_i, sparsity)``, false from ``n_i`` on.
+
+    Args:
+        lengths (torch.Tensor): int ``[*, 1]``, the demonstrations' lengths ``n_i`` in ``[1, demo_length]``.
+        demo_length (int): the padded length.
+        sparsity (float): fraction of frames kept, in ``(0, 1]``.
+
+    Returns:
+        torch.BoolTensor: ``[*, demo_length]`` on ``lengths``' device.
+
+    Examples:
+        >>> padded_memory_mask(torch.tensor([[3], [6]]), 6, 0.5).int().tolist()
+        [[1, 0, 1, 0, 0, 0], [1, 0, 1, 0, 0, 1]]
+    """
+    _, _, masks = _padded_tables(_validate_n(demo_length), validate_sparsity(sparsity))
+    return masks.to(lengths.device)[lengths.reshape(lengths.shape[:-1]).long()]
 
 
 def memory_bytes(

@@ -9,6 +9,7 @@ from torchrl.data import Unbounded
 from torchrl.envs import TensorDictPrimer
 
 from spf_rl.modules.config import ALLOWED_NUM_ACTIONS, NUM_PAPER_ACTIONS, STOP_ACTION, TURN_LEFT_ACTION
+from spf_rl.modules.td_utils import DEMO_STEPS_KEY, demo_lengths
 
 __all__ = ["OpenLoopPolicy"]
 
@@ -20,7 +21,9 @@ class OpenLoopPolicy(TensorDictModuleBase):
     """Open-loop baseline: replays ``demo_actions[step]``, ignoring the observations.
 
     Keeps its own step counter in the recurrent state (reset to 0 where ``is_init``).
-    After the demonstration ends it outputs ``action_after_demo``.
+    After the demonstration ends it outputs ``action_after_demo``: after ``n`` steps,
+    or after ``n_i`` where the optional ``demo_steps`` input gives a demonstration's
+    own length (its actions padded to ``n``).
 
     Args:
         num_actions (int, optional): number of actions (3, or 4 with STOP). Defaults to 3.
@@ -32,6 +35,8 @@ class OpenLoopPolicy(TensorDictModuleBase):
         demo_actions_key, is_init_key, step_key, action_key, logits_key (NestedKey):
             keys. Defaults ``"demo_actions"``, ``"is_init"``, ``"open_loop_step"``
             (``[1]`` int64), ``"action"``, ``"logits"``.
+        demo_steps_key (NestedKey, optional): optional input, each demonstration's length
+            ``n_i`` (int64 ``[1]``); ``None``: never read. Defaults ``"demo_steps"``.
 
     Examples:
         >>> import torch
@@ -41,6 +46,10 @@ class OpenLoopPolicy(TensorDictModuleBase):
         ...                  "is_init": torch.ones(1, 1, dtype=torch.bool)}, batch_size=[1])
         >>> policy(td)["action"].tolist(), td["next", "open_loop_step"].tolist()
         ([2], [[1]])
+        >>> _ = td.update({"demo_steps": torch.tensor([[1]]), "open_loop_step": torch.tensor([[1]]),
+        ...            "is_init": torch.zeros(1, 1, dtype=torch.bool)})  # a 1-step demo, padded to 3
+        >>> policy(td)["action"].tolist()  # its after-demo action, turn left
+        [1]
     """
 
     def __init__(
@@ -53,6 +62,7 @@ class OpenLoopPolicy(TensorDictModuleBase):
         step_key: NestedKey = "open_loop_step",
         action_key: NestedKey = "action",
         logits_key: NestedKey = "logits",
+        demo_steps_key: NestedKey | None = DEMO_STEPS_KEY,
     ) -> None:
         super().__init__()
         if num_actions not in ALLOWED_NUM_ACTIONS:
@@ -72,7 +82,8 @@ class OpenLoopPolicy(TensorDictModuleBase):
         self.step_key = step_key
         self.action_key = action_key
         self.logits_key = logits_key
-        self.in_keys = [demo_actions_key, is_init_key, step_key]
+        self.demo_steps_key = demo_steps_key
+        self.in_keys = [demo_actions_key, is_init_key, step_key] + ([demo_steps_key] if demo_steps_key is not None else [])
         step_next = ("next", *((step_key,) if isinstance(step_key, str) else tuple(step_key)))
         self.out_keys = [action_key, logits_key, step_next]
 
@@ -87,6 +98,7 @@ class OpenLoopPolicy(TensorDictModuleBase):
         demo_actions = tensordict.get(self.demo_actions_key).long()
         bs = demo_actions.shape[:-1]
         n = demo_actions.shape[-1]
+        lengths = demo_lengths(tensordict, self.demo_steps_key, n, bs)
         step = tensordict.get(self.step_key, None)
         step = (
             torch.zeros(*bs, 1, dtype=torch.long, device=demo_actions.device)
@@ -97,7 +109,8 @@ class OpenLoopPolicy(TensorDictModuleBase):
         if is_init is not None:
             step = torch.where(is_init.reshape(*bs, 1), torch.zeros_like(step), step)
         action = demo_actions.gather(-1, step.clamp(0, n - 1))
-        action = torch.where(step >= n, torch.full_like(action, self.action_after_demo), action)
+        end = n if lengths is None else lengths.to(step.device)
+        action = torch.where(step >= end, torch.full_like(action, self.action_after_demo), action)
         action = action.squeeze(-1)
         logits = torch.full((*bs, self.num_actions), OPEN_LOOP_OFF_LOGIT, device=action.device)
         logits = logits.scatter(-1, action.unsqueeze(-1), 0.0)

@@ -38,7 +38,7 @@ from spf_rl.modules.config import SPFConfig
 from spf_rl.modules.encoder import ImageEncoder
 from spf_rl.modules.rpf import RPF_HEAD_HIDDEN, RPFAttention, SlotMLP
 from spf_rl.modules.sparse_memory import SparseMemory
-from spf_rl.modules.td_utils import flat_or_zeros, init_flags, next_key, with_batch_dim
+from spf_rl.modules.td_utils import DEMO_STEPS_KEY, demo_lengths, flat_or_zeros, init_flags, next_key, with_batch_dim
 
 logger = logging.getLogger(__name__)
 
@@ -81,6 +81,20 @@ class SPFPolicy(TensorDictModuleBase):
 
     **Random sparsity** (``config.sparsity_range``): see :class:`~spf_rl.modules.SparseMemory`.
 
+    **Demonstrations of different lengths in one batch**: the optional input
+    ``demo_steps`` (int64 ``[*B, 1]``) gives each demonstration's own number of steps
+    ``n_i``, ``1 <= n_i <= n = config.demo_length``; ``demo_frames`` and
+    ``demo_actions`` are padded after ``n_i`` (with anything: the padding is never
+    read). Each row then runs as the network built for ``n_i`` steps
+    (``spf_rl.train.lengths.policy_for_length``) would on its unpadded demonstration:
+    the memory holds that demonstration's memory (fixed sparsity: the frames at
+    ``memory_indices(n_i, s)``, in the first slots; random sparsity: the mask
+    ``memory_mask(n_i, s)``), no slot past ``n_i`` is attended, the action window
+    and soft action memory end at ``n_i`` and the ``"rpf"`` pointer rule caps the
+    pointer at ``n_i - 1``. In step and sequence mode alike. Without the key, or
+    with every ``n_i = n``, every output is that of the fixed-length computation, bit
+    for bit. An ``n_i`` outside ``[1, n]`` raises a ``ValueError`` before any work.
+
     Args:
         config (SPFConfig, optional): model configuration. Defaults to ``SPFConfig()``.
         encoder (nn.Module or TensorDictModule, optional): image encoder phi mapping
@@ -100,6 +114,9 @@ class SPFPolicy(TensorDictModuleBase):
             ``"logits"``, ``"features"``, ``"eta_used"``.
         memory_mask_key (NestedKey): output key of the memory mask (``[n]`` bool),
             written only with ``config.sparsity_range``. Defaults to ``"memory_mask"``.
+        demo_steps_key (NestedKey, optional): optional input key of each demonstration's
+            length ``n_i`` (``[1]`` int64); ``None``: never read (every demonstration is
+            ``n`` long). Defaults to ``"demo_steps"`` (:data:`~spf_rl.modules.td_utils.DEMO_STEPS_KEY`).
 
     Examples:
         >>> import torch
@@ -141,6 +158,17 @@ class SPFPolicy(TensorDictModuleBase):
         >>> value = TensorDictModule(nn.Linear(cfg.hidden_size, 1), in_keys=[policy.features_key], out_keys=["state_value"])
         >>> value(policy(inputs()))["state_value"].shape
         torch.Size([2, 1])
+        >>> # 4. demonstrations of 4 and 6 steps in one batch (padded to demo_length = 6): the
+        >>> # first row's logits are those of the same weights built for 4-step demonstrations
+        >>> import dataclasses
+        >>> td = inputs()
+        >>> td["demo_steps"] = torch.tensor([[4], [6]])
+        >>> four = SPFPolicy(dataclasses.replace(cfg, demo_length=4))
+        >>> _ = four.load_state_dict(policy.state_dict())
+        >>> alone = TensorDict({key: td[key][:1] for key in ("pixels", "is_init")}, batch_size=[1])
+        >>> alone["demo_frames"], alone["demo_actions"] = td["demo_frames"][:1, :4], td["demo_actions"][:1, :4]
+        >>> torch.allclose(policy(td)["logits"][:1], four(alone)["logits"], atol=1e-6)
+        True
     """
 
     def __init__(
@@ -159,6 +187,7 @@ class SPFPolicy(TensorDictModuleBase):
         features_key: NestedKey = "features",
         eta_used_key: NestedKey = "eta_used",
         memory_mask_key: NestedKey = "memory_mask",
+        demo_steps_key: NestedKey | None = DEMO_STEPS_KEY,
     ) -> None:
         super().__init__()
         config = SPFConfig() if config is None else config
@@ -191,6 +220,7 @@ class SPFPolicy(TensorDictModuleBase):
                 is_init_key=is_init_key,
                 memory_key=memory_key,
                 memory_mask_key=memory_mask_key,
+                demo_steps_key=demo_steps_key,
             )
             if self.use_memory
             else None
@@ -209,12 +239,14 @@ class SPFPolicy(TensorDictModuleBase):
         self.attention = MemoryAttention(
             pointer_attention,
             self.memory.indices if self.use_memory else None,
+            sparsity=config.effective_sparsity if self.use_memory and not self.random_sparsity else None,
             eta_key=eta_key,
             is_init_key=is_init_key,
             memory_key=memory_key,
             memory_mask_key=memory_mask_key if self.random_sparsity else None,
             demo_actions_key=demo_actions_key,
             eta_used_key=eta_used_key,
+            demo_steps_key=demo_steps_key,
         )
         self.cell = SPFCell(
             (mu_dim, self.feature_dim, pointer_attention.window_dim),
@@ -231,16 +263,18 @@ class SPFPolicy(TensorDictModuleBase):
             eta_key=eta_key,
             logits_key=logits_key,
             features_key=features_key,
+            demo_steps_key=demo_steps_key,
         )
         self.pixels_key, self.demo_frames_key, self.demo_actions_key = pixels_key, demo_frames_key, demo_actions_key
         self.is_init_key, self.hidden_key, self.eta_key, self.memory_key = is_init_key, hidden_key, eta_key, memory_key
         self.logits_key, self.features_key, self.eta_used_key = logits_key, features_key, eta_used_key
-        self.memory_mask_key = memory_mask_key
+        self.memory_mask_key, self.demo_steps_key = memory_mask_key, demo_steps_key
         state_keys = [hidden_key, eta_key] + ([memory_key] if self.use_memory else [])
         self.in_keys = (
             [pixels_key]
             + ([demo_frames_key] if self.use_memory else [])
             + [demo_actions_key, is_init_key]
+            + ([demo_steps_key] if demo_steps_key is not None else [])
             + state_keys
         )
         self.out_keys = (
@@ -305,25 +339,33 @@ class SPFPolicy(TensorDictModuleBase):
             specs.update(self.memory.make_tensordict_primer().primers.items())
         return TensorDictPrimer(specs, expand_specs=True)
 
-    def update_pointer(self, eta: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-        """Pointer update (eq. 4 or the RPF code's clipped version)."""
-        return self.cell.update_pointer(eta, b)
+    def update_pointer(self, eta: torch.Tensor, b: torch.Tensor, lengths: torch.Tensor | None = None) -> torch.Tensor:
+        """Pointer update (eq. 4 or the RPF code's clipped version; ``lengths``: each row's demonstration length)."""
+        return self.cell.update_pointer(eta, b, lengths)
 
     def check_inputs(self, td: TensorDictBase, new_episodes_only: bool = False) -> None:
-        """Raise a ``ValueError`` for demo actions or pixels that do not fit the config.
+        """Raise a ``ValueError`` for demo lengths, demo actions or pixels that do not fit the config.
 
         With ``new_episodes_only`` (step mode), the action values are checked in the rows
         where ``is_init`` is true only: a demonstration does not change within an episode.
+        With ``demo_steps``, only each demonstration's own ``n_i`` actions are checked (the
+        padding may hold anything).
         """
         n, demo_actions = self.config.demo_length, td.get(self.demo_actions_key)
         if demo_actions.shape[-1] != n:
             raise ValueError(
                 f"demo_actions has {demo_actions.shape[-1]} steps but SPFConfig.demo_length is "
-                f"{n}: the demonstration must have exactly demo_length steps (a memory longer "
-                f"than the demo is not allowed)."
+                f"{n}: the demonstration must have exactly demo_length steps (a shorter one padded "
+                f"to demo_length, its own length in demo_steps; a memory longer than the demo is "
+                f"not allowed)."
             )
+        lengths = demo_lengths(td, self.demo_steps_key, n, td.batch_size)
         is_init = td.get(self.is_init_key, None) if new_episodes_only else None
-        values = demo_actions if is_init is None else demo_actions[is_init.reshape(td.batch_size)]
+        rows = None if is_init is None else is_init.reshape(td.batch_size)
+        values = demo_actions if rows is None else demo_actions[rows]
+        if lengths is not None:
+            steps = (lengths if rows is None else lengths[rows]).to(values.device)
+            values = values[torch.arange(n, device=values.device) < steps]
         if values.numel():
             low, high = (int(v) for v in torch.aminmax(values))
             if low < 0 or high >= self.config.num_actions:
@@ -382,6 +424,9 @@ class SPFPolicy(TensorDictModuleBase):
         frames are encoded; the others get zero features. For padding *after* an
         episode's last step: every output is causal, so the valid steps' outputs are
         those of the full sequence, and the padded steps' outputs are meaningless.
+
+        ``demo_steps`` (``[*B, T, 1]``, optional) is read at every step, as the demo actions
+        are; a segment's memory is that of the demonstration length at its first step.
         """
         if tensordict.batch_dims == 0:
             raise ValueError(
@@ -398,6 +443,8 @@ class SPFPolicy(TensorDictModuleBase):
         # accumulate a zero-filled gradient of the whole sequence
         phi = td.get(self.encoder.out_keys[0]).reshape(rows, steps, -1).unbind(1)
         demo_actions = td.get(self.demo_actions_key).reshape(rows, steps, -1).long().unbind(1)
+        lengths = demo_lengths(td, self.demo_steps_key, self.config.demo_length, td.batch_size)
+        step_lengths = [None] * steps if lengths is None else lengths.to(phi[0].device).unbind(1)
         start = init_flags(td, self.is_init_key, phi[0].device).clone()
         start[:, 0] = True
         h0 = flat_or_zeros(td.get(self.hidden_key, None), (rows, steps, self.config.hidden_size), phi[0])
@@ -413,8 +460,8 @@ class SPFPolicy(TensorDictModuleBase):
                 feats, segment, masks = segments
                 memory = feats.index_select(0, segment[:, t])
                 mask = masks.index_select(0, segment[:, t]) if masks is not None else None
-            mu, window = self.attention.attend(memory, demo_actions[t], eta, mask)
-            logits, h, eta_next = self.cell.step(mu, phi[t], window, eta, h)
+            mu, window = self.attention.attend(memory, demo_actions[t], eta, mask, step_lengths[t])
+            logits, h, eta_next = self.cell.step(mu, phi[t], window, eta, h, step_lengths[t])
             for name, value in zip(outputs, (logits, h, eta, eta_next, mu, window)):
                 outputs[name].append(value)
             eta = eta_next

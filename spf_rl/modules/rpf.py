@@ -97,8 +97,12 @@ class RPFAttention(nn.Module):
         eta: torch.Tensor,
         return_window: bool = False,
         mask: torch.Tensor | None = None,
+        lengths: torch.Tensor | None = None,
     ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
-        """The attended memory ``[*, memory_dim]`` (and an empty window if asked)."""
+        """The attended memory ``[*, memory_dim]`` (and an empty window if asked).
+
+        ``lengths`` (each row's demonstration length) is not read: there is no action
+        window, and ``mask`` hides the slots past a shorter demonstration."""
         weights = attention_weights(eta, indices, mask)
         mu = (weights.unsqueeze(-1) * memory_features).sum(-2)
         if not return_window:

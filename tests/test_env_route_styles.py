@@ -1,0 +1,77 @@
+"""Sampled routes of a style (envs.route_styles) in the env and in demo stores: lengths padded, played at their own."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from envs.demo_store import DemoStore, DemoStoreConfig
+from envs.follow import default_max_steps, episode_for_seed
+from envs.nav_env import PathFollowEnv
+from envs.route_styles import RouteMixture
+
+SMALL = {"split": "train", "num_houses": 3, "image_size": 16, "render": False}
+
+
+def test_env_samples_the_routes_of_its_style_at_lengths_in_range():
+    env = PathFollowEnv(route_style="driven=0.5,tour=0.5", route_lengths=(10, 30), demo_length=30, num_agents=6, **SMALL)
+    env.set_seed(3)
+    td = env.reset()
+    steps = td["demo_steps"].squeeze(-1)
+    assert ((steps >= 10) & (steps <= 30)).all() and len(set(steps.tolist())) > 1
+    mixture = RouteMixture({"driven": 0.5, "tour": 0.5}, 10, 30)
+    for agent, demo in enumerate(env.demonstrations):
+        # the route is the mixture's draw from the episode seed, as episode_for_seed makes it
+        _, expected = episode_for_seed(int(td["episode_seed"][agent]), env.house_seeds, 30, 0.0, route_style=mixture)
+        assert np.array_equal(demo.actions, expected.actions) and demo.length == steps[agent]
+        assert td["demo_actions"][agent, : demo.length].tolist() == demo.actions.tolist()
+        assert not td["demo_actions"][agent, demo.length :].any()
+    again = PathFollowEnv(route_style={"tour": 0.5, "driven": 0.5}, route_lengths=(10, 30), demo_length=30, num_agents=6, **SMALL)
+    again.set_seed(3)
+    assert again.reset()["demo_actions"].tolist() == td["demo_actions"].tolist()  # same seed, same episodes
+
+
+def test_each_route_gets_its_own_episode_limit():
+    env = PathFollowEnv(route_style="planner", route_lengths=(10, 12), demo_length=30, num_agents=4, **SMALL)
+    env.set_seed(0)
+    td = env.reset()
+    limits = [default_max_steps(int(n)) for n in td["demo_steps"].squeeze(-1)]
+    td["action"] = td["demo_actions"][:, 0] * 0 + 1  # spin until truncated
+    ended = {}
+    for step in range(1, max(limits) + 1):
+        td = env.step(td)["next"]
+        for agent in np.flatnonzero(td["truncated"].squeeze(-1).numpy()):
+            ended.setdefault(int(agent), step)
+        td["action"] = td["demo_actions"][:, 0] * 0 + 1
+    assert [ended[agent] for agent in range(4)] == limits
+
+
+def test_a_demo_store_of_a_route_style_pads_its_routes(tmp_path):
+    config = DemoStoreConfig(num_demos=4, num_houses=2, demo_length=20, image_size=16, route_style="driven", route_lengths=[10, 20])
+    assert config.route_style == "driven=1.0" and config.route_lengths == (10, 20)  # one spelling
+    store = DemoStore.build(tmp_path / "store", config, progress=False)
+    steps = store.steps
+    assert ((steps >= 10) & (steps <= 20)).all()
+    for demo_id, n in enumerate(steps.tolist()):
+        demo = store.demonstration(demo_id)
+        assert demo.length == n and demo.poses.shape == (n + 1, 3)
+        assert not store.frames[demo_id, n:].any() and store.frames[demo_id, :n].any()
+    env = PathFollowEnv("train", num_houses=2, demo_length=20, image_size=16, demo_store=store, route_style="driven", route_lengths=(10, 20))
+    env.set_seed(0)
+    td = env.reset()
+    assert td["demo_steps"].item() == steps[td["demo_id"].item()].item()
+    with pytest.raises(ValueError, match=r"route_style=None \(store: 'driven=1.0' of 10-20 steps\)"):
+        PathFollowEnv("train", num_houses=2, demo_length=20, image_size=16, demo_store=store)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"route_lengths": (10, 30)}, "route_lengths needs a route_style"),
+        ({"route_style": "driven", "route_lengths": (10, 60)}, r"route_lengths must lie in \[10, demo_length=30\]"),
+        ({"route_style": "walk"}, "route_style must be one of 'planner', 'tour', 'driven'"),
+        ({"route_style": RouteMixture({"tour": 1.0}, 10, 20), "route_lengths": (10, 20)}, "cannot be combined with a RouteMixture"),
+    ],
+)
+def test_bad_route_settings_are_refused(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        PathFollowEnv(demo_length=30, **{**SMALL, **kwargs})
