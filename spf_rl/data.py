@@ -41,8 +41,10 @@ from torchrl.data.replay_buffers import ImmutableDatasetWriter
 
 from envs.checks import check_episode_source, check_positive_ints
 from envs.demo_store import DemoStore, DemoStoreConfig
+from envs.follow import default_max_steps
 from envs.homing import FOLLOW, check_task
 from envs.house_grid import check_demo_length
+from envs.route_styles import route_mixture_for
 from envs.specs import NUM_RGB_CHANNELS
 from envs.tensor_store import StoreError, TensorStore
 from envs.transforms import DEFAULT_NOISE
@@ -74,8 +76,10 @@ class DatasetConfig:
         random_action_prob: probability that the behaviour policy takes a uniformly
             random action instead of the expert's, so states off the route are seen
             (labels are always the expert's action).
-        demo_length: demonstration length n, steps.
-        max_steps: follow-episode limit, steps.
+        demo_length: demonstration length n, steps (with ``route_lengths``: the longest,
+            to which shorter demonstrations are padded).
+        max_steps: follow-episode limit, steps; ``None``: each demonstration's own,
+            ``ceil(5/3 n)`` (:func:`~envs.follow.default_max_steps`).
         image_size: frame side, pixels.
         chunk_size: episodes per chunk, the unit of resuming and of parallel workers.
         num_agents: agents a batched env steps together (each plays several of a chunk's
@@ -83,6 +87,9 @@ class DatasetConfig:
         seed: dataset seed: the episodes are episodes ``0 .. num_episodes - 1`` of an
             env seeded with it.
         task: ``"follow"`` or ``"homing"`` (:mod:`envs.homing`).
+        route_style: the style of the episodes' routes (:mod:`envs.route_styles`: ``"driven"``,
+            ``"planner=0.5,tour=0.25,driven=0.25"``, ...); ``None``: the planner's, as the paper samples them.
+        route_lengths: ``(shortest, longest)`` steps of routes with ``route_style`` (``None``: ``demo_length``).
     """
 
     num_episodes: int = 2000
@@ -91,20 +98,34 @@ class DatasetConfig:
     noise: str = DEFAULT_NOISE
     random_action_prob: float = 0.2
     demo_length: int = 30
-    max_steps: int = 50
+    max_steps: int | None = 50
     image_size: int = 64
     chunk_size: int = 64
     num_agents: int = 16
     seed: int = 0
     task: str = FOLLOW
+    route_style: str | None = None
+    route_lengths: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
         check_task(self.task, "data.task")
         check_episode_source(self.split, self.num_houses, self.noise)
-        check_positive_ints(self, ("num_episodes", "max_steps", "image_size", "chunk_size", "num_agents"))
+        check_positive_ints(self, ("num_episodes", "image_size", "chunk_size", "num_agents"))
+        if self.max_steps is not None:
+            check_positive_ints(self, ("max_steps",))
         check_demo_length(self.demo_length)
         if not 0.0 <= self.random_action_prob <= 1.0:
             raise ValueError(f"random_action_prob must be in [0, 1], got {self.random_action_prob!r}.")
+        if self.route_lengths is not None and not isinstance(self.route_lengths, str):
+            self.route_lengths = tuple(self.route_lengths)  # a list in YAML and JSON
+        mixture = route_mixture_for(self.route_style, self.route_lengths, self.demo_length)
+        if mixture is not None:  # one spelling, as the demonstration store writes it
+            self.route_style, self.route_lengths = mixture.spec, (mixture.min_length, mixture.max_length)
+
+    @property
+    def step_limit(self) -> int:
+        """The longest an episode may be, steps: ``max_steps``, or the rule's for ``demo_length``."""
+        return default_max_steps(self.demo_length) if self.max_steps is None else self.max_steps
 
     @property
     def num_chunks(self) -> int:
@@ -116,7 +137,7 @@ class DatasetConfig:
 
 
 def _empty_episodes(config: DatasetConfig) -> TensorDict:
-    e, t, s = config.num_episodes, config.max_steps, config.image_size
+    e, t, s = config.num_episodes, config.step_limit, config.image_size
     steps = TensorDict(
         {
             "pixels": torch.zeros(e, t, s, s, NUM_RGB_CHANNELS, dtype=torch.uint8),
@@ -150,12 +171,13 @@ def empty_training_episodes(config: DatasetConfig) -> TensorDict:
         torch.Size([2, 5, 32, 32, 3])
     """
     e, n, s = config.num_episodes, config.demo_length, config.image_size
-    return _empty_episodes(config).exclude("demo_id").update(
-        {
-            "demo_frames": torch.zeros(e, n, s, s, NUM_RGB_CHANNELS, dtype=torch.uint8),
-            "demo_actions": torch.zeros(e, n, dtype=torch.int64),
-        }
-    )
+    demonstrations = {
+        "demo_frames": torch.zeros(e, n, s, s, NUM_RGB_CHANNELS, dtype=torch.uint8),
+        "demo_actions": torch.zeros(e, n, dtype=torch.int64),
+    }
+    if config.route_style is not None:  # demonstrations of several lengths
+        demonstrations["demo_steps"] = torch.zeros(e, 1, dtype=torch.int64)
+    return _empty_episodes(config).exclude("demo_id").update(demonstrations)
 
 
 def format_tag() -> str:
@@ -170,10 +192,13 @@ def format_tag() -> str:
 
 
 def attach_demonstrations(episodes: TensorDictBase, demos: DemoStore) -> TensorDictBase:
-    """``episodes`` (in place) with ``demo_frames`` and ``demo_actions`` looked up by their ``demo_id`` in ``demos``."""
+    """``episodes`` (in place) with ``demo_frames`` and ``demo_actions`` looked up by their ``demo_id`` in ``demos``,
+    and ``demo_steps`` where the store holds demonstrations of several lengths (a route style)."""
     ids = episodes.get("demo_id").reshape(-1)
     episodes.set("demo_frames", demos.frames[ids].reshape(*episodes.batch_size, *demos.frames.shape[1:]))
     episodes.set("demo_actions", demos.actions[ids].reshape(*episodes.batch_size, -1))
+    if demos.config.route_style is not None:
+        episodes.set("demo_steps", demos.steps[ids].reshape(*episodes.batch_size, 1))
     return episodes
 
 
@@ -199,7 +224,7 @@ def generate_chunk(config: DatasetConfig, chunk: int, demos: str | os.PathLike) 
     env = _chunk_env(config, min(config.num_agents, count), first, str(demos))
     with torch.no_grad():
         return play_episode_steps(
-            env, EpsilonExpertPolicy(config.random_action_prob), first, count, STEP_KEYS, config.max_steps,
+            env, EpsilonExpertPolicy(config.random_action_prob), first, count, STEP_KEYS, config.step_limit,
             episode_keys=("demo_id", "episode_seed"),
         )
 
@@ -220,7 +245,7 @@ def _chunk_env(config: DatasetConfig, count: int, first: int, demos: str):
     from envs.transforms import ActuationNoise
 
     key = (config.split, config.num_houses, config.noise, config.demo_length, config.max_steps, config.image_size,
-           config.task, count, demos)
+           config.task, config.route_style, config.route_lengths, count, demos)
     if key not in _CHUNK_ENVS:
         _CHUNK_ENVS[key] = TransformedEnv(
             PathFollowEnv(
@@ -234,6 +259,8 @@ def _chunk_env(config: DatasetConfig, count: int, first: int, demos: str):
                 task=config.task,
                 demo_store=DemoStore(demos),
                 emit_demo_frames=False,
+                route_style=config.route_style,
+                route_lengths=config.route_lengths,
             ),
             ActuationNoise(config.noise),
         )

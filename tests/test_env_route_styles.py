@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from envs.demo_store import DemoStore, DemoStoreConfig
 from envs.follow import default_max_steps, episode_for_seed
@@ -75,3 +76,31 @@ def test_a_demo_store_of_a_route_style_pads_its_routes(tmp_path):
 def test_bad_route_settings_are_refused(kwargs, match):
     with pytest.raises(ValueError, match=match):
         PathFollowEnv(demo_length=30, **{**SMALL, **kwargs})
+
+
+def test_a_dataset_and_an_evaluation_of_a_route_style(tmp_path):
+    from spf_rl.data import DatasetConfig, EpisodeDataset
+    from spf_rl.modules.open_loop import OpenLoopPolicy
+    from spf_rl.train.bc import episodes_to_sequence
+    from spf_rl.train.evaluation import EvalConfig, episode_store_name, evaluate_policy
+
+    data = DatasetConfig(
+        num_episodes=6, num_houses=2, demo_length=16, max_steps=None, image_size=16, chunk_size=6,
+        route_style="driven=1,planner=1", route_lengths=[10, 16],
+    )
+    assert data.route_style == "planner=1.0,driven=1.0" and data.step_limit == default_max_steps(16)
+    dataset = EpisodeDataset.build(tmp_path / "data", data, num_workers=1, progress=False)
+    batch = dataset[list(range(6))]
+    steps = batch["demo_steps"].squeeze(-1)
+    assert ((steps >= 10) & (steps <= 16)).all()
+    lengths = dataset.episodes["length"]
+    assert (lengths <= torch.tensor([default_max_steps(int(n)) for n in steps])).all()  # each route's own limit
+    sequence = episodes_to_sequence(batch)
+    assert torch.equal(sequence["demo_steps"][:, 0], batch["demo_steps"])  # carried to the policy at every step
+
+    config = EvalConfig(split="val", num_episodes=4, num_agents=2, num_houses=2, demo_length=16, max_steps=None,
+                        image_size=16, render=False, route_style="tour", route_lengths=(10, 16), seed=3)
+    assert episode_store_name(config).startswith("val-2houses-follow-n16-tour1.0-10to16-16px")
+    summary, records = evaluate_policy(OpenLoopPolicy(), config, progress=False)
+    assert summary["episodes"] == 4 and all(0.0 < r["ndtw"] <= 1.0 for r in records)
+    assert all(r["steps"] <= default_max_steps(16) for r in records)

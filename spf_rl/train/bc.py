@@ -17,7 +17,6 @@ available, see :mod:`spf_rl.device`); each batch moves there
 """
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
 from dataclasses import asdict, dataclass, field
@@ -37,7 +36,7 @@ from spf_rl.device import DEFAULT_DEVICE, autocast, check_device, module_device,
 from spf_rl.modules.memory import memory_bytes
 from spf_rl.modules.policy import SPFPolicy
 from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
-from spf_rl.train.evaluation import EvalConfig, episode_store_root, evaluate_policy
+from spf_rl.train.evaluation import EvalConfig, episode_store_root, evaluate_policy, with_episode_sizes
 from spf_rl.train.run import OptimConfig, TrainingRun, run_on_device, start_run
 
 logger = logging.getLogger(__name__)
@@ -110,7 +109,8 @@ class BCConfig:
         if self.data_dir:
             return Path(self.data_dir)
         d, task = self.data, "" if self.data.task == FOLLOW else f"-{self.data.task}"
-        name = f"{d.split}-{d.num_episodes}ep-{d.noise}-rand{d.random_action_prob}-n{d.demo_length}-{d.image_size}px-s{d.seed}"
+        routes = "" if d.route_style is None else f"-{d.route_style.replace('=', '').replace(',', '+')}-{d.route_lengths[0]}to{d.route_lengths[1]}"
+        name = f"{d.split}-{d.num_episodes}ep-{d.noise}-rand{d.random_action_prob}-n{d.demo_length}{routes}-{d.image_size}px-s{d.seed}"
         return Path("data") / f"{name}-{format_tag()}{task}"
 
 
@@ -142,14 +142,18 @@ def episodes_to_sequence(batch: TensorDict, device: torch.device | str | None = 
     b, t = steps.batch_size
     demo_frames = batch.get("demo_frames")
     demo_actions = batch.get("demo_actions")
-    if device is not None:
-        demo_frames, demo_actions = demo_frames.to(device), demo_actions.to(device)
+    demonstration = {"demo_frames": demo_frames, "demo_actions": demo_actions}
+    if "demo_steps" in batch.keys():  # demonstrations of several lengths, padded
+        demonstration["demo_steps"] = batch.get("demo_steps")
+    sequence = {
+        key: (value if device is None else value.to(device)).unsqueeze(1).expand(b, t, *value.shape[1:])
+        for key, value in demonstration.items()
+    }
     return TensorDict(
         {
             "pixels": steps.get("pixels"),
             "is_init": steps.get("is_init"),
-            "demo_frames": demo_frames.unsqueeze(1).expand(b, t, *demo_frames.shape[1:]),
-            "demo_actions": demo_actions.unsqueeze(1).expand(b, t, *demo_actions.shape[1:]),
+            **sequence,
             "expert_action": steps.get("expert_action"),
             "mask": steps.get("mask"),
         },
@@ -223,9 +227,7 @@ def _train_bc(config: BCConfig, device: torch.device) -> dict:
     start_epoch = run.resume()
 
     run_logger = get_logger(config.logger, logger_name=str(output / "logs"), experiment_name="bc") if config.logger else None
-    val_config = dataclasses.replace(
-        config.val, demo_length=config.data.demo_length, max_steps=config.data.max_steps, image_size=config.data.image_size
-    )
+    val_config = with_episode_sizes(config.val, config.data)
     for epoch in range(start_epoch, config.optim.epochs):
         buffer = dataset.replay_buffer(config.optim.batch_size, seed=config.seed * 1000 + epoch)
         batches = (buffer.sample() for _ in range(batches_per_epoch))
@@ -240,9 +242,7 @@ def _train_bc(config: BCConfig, device: torch.device) -> dict:
         run_logger = None
 
     run.load_best()
-    test_config = dataclasses.replace(
-        config.test, demo_length=config.data.demo_length, max_steps=config.data.max_steps, image_size=config.data.image_size
-    )
+    test_config = with_episode_sizes(config.test, config.data)
     test, records = evaluate_policy(policy, test_config, progress=config.progress)
     results = {
         "model": model_type,

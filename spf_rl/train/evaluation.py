@@ -44,9 +44,11 @@ from torchrl.modules.utils import get_primers_from_module
 
 from envs.checks import check_episode_source, check_positive_ints
 from envs.demo_store import DemoStore, DemoStoreConfig
+from envs.follow import default_max_steps
 from envs.homing import FOLLOW, check_task
 from envs.house_grid import check_demo_length
 from envs.nav_env import PathFollowEnv
+from envs.route_styles import route_mixture_for
 from envs.scripted import STEPS_PER_BATCH, record_episodes, run_episodes
 from envs.transforms import DEFAULT_NOISE, ActuationNoise
 from envs.version import ENV_VERSION
@@ -64,8 +66,9 @@ class EvalConfig:
         noise: actuation-noise preset.
         seed: seed of the episode streams.
         num_agents: agents stepped together in one batched env.
-        demo_length: demonstration length n.
-        max_steps: episode limit.
+        demo_length: demonstration length n (with ``route_lengths``: the longest, to
+            which shorter demonstrations are padded).
+        max_steps: episode limit, steps; ``None``: each demonstration's own, ``ceil(5/3 n)``.
         image_size: frame side, pixels.
         num_houses: houses of the split (``None``: its default).
         render: render frames (policies that ignore the camera, like open-loop
@@ -81,6 +84,9 @@ class EvalConfig:
             TorchRL multi-process collector whose workers each step a batched env of
             ``num_agents`` agents with a CPU copy of the policy. The episodes and scores
             are the same for any number.
+        route_style: the style of the episodes' routes (:mod:`envs.route_styles`); ``None``:
+            the planner's, as the paper samples them.
+        route_lengths: ``(shortest, longest)`` steps of routes with ``route_style`` (``None``: ``demo_length``).
     """
 
     split: str = "test"
@@ -89,19 +95,33 @@ class EvalConfig:
     seed: int = 1234
     num_agents: int = 25
     demo_length: int = 30
-    max_steps: int = 50
+    max_steps: int | None = 50
     image_size: int = 64
     num_houses: int | None = None
     render: bool = True
     task: str = FOLLOW
     store_root: str | None = None
     num_collectors: int = 1
+    route_style: str | None = None
+    route_lengths: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
         check_task(self.task, "task")
         check_episode_source(self.split, self.num_houses, self.noise)
-        check_positive_ints(self, ("num_episodes", "num_agents", "max_steps", "image_size", "num_collectors"))
+        check_positive_ints(self, ("num_episodes", "num_agents", "image_size", "num_collectors"))
+        if self.max_steps is not None:
+            check_positive_ints(self, ("max_steps",))
         check_demo_length(self.demo_length)
+        if self.route_lengths is not None and not isinstance(self.route_lengths, str):
+            self.route_lengths = tuple(self.route_lengths)  # a list in YAML and JSON
+        mixture = route_mixture_for(self.route_style, self.route_lengths, self.demo_length)
+        if mixture is not None:  # one spelling, as the episode store writes it
+            self.route_style, self.route_lengths = mixture.spec, (mixture.min_length, mixture.max_length)
+
+    @property
+    def step_limit(self) -> int:
+        """The longest an episode may be, steps: ``max_steps``, or the rule's for ``demo_length``."""
+        return default_max_steps(self.demo_length) if self.max_steps is None else self.max_steps
 
 
 #: Fields of :class:`EvalConfig` that choose how episodes are played, never which.
@@ -120,12 +140,13 @@ def episode_identity(config: EvalConfig) -> dict:
 
 
 def with_episode_sizes(config: EvalConfig, sizes) -> EvalConfig:
-    """``config`` with the demo length, episode limit and frame size of ``sizes`` (any
-    config with ``demo_length``, ``max_steps`` and ``image_size``, e.g. the training
-    data's or the collection env's), so a policy is evaluated on the episodes it was
-    built for."""
+    """``config`` with the demo length, episode limit, frame size and routes of ``sizes`` (any
+    config with ``demo_length``, ``max_steps`` and ``image_size``, and optionally
+    ``route_style`` and ``route_lengths``, e.g. the training data's or the collection
+    env's), so a policy is evaluated on the episodes it was built for."""
     return dataclasses.replace(
-        config, demo_length=sizes.demo_length, max_steps=sizes.max_steps, image_size=sizes.image_size
+        config, demo_length=sizes.demo_length, max_steps=sizes.max_steps, image_size=sizes.image_size,
+        route_style=getattr(sizes, "route_style", None), route_lengths=getattr(sizes, "route_lengths", None),
     )
 
 
@@ -283,6 +304,8 @@ def make_eval_env(
             task=config.task,
             demo_store=demo_store,
             emit_demo_frames=demo_store is None and (config.render or reads_frames),
+            route_style=config.route_style,
+            route_lengths=config.route_lengths,
             episode_offset=worker,
             episode_stride=workers,
         ),
@@ -306,8 +329,11 @@ def episode_store_name(config: EvalConfig) -> str:
         True
     """
     houses = "" if config.num_houses is None else f"-{config.num_houses}houses"
+    routes = ""
+    if config.route_style is not None:  # "planner=0.5,driven=0.5" -> "-planner0.5+driven0.5-10to30"
+        routes = f"-{config.route_style.replace('=', '').replace(',', '+')}-{config.route_lengths[0]}to{config.route_lengths[1]}"
     return (
-        f"{config.split}{houses}-{config.task}-n{config.demo_length}-{config.image_size}px"
+        f"{config.split}{houses}-{config.task}-n{config.demo_length}{routes}-{config.image_size}px"
         f"-seed{config.seed}-{config.num_episodes}ep-env{ENV_VERSION}"
     )
 
@@ -431,7 +457,7 @@ def record_rollout(policy: TensorDictModuleBase, config: EvalConfig) -> dict:
     act = greedy_on_device(policy)
     policy.eval()
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-        rollout = env.rollout(config.max_steps, act, break_when_any_done=True)[0]
+        rollout = env.rollout(config.step_limit, act, break_when_any_done=True)[0]
     demo = env.base_env.demonstrations[0]
     final = rollout[-1]["next"]
     poses = torch.cat([rollout["pose"], final["pose"][None]]).numpy()
