@@ -361,7 +361,7 @@ class RouteRecorder:
         if length is not None and self.length != length:
             raise RouteError(
                 f"the route has {self.length} steps; demonstrations must have exactly {length} steps here "
-                f"(the policy's demo_length): give {length} actions."
+                f"(length={length}): give {length} actions."
             )
         demo = demonstration_from_route(self.house, self.poses, self.actions)
         _check_length(demo.shortest_length_m, demo.length, min_route_length_m)
@@ -398,7 +398,7 @@ def demonstration_from_actions(
     if length is not None and len(actions) != length:
         raise RouteError(
             f"the route has {len(actions)} steps; demonstrations must have exactly {length} steps here "
-            f"(the policy's demo_length): give {length} actions."
+            f"(length={length}): give {length} actions."
         )
     recorder = RouteRecorder(house, start)
     for action in actions.tolist():
@@ -484,7 +484,7 @@ def demonstration_from_waypoints(
         if len(route_actions) < length:
             raise RouteError(
                 f"the waypoints give a planned route of {len(route_actions)} steps; demonstrations must have exactly "
-                f"{length} steps here (the policy's demo_length): add a waypoint or move the last one farther away."
+                f"{length} steps here (length={length}): add a waypoint or move the last one farther away."
             )
         route_poses, route_actions = route_poses[: length + 1], route_actions[:length]
     demo = demonstration_from_route(house, route_poses, route_actions)

@@ -7,10 +7,10 @@ Record the route with the keyboard in this terminal (the default: arrow keys, En
   expert on the house's geodesic graph); the route starts at ``--start`` if given, else at the first waypoint
   facing the second.
 
-The policy follows demonstrations of exactly its ``demo_length`` steps (30 for the shipped checkpoints): an
-``--actions`` or keyboard route must have exactly that many steps; a ``--waypoints`` route is planned and cropped
-to its first 30 steps (an error if the plan is shorter). Routes into a wall, out of the house or ending within the
-success radius (0.6 m) of their start are refused with the step or waypoint named.
+A route keeps the length it is given (up to 198 steps; ``--length N`` requires N steps and crops a waypoint plan
+to N), and the policy follows it at that length. Routes into a
+wall, out of the house or ending within the success radius (0.6 m) of their start are refused with the step or
+waypoint named.
 
 The policy then repeats the route ``--repeats`` times, each under its own actuation noise, greedily. With
 ``--homing`` it brings the route home instead: each repeat starts at the route's end, facing back along it, and
@@ -21,8 +21,8 @@ back along it, :mod:`envs.homing`), with ``homing-spf-s0.8`` (SPF 0.8 trained on
 * ``teach.mp4`` (where ``imageio-ffmpeg`` is installed) or ``teach.gif``: the demonstration's view beside
   repeat 1's, with the map;
 * ``teach_map.png``: the top-down map with the demonstration and every repeat;
-* ``teach.json``: the route (start and actions, enough to replay it), the set-up, and success and SPL per
-  repeat. The same arguments and ``--seed`` give the same JSON.
+* ``teach.json``: the route (start and actions, enough to replay it), the set-up, and per repeat success, SPL,
+  nDTW and the path's length against the route's. The same arguments and ``--seed`` give the same JSON.
 
 Usage::
 
@@ -44,7 +44,7 @@ from spf_rl.checkpoint import CheckpointError
 from spf_rl.device import resolve_device
 from spf_rl.hub import load_policy
 from spf_rl.teach import repeat
-from spf_rl.teach.route import route_source, teach_route
+from spf_rl.teach.route import MAX_TAUGHT_STEPS, route_source, teach_route
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -54,6 +54,7 @@ def build_parser() -> argparse.ArgumentParser:
     route.add_argument("--waypoints", help='points "x,y;x,y;..." in metres, joined by the planner')
     parser.add_argument("--house", type=int, default=repeat.DEFAULT_HOUSE, help=f"house seed (default {repeat.DEFAULT_HOUSE}, the first test house)")
     parser.add_argument("--start", help="start pose x,y,heading: metres, metres, degrees (0 = +x, counter-clockwise)")
+    parser.add_argument("--length", type=int, help="the steps the route must have (waypoint plans are cropped to it; default: its own)")
     parser.add_argument("--noise", default=DEFAULT_NOISE, help=f"actuation-noise preset: {', '.join(sorted(NOISE_PRESETS))} (default {DEFAULT_NOISE})")
     parser.add_argument("--seed", type=int, default=0, help="seed of the repeats' noise (default 0)")
     parser.add_argument("--repeats", type=int, default=repeat.DEFAULT_REPEATS, help=f"repeats, 1 to {repeat.MAX_REPEATS} (default {repeat.DEFAULT_REPEATS})")
@@ -76,6 +77,8 @@ def setup(parser: argparse.ArgumentParser, args: argparse.Namespace):
         )
         if args.actions is None and args.waypoints is None and not sys.stdin.isatty():
             raise ValueError("no route given and no terminal for the keyboard: give --actions or --waypoints.")
+        if args.length is not None and not 1 <= args.length <= MAX_TAUGHT_STEPS:
+            raise ValueError(f"--length must be in [1, {MAX_TAUGHT_STEPS}] steps, got {args.length}.")
         start = None if args.start is None else parse_pose(args.start, "--start (x m, y m, heading deg)")
         actions = None if args.actions is None else parse_actions(args.actions)
         waypoints = None if args.waypoints is None else parse_waypoints(args.waypoints, "--waypoints")
@@ -89,7 +92,7 @@ def setup(parser: argparse.ArgumentParser, args: argparse.Namespace):
     except (ValueError, FileNotFoundError, CheckpointError) as err:
         parser.error(f"--checkpoint: {err}")
     try:
-        demo = teach_route(options.house, start, actions, waypoints, length=config.demo_length)
+        demo = teach_route(options.house, start, actions, waypoints, length=args.length)
     except RouteError as err:
         parser.error(f"--{route_source(actions, waypoints)}: {err}")
     if demo is None:
@@ -105,10 +108,11 @@ def main(argv: list[str] | None = None) -> dict:
     logging.getLogger("spf_rl.teach").setLevel(logging.INFO)
     options, demo, policy, config = setup(parser, args)
     content = repeat.teach_and_repeat(policy, demo, options, image_size=config.image_size[0])
-    for record in content["repeats"]:
-        print(f"repeat {record['repeat']}: {'success' if record['success'] else 'failure'}, SPL {record['spl']:.2f}")
-    summary = content["summary"]
-    print(f"success {summary['success']:.2f}, SPL {summary['spl']:.2f} over {len(content['repeats'])} repeats -> {options.out}")
+    for r in content["repeats"]:
+        print(f"repeat {r['repeat']}: {'success' if r['success'] else 'failure'}, SPL {r['spl']:.2f}, nDTW {r['ndtw']:.2f}, "
+              f"path {r['path_length_ratio']:.2f}x the route's")
+    s = content["summary"]
+    print(f"success {s['success']:.2f}, SPL {s['spl']:.2f}, nDTW {s['ndtw']:.2f} over {len(content['repeats'])} repeats -> {options.out}")
     return content
 
 

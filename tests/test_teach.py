@@ -113,12 +113,15 @@ def route_of(argv: list[str]):
 def test_waypoints_give_the_planned_route(tmp_path):
     demo = route_of(["--house", HOUSE, "--waypoints", WAYPOINTS, "--out", str(tmp_path)])
     points = [tuple(float(v) for v in p.split(",")) for p in WAYPOINTS.split(";")]
-    planned = demonstration_from_waypoints(0, points, length=30)
-    assert demo.length == 30 and demo.actions.tolist() == planned.actions.tolist()
+    planned = demonstration_from_waypoints(0, points)  # the whole plan: a route keeps its length
+    assert demo.length == planned.length > 30 and demo.actions.tolist() == planned.actions.tolist()
     np.testing.assert_allclose(demo.poses, planned.poses)
     # the planned route, typed as --actions, is the same route
-    assert route_letters(demo) == ROUTE
-    assert route_of(["--house", HOUSE, "--start", START, "--actions", ROUTE]).poses.tolist() == demo.poses.tolist()
+    assert route_letters(demo)[:30] == ROUTE
+    typed = route_of(["--house", HOUSE, "--start", START, "--actions", route_letters(demo)])
+    assert typed.poses.tolist() == demo.poses.tolist()
+    # a route of another length than the policy's 30 steps is taught as it is (24 steps here)
+    assert route_of(["--house", HOUSE, "--start", START, "--actions", ROUTE[:24]]).length == 24
 
 
 @pytest.mark.parametrize(
@@ -134,9 +137,9 @@ def test_waypoints_give_the_planned_route(tmp_path):
         (["--actions", ROUTE, "--start", "7.5,0.5,0"], r"--start \(7\.50, 0\.50\) is inside a wall"),
         (["--actions", "FFF" + ROUTE[3:], "--start", "7.5,1.5,180"], r"--actions: step 2 of 30 \(F, forward\) .* runs into a wall"),
         (["--actions", "LR" * 15], "--actions: the route is too short"),
-        (["--actions", "FFFFFF"], "--actions: the route has 6 steps; demonstrations must have exactly 30 steps"),
+        (["--actions", "F" * 198], "--actions: step 17 of 198 .* runs into a wall"),
         (["--waypoints", "7.5,1.5;20,1.5"], r"--waypoints: waypoint 2 \(20\.00, 1\.50\) is outside the house"),
-        (["--waypoints", "7.5,1.5;9.5,1.5"], "--waypoints: the waypoints give a planned route of .* exactly 30 steps"),
+        (["--actions", "LR" * 100], "--actions: the route has 200 steps; a taught route may have at most 198"),
     ],
 )
 def test_bad_input_is_refused_before_any_work(argv, message, tmp_path, capsys):
@@ -156,13 +159,13 @@ def test_keys_drive_undo_and_finish():
     assert recorder.actions.tolist() == [FORWARD, TURN_LEFT]
     handle_key(recorder, curses.KEY_BACKSPACE, 30)
     assert recorder.length == 1
-    assert "29 to go" in handle_key(recorder, 10, 30).message
+    assert handle_key(recorder, 10, 30).message.startswith("the route is too short")  # Enter on 0.3 m
     assert handle_key(recorder, ord("q"), 30).cancelled
     assert "unknown key" in handle_key(recorder, ord("z"), 30).message
     recorder.undo()
     for letter in ROUTE:
         outcome = handle_key(recorder, ord(letter.lower()), 30)
-    assert "press Enter" in outcome.message
+    assert "30 steps, the most a route may have: press Enter" in outcome.message
     assert "already has 30 steps" in handle_key(recorder, curses.KEY_UP, 30).message
     finished = handle_key(recorder, curses.KEY_ENTER, 30)
     assert finished.demonstration is not None

@@ -66,17 +66,18 @@ class KeyOutcome:
     cancelled: bool = False
 
 
-def handle_key(recorder: RouteRecorder, key: int, length: int) -> KeyOutcome:
-    """Apply one key press to ``recorder`` (a route that must end with ``length`` steps).
+def handle_key(recorder: RouteRecorder, key: int, max_length: int) -> KeyOutcome:
+    """Apply one key press to ``recorder`` (a route of at most ``max_length`` steps; Enter ends it).
 
-    A refused step (into a wall, past ``length``) leaves the route as it was and says why.
+    A refused step (into a wall, past ``max_length``) or a refused end (a route too short
+    to follow) leaves the route as it was and says why.
 
     Examples:
         >>> recorder = RouteRecorder(0, (7.5, 1.5, 0.0), max_steps=3)
         >>> handle_key(recorder, curses.KEY_UP, 3).message, recorder.length
         ('', 1)
-        >>> handle_key(recorder, 10, 3).message
-        'the route has 1 steps; press Enter after 3 steps (2 to go).'
+        >>> handle_key(recorder, 10, 3).message.startswith("the route is too short")
+        True
     """
     if key == NO_KEY:
         return KeyOutcome()
@@ -85,13 +86,8 @@ def handle_key(recorder: RouteRecorder, key: int, length: int) -> KeyOutcome:
     if key in UNDO_KEYS:
         return KeyOutcome(message="" if recorder.undo() else "nothing to undo")
     if key in FINISH_KEYS:
-        if recorder.length != length:
-            return KeyOutcome(
-                message=f"the route has {recorder.length} steps; press Enter after {length} steps "
-                f"({length - recorder.length} to go)."
-            )
         try:
-            return KeyOutcome(message="done", demonstration=recorder.demonstration(length))
+            return KeyOutcome(message="done", demonstration=recorder.demonstration())
         except RouteError as err:
             return KeyOutcome(message=str(err))
     if key in KEY_ACTIONS:
@@ -99,8 +95,8 @@ def handle_key(recorder: RouteRecorder, key: int, length: int) -> KeyOutcome:
             recorder.step(KEY_ACTIONS[key])
         except RouteError as err:
             return KeyOutcome(message=str(err))
-        if recorder.length == length:
-            return KeyOutcome(message=f"{length} steps: press Enter to finish (Backspace to undo).")
+        if recorder.length == max_length:
+            return KeyOutcome(message=f"{max_length} steps, the most a route may have: press Enter to finish (Backspace to undo).")
         return KeyOutcome()
     return KeyOutcome(message=f"unknown key; {HELP_LINE}")
 
@@ -162,24 +158,24 @@ def ascii_map(house: House, poses: np.ndarray, cells_per_m: int = MAP_CELLS_PER_
     return ["".join(row) for row in grid[::-1]]
 
 
-def status_lines(recorder: RouteRecorder, length: int, message: str) -> list[str]:
+def status_lines(recorder: RouteRecorder, max_length: int, message: str) -> list[str]:
     """The lines under the map: step count, pose, the last message and the keys."""
     x, y, heading = recorder.pose
     return [
-        f"house {recorder.house.seed}  step {recorder.length}/{length}  "
+        f"house {recorder.house.seed}  step {recorder.length} (at most {max_length})  "
         f"pose ({x:.2f} m, {y:.2f} m) heading {math.degrees(heading) % 360:.0f} deg",
         message,
         HELP_LINE,
     ]
 
 
-def record_with_keyboard(house: House, start: Sequence[float], length: int) -> Demonstration | None:
-    """Let the user drive a route of ``length`` steps from ``start`` (x m, y m, heading deg) in the terminal.
+def record_with_keyboard(house: House, start: Sequence[float], max_length: int) -> Demonstration | None:
+    """Let the user drive a route of up to ``max_length`` steps from ``start`` (x m, y m, heading deg) in the terminal.
 
     Returns:
         the demonstration, or ``None`` when the user cancels.
     """
-    recorder = RouteRecorder(house, start, max_steps=length)
+    recorder = RouteRecorder(house, start, max_steps=max_length)
 
     def loop(screen) -> Demonstration | None:
         screen.keypad(True)
@@ -187,11 +183,11 @@ def record_with_keyboard(house: House, start: Sequence[float], length: int) -> D
         while True:
             screen.erase()
             height, width = screen.getmaxyx()
-            lines = ascii_map(house, recorder.poses) + [""] + status_lines(recorder, length, message)
+            lines = ascii_map(house, recorder.poses) + [""] + status_lines(recorder, max_length, message)
             for row, line in enumerate(lines[: height - 1]):
                 screen.addstr(row, 0, line[: width - 1])
             screen.refresh()
-            outcome = handle_key(recorder, read_key(screen), length)
+            outcome = handle_key(recorder, read_key(screen), max_length)
             if outcome.cancelled or outcome.demonstration is not None:
                 return outcome.demonstration
             message = outcome.message

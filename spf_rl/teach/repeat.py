@@ -42,6 +42,7 @@ from envs.transforms import DEFAULT_NOISE, NOISE_PRESETS, ActuationNoise
 from envs.user_demos import ACTION_LETTERS
 from spf_rl.metrics import summarize
 from spf_rl.train.evaluation import greedy_on_device
+from spf_rl.train.lengths import policy_for_length
 from spf_rl.viz import figure_to_array, pyplot
 from spf_rl.viz import write_video as write_frames
 
@@ -161,12 +162,13 @@ def repeat_route(
     image_size: int,
     progress: bool = True,
     task: str = FOLLOW,
+    demo_length: int | None = None,
 ) -> tuple[list[Repeat], np.ndarray, Demonstration]:
     """The policy follows ``demo`` (or brings it home) ``repeats`` times under ``noise``, greedily.
 
     Args:
         policy: an SPF-family policy (:func:`spf_rl.load_policy`), in eval mode.
-        demo: the taught demonstration (of the policy's ``demo_length``).
+        demo: the taught demonstration (of up to ``demo_length`` steps).
         repeats: how many times (one agent each, stepped together).
         noise: actuation-noise preset.
         seed: env seed: the same seed gives the same repeats.
@@ -174,6 +176,8 @@ def repeat_route(
         image_size: frame side, pixels (the policy's).
         progress: show a progress bar over the steps.
         task: ``"follow"`` (repeat the route) or ``"homing"`` (return from its end to its start).
+        demo_length: the env's (and the policy's) demonstration length, to which a shorter
+            route is padded (the policy reads ``demo_steps``); ``None``: the route's own.
 
     Returns:
         (the repeats, in agent order; the played demonstration's ``(n, H, W, 3)`` frames;
@@ -182,7 +186,7 @@ def repeat_route(
     base = PathFollowEnv(
         house_seeds=[demo.house_seed],
         num_agents=repeats,
-        demo_length=demo.length,
+        demo_length=demo.length if demo_length is None else demo_length,
         max_steps=max_steps,
         image_size=image_size,
         demonstrations=[demo],
@@ -219,7 +223,7 @@ def repeat_route(
                 frames=torch.cat([pixels[agent, : last + 1], next_pixels[agent, last : last + 1]]).numpy(),
             )
         )
-    return out, rollout[0, 0].get("demo_frames").numpy(), base.demonstrations[0]
+    return out, rollout[0, 0].get("demo_frames")[: demo.length].numpy(), base.demonstrations[0]
 
 
 def route_letters(demo: Demonstration) -> str:
@@ -326,7 +330,9 @@ def teach_and_repeat(policy, demo: Demonstration, options: TeachOptions, *, imag
 
     Args:
         policy: the policy of ``options.checkpoint`` (:func:`spf_rl.load_policy`), in eval mode.
-        demo: the taught demonstration (:func:`spf_rl.teach.route.teach_route`), of the policy's ``demo_length``.
+        demo: the taught demonstration (:func:`spf_rl.teach.route.teach_route`), of any length: a
+            shorter one than the policy's ``demo_length`` is padded, and the policy is built for a
+            longer one (:func:`~spf_rl.train.lengths.policy_for_length`, the same weights).
         options: the run's set-up.
         image_size: frame side, pixels (the policy's).
 
@@ -337,11 +343,14 @@ def teach_and_repeat(policy, demo: Demonstration, options: TeachOptions, *, imag
     out = options.out
     out.mkdir(parents=True, exist_ok=True)
     task, max_steps = options.task, default_max_steps(demo.length)
+    demo_length = max(demo.length, policy.config.demo_length)
+    if demo_length != policy.config.demo_length:
+        policy = policy_for_length(policy, demo_length)
     logger.info("route: %d steps, %.2f m; %s %s it %d times under %s noise", demo.length, demo.shortest_length_m,
                 options.checkpoint, "brings it home" if options.homing else "repeats", options.repeats, options.noise)
     repeats, demo_frames, played = repeat_route(
         policy, demo, repeats=options.repeats, noise=options.noise, seed=options.seed, max_steps=max_steps,
-        image_size=image_size, progress=options.progress, task=task,
+        image_size=image_size, progress=options.progress, task=task, demo_length=demo_length,
     )
     setup = {"checkpoint": options.checkpoint, "task": task, "noise": options.noise, "seed": options.seed, "max_steps": max_steps}
     content = results(demo, repeats, setup, played)

@@ -6,21 +6,25 @@
 :func:`~envs.user_demos.parse_pose`):
 
 * actions are driven from ``start`` (the house's spawn point facing +x without one,
-  :func:`~envs.user_demos.default_start`) and must have exactly ``length`` steps;
-* waypoints are joined by the planner and the plan cropped to ``length`` steps; the
-  route starts at ``start`` if given, else at the first waypoint facing the second;
+  :func:`~envs.user_demos.default_start`);
+* waypoints are joined by the planner; the route starts at ``start`` if given, else
+  at the first waypoint facing the second;
 * with neither, the route is recorded with the keyboard in this terminal
   (:func:`spf_rl.teach.keyboard.record_with_keyboard`), from ``start`` or the spawn point.
 
+A route keeps the length it was given, up to :data:`MAX_TAUGHT_STEPS` (a policy follows
+it at its own length, :func:`spf_rl.teach.repeat.teach_and_repeat`); with ``length``, it
+must have exactly that many steps (waypoint plans are cropped to it).
+
 Examples:
     >>> from envs.user_demos import parse_actions
-    >>> demo = teach_route(0, (7.5, 1.5, 0.0), actions=parse_actions("FFFFLF"), length=6)
+    >>> demo = teach_route(0, (7.5, 1.5, 0.0), actions=parse_actions("FFFFLF"))
     >>> demo.length, route_source(parse_actions("FFFFLF"), None)
     (6, 'actions')
     >>> teach_route(0, (7.5, 1.5, 0.0), actions=parse_actions("FFF"), length=6)
     Traceback (most recent call last):
     ...
-    envs.user_demos.RouteError: the route has 3 steps; demonstrations must have exactly 6 steps here (the policy's demo_length): give 6 actions.
+    envs.user_demos.RouteError: the route has 3 steps; demonstrations must have exactly 6 steps here (length=6): give 6 actions.
 """
 from __future__ import annotations
 
@@ -30,11 +34,14 @@ from collections.abc import Sequence
 import numpy as np
 
 from envs.demos import Demonstration
+from envs.house_grid import MAX_DEMO_LENGTH
 from envs.scenes import House
-from envs.user_demos import default_start, demonstration_from_actions, demonstration_from_waypoints, house_of
+from envs.user_demos import RouteError, default_start, demonstration_from_actions, demonstration_from_waypoints, house_of
 
 logger = logging.getLogger(__name__)
 
+#: The longest route that can be taught, steps (the env's longest demonstration).
+MAX_TAUGHT_STEPS = MAX_DEMO_LENGTH
 #: How a route is given: typed actions, typed waypoints, or recorded with the keyboard.
 ROUTE_SOURCES = ("actions", "waypoints", "keyboard")
 
@@ -57,9 +64,9 @@ def teach_route(
     actions: Sequence[int] | np.ndarray | None = None,
     waypoints: Sequence[Sequence[float]] | None = None,
     *,
-    length: int,
+    length: int | None = None,
 ) -> Demonstration | None:
-    """The demonstration of ``length`` steps of the route given by ``actions``, ``waypoints`` or the keyboard.
+    """The demonstration of the route given by ``actions``, ``waypoints`` or the keyboard.
 
     Args:
         house: the house (or its seed).
@@ -68,22 +75,37 @@ def teach_route(
         actions: the route's actions (ints, :func:`~envs.user_demos.parse_actions`), or ``None``.
         waypoints: points ``(x m, y m)`` joined by the planner, or ``None`` (used when
             ``actions`` is ``None``).
-        length: the policy's ``demo_length``: the steps of the demonstration.
+        length: the steps the demonstration must have (``None``: its own, 1 to
+            :data:`MAX_TAUGHT_STEPS`).
 
     Returns:
         The demonstration, or ``None`` when the keyboard's user cancelled.
 
     Raises:
         RouteError: a refused route (into a wall, out of the house, too short, not
-            ``length`` steps), the message naming the step or waypoint.
+            ``length`` steps, or longer than :data:`MAX_TAUGHT_STEPS`), the message naming
+            the step or waypoint.
     """
     source = route_source(actions, waypoints)
     logger.debug("route from %s", source)
-    if source == "waypoints":
-        return demonstration_from_waypoints(house, waypoints, start=start, length=length)
-    start = default_start(house) if start is None else start
     if source == "actions":
-        return demonstration_from_actions(house, start, actions, length=length)
-    from spf_rl.teach.keyboard import record_with_keyboard  # curses, only for the keyboard
+        _check_steps(len(actions))  # before driving it
+    if source == "waypoints":
+        demo = demonstration_from_waypoints(house, waypoints, start=start, length=length)
+    elif source == "actions":
+        demo = demonstration_from_actions(house, default_start(house) if start is None else start, actions, length=length)
+    else:
+        from spf_rl.teach.keyboard import record_with_keyboard  # curses, only for the keyboard
 
-    return record_with_keyboard(house_of(house), start, length)
+        start = default_start(house) if start is None else start
+        return record_with_keyboard(house_of(house), start, MAX_TAUGHT_STEPS if length is None else length)
+    _check_steps(demo.length)
+    return demo
+
+
+def _check_steps(steps: int) -> None:
+    if steps > MAX_TAUGHT_STEPS:
+        raise RouteError(
+            f"the route has {steps} steps; a taught route may have at most {MAX_TAUGHT_STEPS} "
+            "(envs.house_grid.MAX_DEMO_LENGTH): split it in two."
+        )
