@@ -152,7 +152,8 @@ def episode_record(final: TensorDictBase) -> dict:
 
     Returns:
         success, success_lab, spl, goal_distance (m), path_length (m), shortest_path_length (m),
-        ndtw, sdtw, path_length_ratio, wall_hits (:mod:`envs.path_fidelity`), steps, episode_seed and house_seed (the house the episode was played in, the key
+        ndtw, sdtw, path_length_ratio, wall_hits (:mod:`envs.path_fidelity`), steps, demo_steps
+        (the demonstration's own length), episode_seed and house_seed (the house the episode was played in, the key
         of per-house statistics such as :func:`spf_rl.stats.hierarchical_bootstrap_ci`),
         as Python scalars.
     """
@@ -168,6 +169,7 @@ def episode_record(final: TensorDictBase) -> dict:
         "path_length_ratio": float(final["path_length_ratio"].item()),
         "wall_hits": int(final["wall_hits"].item()),
         "steps": int(final["step_count"].item()),
+        "demo_steps": int(final["demo_steps"].item()),
         "episode_seed": int(final["episode_seed"].item()),
         "house_seed": int(final["house_seed"].item()),
     }

@@ -1,0 +1,75 @@
+"""Route benchmark: how well each policy follows routes of each style and length.
+
+Every shipped checkpoint (by default all but ``homing-*``, trained for another task, and
+``ppo-*``, trained under the older ``paper_symmetric`` noise) and open-loop replay (the
+floor) play the same episodes of every cell: set (test split; test split on 100 houses)
+x route style (planner, tour, driven) x length bucket (10-30, 31-60, 61-100 steps).
+Per cell: success, SPL, nDTW and SDTW with house-level bootstrap intervals, and each
+model's paired difference from open-loop replay (success, nDTW). Written to ``--out``
+(after every evaluation: an interrupted run resumes where it stopped), with the figure
+(``.png``) and the markdown table (``.md``, also printed) next to it.
+The work is :mod:`spf_rl.eval.route_bench`'s.
+
+Usage::
+
+    python recipes/route_bench.py --quick                      # smoke run -> results/route_bench_quick.json
+    python recipes/route_bench.py                              # everything -> results/route_bench.json
+    python recipes/route_bench.py --models spf-s0.8,lengths-spf-s0.8 --styles driven --buckets 61-100 --out results/rb.json
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+
+from envs.transforms import DEFAULT_NOISE
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--models", help="comma-separated shipped names or .pt paths (default: all shipped but homing-*, ppo-*)")
+    parser.add_argument("--styles", default="planner,tour,driven", help="route styles (default planner,tour,driven)")
+    parser.add_argument("--buckets", help="length buckets lo-hi, steps (default 10-30,31-60,61-100)")
+    parser.add_argument("--sets", help="episode sets: test, extended (100 houses) (default both)")
+    parser.add_argument("--episodes", type=int, help="episodes per cell (default 128)")
+    parser.add_argument("--seed", type=int, default=2, help="seed of the episodes (default 2, the test seed)")
+    parser.add_argument("--noise", default=DEFAULT_NOISE, help=f"actuation noise preset (default {DEFAULT_NOISE})")
+    parser.add_argument("--random-sparsity", type=float, help="sparsity of random-sparsity models (default: their config's)")
+    parser.add_argument("--num-resamples", type=int, default=10_000, help="bootstrap resamples (default 10000)")
+    parser.add_argument("--device", default="cpu", help="where the policies run: cpu, auto, cuda, cuda:N (default cpu)")
+    parser.add_argument("--num-collectors", type=int, default=1, help="processes playing a cell's episodes (default 1)")
+    parser.add_argument("--out", help="the JSON (default results/route_bench.json; --quick: results/route_bench_quick.json)")
+    parser.add_argument("--quick", action="store_true",
+                        help="smoke run: spf-s0.8, rpf_original-s1 and open-loop, 8 episodes, test set, buckets 10-30, 31-60")
+    parser.add_argument("--progress", action="store_true", help="progress bars")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """Run the recipe; returns the JSON content it writes (with the markdown ``table``)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    from spf_rl.eval.route_bench import STYLES, BenchOptions, parse_buckets, parse_list
+
+    try:
+        options = BenchOptions(
+            models=None if args.models is None else parse_list(args.models, None, "--models"),
+            styles=parse_list(args.styles, STYLES, "--styles"),
+            buckets=None if args.buckets is None else parse_buckets(args.buckets),
+            sets=None if args.sets is None else parse_list(args.sets, None, "--sets"),
+            episodes=args.episodes, seed=args.seed, noise=args.noise, random_sparsity=args.random_sparsity,
+            num_resamples=args.num_resamples, device=args.device, num_collectors=args.num_collectors, out=args.out, quick=args.quick, progress=args.progress,
+        )
+    except ValueError as err:
+        parser.error(str(err))
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    logging.getLogger("envs.user_demos").setLevel(logging.WARNING)  # a line per cropped tour route
+    from spf_rl.eval.route_bench import run_bench
+
+    content = run_bench(options)
+    print(content["table"])
+    print(f"-> {options.out}" + (f", {content['figure']}" if content["figure"] else ""))
+    return content
+
+
+if __name__ == "__main__":
+    main()

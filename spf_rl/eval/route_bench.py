@@ -1,0 +1,622 @@
+"""The route benchmark: how well each policy follows routes of each style and length
+(``recipes/route_bench.py`` is the command line).
+
+Every model (shipped checkpoints by name, or ``.pt`` paths) and open-loop replay
+(:class:`~spf_rl.modules.open_loop.OpenLoopPolicy`, the floor: it replays the
+demonstrated actions blind) play the episodes of every *cell*: an episode set
+(:data:`SETS`: the test split, and the test split on :data:`EXTENDED_HOUSES` houses) x a
+route style (:data:`~envs.route_styles.ROUTE_STYLES`) x a length bucket (routes of
+``lo`` to ``hi`` steps). A cell's episodes are those of one
+:class:`~spf_rl.train.evaluation.EvalConfig` (``demo_length=hi``, shorter routes padded
+and played at their own length; each route's own step limit ``ceil(5/3 n)``), so every
+model plays the same episodes and comparisons are paired by episode. A policy built for
+another demonstration length runs as a view at ``hi`` steps sharing its weights
+(:func:`~spf_rl.train.lengths.policy_for_length`); a random-sparsity model runs at one
+sparsity (its config's by default).
+
+Per cell and model: mean success, SPL, nDTW and SDTW with house-level bootstrap intervals
+(:func:`~spf_rl.stats.hierarchical_bootstrap_ci`), and the paired difference from open-loop
+replay on the same episodes in success and nDTW (:func:`~spf_rl.stats.paired_bootstrap`).
+
+* :class:`BenchOptions`: what a run does, checked when made (a ``ValueError`` naming the option);
+* :func:`parse_buckets`, :func:`parse_list`: the command line's comma-separated values;
+* :func:`run_bench`: evaluate what is missing (the JSON is written after every evaluation, and
+  a rerun with the same set-up skips what it holds: an interrupted run resumes), then the
+  table and the figure;
+* :func:`cell_stats`, :func:`paired_against`: the statistics of a cell; :func:`format_table`
+  (markdown) and :func:`plot_bench` (success by bucket, a panel per set and style).
+"""
+from __future__ import annotations
+
+import logging
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from envs.atomic_io import atomic_write_json
+from spf_rl.stats import hierarchical_bootstrap_ci, paired_bootstrap
+
+logger = logging.getLogger(__name__)
+
+RECIPE = "recipes/route_bench.py"
+#: The floor every model is compared with: open-loop replay of the demonstrated actions.
+OPEN_LOOP = "open_loop"
+#: Episode sets: name -> houses of the test split (``None``: the split's own).
+EXTENDED_HOUSES = 100
+SETS: dict[str, int | None] = {"test": None, "extended": EXTENDED_HOUSES}
+STYLES = ("planner", "tour", "driven")
+#: Length buckets, steps (inclusive).
+DEFAULT_BUCKETS = ((10, 30), (31, 60), (61, 100))
+#: Shipped names left out by default (see :func:`default_models`).
+EXCLUDED_PREFIXES = ("homing-", "ppo-")
+#: ``--quick``: a smoke run.
+QUICK_MODELS = ("spf-s0.8", "rpf_original-s1")
+QUICK_EPISODES = 8
+QUICK_BUCKETS = ((10, 30), (31, 60))
+QUICK_SETS = ("test",)
+DEFAULT_OUT = Path("results/route_bench.json")
+QUICK_OUT = Path("results/route_bench_quick.json")
+#: Per-episode scores reported (mean and interval), and those compared with open-loop replay.
+METRICS = ("success", "spl", "ndtw", "sdtw")
+PAIRED_METRICS = ("success", "ndtw")
+#: Per-episode fields kept per model (columns), and per cell (the episodes, the same for every model).
+RECORD_KEYS = ("success", "success_lab", "spl", "ndtw", "sdtw", "path_length_ratio", "wall_hits", "steps",
+               "goal_distance", "path_length", "shortest_path_length")
+EPISODE_KEYS = ("episode_index", "episode_seed", "house_seed", "demo_steps")
+CONFIDENCE = 0.95
+#: Paired differences with a two-sided p-value below this are marked in the table.
+ALPHA = 0.05
+STATISTICS = (
+    "mean over the cell's episodes; ci: 95% percentile bootstrap resampling houses, then episodes within each "
+    "drawn house (spf_rl.stats.hierarchical_bootstrap_ci). vs_open_loop: paired bootstrap of mean(model) - "
+    "mean(open_loop) on the same episodes, the same resamples for both (spf_rl.stats.paired_bootstrap); "
+    "p_greater: fraction of resamples with a difference <= 0; p_two_sided: twice the smaller tail."
+)
+
+
+# ------------------------------------------------------------------------ parsing
+def parse_list(text: str, allowed: Sequence[str] | None, option: str) -> tuple[str, ...]:
+    """Comma-separated names (repeats dropped, order kept), each one of ``allowed`` (any, if ``None``).
+
+    Raises:
+        ValueError: none, or an unknown name; the message names ``option``.
+
+    Examples:
+        >>> parse_list("tour, planner,tour", STYLES, "--styles")
+        ('tour', 'planner')
+        >>> parse_list("tour,zigzag", STYLES, "--styles")
+        Traceback (most recent call last):
+        ...
+        ValueError: argument --styles: unknown ['zigzag']; allowed: planner, tour, driven
+    """
+    items = tuple(dict.fromkeys(item.strip() for item in str(text).split(",") if item.strip()))
+    unknown = [item for item in items if allowed is not None and item not in allowed]
+    if unknown or not items:
+        allowed_text = f"; allowed: {', '.join(allowed)}" if allowed is not None else ""
+        raise ValueError(f"argument {option}: {'unknown ' + str(unknown) if unknown else 'no names in ' + repr(text)}{allowed_text}")
+    return items
+
+
+def check_buckets(buckets: Sequence[Sequence[int]]) -> tuple[tuple[int, int], ...]:
+    """``buckets`` as sorted ``(lo, hi)`` pairs of steps, checked: ``10 <= lo <= hi <= 100``, no overlaps.
+
+    Raises:
+        ValueError: a bad or overlapping bucket, naming ``--buckets``.
+
+    Examples:
+        >>> check_buckets([(31, 60), (10, 30)])
+        ((10, 30), (31, 60))
+        >>> check_buckets([(10, 40), (31, 60)])
+        Traceback (most recent call last):
+        ...
+        ValueError: argument --buckets: buckets 10-40 and 31-60 overlap
+    """
+    from envs.route_styles import MAX_STYLE_LENGTH, MIN_STYLE_LENGTH
+
+    pairs = []
+    for bucket in buckets:
+        try:
+            lo, hi = (int(x) for x in bucket)
+        except (TypeError, ValueError):
+            raise ValueError(f"argument --buckets: a bucket is (shortest, longest) steps, got {bucket!r}") from None
+        if not MIN_STYLE_LENGTH <= lo <= hi <= MAX_STYLE_LENGTH:
+            raise ValueError(
+                f"argument --buckets: a bucket lo-hi needs {MIN_STYLE_LENGTH} <= lo <= hi <= {MAX_STYLE_LENGTH} steps, got {lo}-{hi}"
+            )
+        pairs.append((lo, hi))
+    if not pairs:
+        raise ValueError("argument --buckets: no buckets")
+    pairs.sort()
+    for (lo_a, hi_a), (lo_b, hi_b) in zip(pairs, pairs[1:]):
+        if lo_b <= hi_a:
+            raise ValueError(f"argument --buckets: buckets {lo_a}-{hi_a} and {lo_b}-{hi_b} overlap")
+    return tuple(pairs)
+
+
+def parse_buckets(text: str) -> tuple[tuple[int, int], ...]:
+    """Length buckets from ``"lo-hi,lo-hi,..."`` (steps, inclusive; ``"n"`` alone is ``n-n``), sorted.
+
+    Raises:
+        ValueError: not of that form, or a bad bucket (:func:`check_buckets`), naming ``--buckets``.
+
+    Examples:
+        >>> parse_buckets("31-60, 10-30")
+        ((10, 30), (31, 60))
+        >>> parse_buckets("10-30,61")
+        ((10, 30), (61, 61))
+        >>> parse_buckets("5-30")
+        Traceback (most recent call last):
+        ...
+        ValueError: argument --buckets: a bucket lo-hi needs 10 <= lo <= hi <= 100 steps, got 5-30
+        >>> parse_buckets("10..30")
+        Traceback (most recent call last):
+        ...
+        ValueError: argument --buckets: '10..30' is not lo-hi (steps, e.g. 10-30,31-60)
+    """
+    buckets = []
+    for item in (item.strip() for item in str(text).split(",") if item.strip()):
+        match = re.fullmatch(r"(\d+)(?:\s*-\s*(\d+))?", item)
+        if match is None:
+            raise ValueError(f"argument --buckets: {item!r} is not lo-hi (steps, e.g. 10-30,31-60)")
+        buckets.append((int(match[1]), int(match[2] or match[1])))
+    return check_buckets(buckets)
+
+
+def bucket_name(bucket: Sequence[int]) -> str:
+    """``"lo-hi"``.
+
+    Examples:
+        >>> bucket_name((10, 30))
+        '10-30'
+    """
+    return f"{bucket[0]}-{bucket[1]}"
+
+
+def model_label(model: str) -> str:
+    """How the JSON, table and figure name a model: a shipped name, or ``<run dir>/<file>`` for a ``.pt`` path.
+
+    Examples:
+        >>> model_label("spf-s0.8"), model_label("runs/bc/spf-seed0/best.pt")
+        ('spf-s0.8', 'spf-seed0/best')
+    """
+    from spf_rl.eval.by_length import label_of
+
+    return label_of(model)
+
+
+def default_models() -> tuple[str, ...]:
+    """Every shipped checkpoint but ``homing-*`` (trained to return to a route's start, not to
+    follow it) and ``ppo-*`` (trained and scored under the older ``paper_symmetric`` noise):
+    both can still be named with ``--models``."""
+    from spf_rl.hub import list_checkpoints
+
+    return tuple(name for name in list_checkpoints() if not name.startswith(EXCLUDED_PREFIXES))
+
+
+def check_models(models: Sequence[str]) -> tuple[str, ...]:
+    """Shipped names or existing ``.pt`` paths (``open_loop`` is dropped: it always plays).
+
+    Raises:
+        ValueError: an unknown name or missing file (naming ``--models``), or two with one label.
+    """
+    from spf_rl.hub import list_checkpoints
+
+    shipped = list_checkpoints()
+    models = tuple(dict.fromkeys(str(m) for m in models if str(m) != OPEN_LOOP))
+    unknown = [m for m in models if m not in shipped and not (m.endswith(".pt") and Path(m).is_file())]
+    if unknown:
+        raise ValueError(f"argument --models: unknown {unknown} (shipped names or .pt files); shipped: {', '.join(shipped)}")
+    labels = [model_label(m) for m in models]
+    if len(set(labels)) != len(labels) or OPEN_LOOP in labels:
+        raise ValueError(f"argument --models: two models would have one label: {labels}")
+    return models
+
+
+# ------------------------------------------------------------------------ options
+@dataclass(frozen=True)
+class BenchOptions:
+    """What a route benchmark does (``recipes/route_bench.py``'s options), checked when made.
+
+    ``None`` fields take the full run's default, or with ``quick`` the smoke run's.
+
+    Attributes:
+        models: shipped names or ``.pt`` paths (default :func:`default_models`; quick :data:`QUICK_MODELS`);
+            open-loop replay always plays.
+        styles: route styles (:data:`STYLES`).
+        buckets: length buckets ``(lo, hi)``, steps (default :data:`DEFAULT_BUCKETS`; quick :data:`QUICK_BUCKETS`).
+        sets: episode sets (:data:`SETS`; quick: the test set).
+        episodes: episodes per cell (default 128; quick :data:`QUICK_EPISODES`).
+        seed: seed of the episodes (2: the test seed of the other evaluations).
+        noise: actuation-noise preset.
+        out: the JSON (the figure and the markdown table go next to it, ``.png`` and ``.md``);
+            default :data:`DEFAULT_OUT` (quick :data:`QUICK_OUT`).
+        quick: the smoke run's defaults.
+        device: where the policies run.
+        random_sparsity: the sparsity random-sparsity models run at (``None``: each one's config sparsity).
+        num_resamples: bootstrap resamples.
+        test_houses: houses of the ``test`` set (``None``: the split's; fewer for smoke tests).
+        image_size: frame side, pixels (every model's must be this).
+        num_agents: agents stepped together.
+        num_collectors: processes playing a cell's episodes (how, never which: the same episodes and scores).
+        store_root: where episode stores go (``None``: :func:`~spf_rl.train.evaluation.episode_store_root`).
+        progress: progress bars.
+
+    Raises:
+        ValueError: a bad option, naming it (``argument --episodes: ...``).
+
+    Examples:
+        >>> options = BenchOptions(models=("spf-s0.8",), quick=True)
+        >>> options.episodes, options.sets, options.buckets, options.out.as_posix()
+        (8, ('test',), ((10, 30), (31, 60)), 'results/route_bench_quick.json')
+        >>> BenchOptions(models=("spf-s0.8",), episodes=0)
+        Traceback (most recent call last):
+        ...
+        ValueError: argument --episodes: must be a positive int, got 0
+    """
+
+    models: tuple[str, ...] | None = None
+    styles: tuple[str, ...] = STYLES
+    buckets: tuple[tuple[int, int], ...] | None = None
+    sets: tuple[str, ...] | None = None
+    episodes: int | None = None
+    seed: int = 2
+    noise: str = "paper"
+    out: Path | None = None
+    quick: bool = False
+    device: str = "cpu"
+    random_sparsity: float | None = None
+    num_resamples: int = 10_000
+    test_houses: int | None = None
+    image_size: int = 64
+    num_agents: int = 25
+    num_collectors: int = 1
+    store_root: str | None = None
+    progress: bool = False
+    set_houses: dict = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        def put(name: str, value) -> None:
+            object.__setattr__(self, name, value)
+
+        def positive(name: str, option: str) -> None:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise ValueError(f"argument {option}: must be a positive int, got {value!r}")
+
+        quick = self.quick
+        put("models", check_models(self.models if self.models is not None else (QUICK_MODELS if quick else default_models())))
+        put("styles", parse_list(",".join(self.styles), STYLES, "--styles"))
+        put("buckets", check_buckets(self.buckets if self.buckets is not None else (QUICK_BUCKETS if quick else DEFAULT_BUCKETS)))
+        put("sets", parse_list(",".join(self.sets if self.sets is not None else (QUICK_SETS if quick else SETS)), tuple(SETS), "--sets"))
+        put("episodes", self.episodes if self.episodes is not None else (QUICK_EPISODES if quick else 128))
+        put("out", Path(self.out) if self.out is not None else (QUICK_OUT if quick else DEFAULT_OUT))
+        for name, option in (("episodes", "--episodes"), ("num_resamples", "--num-resamples"), ("image_size", "--image-size"),
+                             ("num_agents", "--num-agents"), ("num_collectors", "--num-collectors")):
+            positive(name, option)
+        if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
+            raise ValueError(f"argument --seed: must be an int >= 0, got {self.seed!r}")
+        if self.test_houses is not None:
+            positive("test_houses", "--test-houses")
+        from envs.transforms import NOISE_PRESETS
+
+        if self.noise not in NOISE_PRESETS:
+            raise ValueError(f"argument --noise: unknown {self.noise!r}; allowed: {', '.join(sorted(NOISE_PRESETS))}")
+        if self.random_sparsity is not None and not 0.0 < float(self.random_sparsity) <= 1.0:
+            raise ValueError(f"argument --random-sparsity: must be in (0, 1], got {self.random_sparsity!r}")
+        from spf_rl.device import check_device
+
+        try:
+            check_device(self.device)
+        except ValueError as err:
+            raise ValueError(f"argument --device: {err}") from err
+        houses = {**SETS, "test": self.test_houses}
+        put("set_houses", {name: houses[name] for name in self.sets})
+
+
+# -------------------------------------------------------------------------- cells
+def cell_key(set_name: str, style: str, bucket: Sequence[int]) -> str:
+    """The key of a cell in the JSON: ``"<set>/<style>/<lo>-<hi>"``.
+
+    Examples:
+        >>> cell_key("test", "tour", (10, 30))
+        'test/tour/10-30'
+    """
+    return f"{set_name}/{style}/{bucket_name(bucket)}"
+
+
+def cell_config(options: BenchOptions, set_name: str, style: str, bucket: Sequence[int]):
+    """The :class:`~spf_rl.train.evaluation.EvalConfig` of a cell: routes of ``style`` and ``bucket``
+    lengths padded to the longest, each with its own step limit."""
+    from spf_rl.train.evaluation import EvalConfig, episode_store_root
+
+    return EvalConfig(
+        split="test", num_houses=options.set_houses[set_name], num_episodes=options.episodes, seed=options.seed,
+        noise=options.noise, demo_length=bucket[1], max_steps=None, route_style=style, route_lengths=tuple(bucket),
+        image_size=options.image_size, num_agents=options.num_agents, num_collectors=options.num_collectors,
+        store_root=options.store_root if options.store_root is not None else episode_store_root(),
+    )
+
+
+def cell_identity(config) -> dict:
+    """What fixes a cell's episodes: the config's :func:`~spf_rl.train.evaluation.episode_identity` and the env version."""
+    from envs.version import ENV_VERSION
+    from spf_rl.train.evaluation import episode_identity
+
+    return {**episode_identity(config), "route_lengths": list(config.route_lengths), "env_version": ENV_VERSION}
+
+
+@dataclass
+class BenchModel:
+    """A model of the benchmark: its label, policy (``None`` for open-loop replay, made per cell) and identity."""
+
+    label: str
+    policy: object | None
+    identity: dict
+    info: dict
+    views: dict = field(default_factory=dict)
+
+    def at_length(self, demo_length: int):
+        """The policy for demonstrations of ``demo_length`` steps (open-loop replay reads any length)."""
+        from spf_rl.modules import OpenLoopPolicy
+        from spf_rl.train.lengths import policy_for_length
+
+        if self.policy is None:
+            return OpenLoopPolicy()
+        if demo_length not in self.views:
+            view = policy_for_length(self.policy, demo_length)
+            if self.info.get("sparsity_range") is not None:  # set_sparsity is not part of the weights: set it on the view
+                view.set_sparsity(self.identity["sparsity"])
+            self.views[demo_length] = view
+        return self.views[demo_length]
+
+
+def load_models(options: BenchOptions) -> list[BenchModel]:
+    """Open-loop replay, then every model of ``options`` loaded on its device.
+
+    Raises:
+        ValueError: a model whose frames are not ``options.image_size`` pixels.
+    """
+    from spf_rl.hub import checked_checkpoint, file_sha256, policy_from_checkpoint
+
+    models = [BenchModel(OPEN_LOOP, None, {"checkpoint_sha256": None, "sparsity": None},
+                         {"checkpoint": None, "model_type": OPEN_LOOP})]
+    for name in options.models:
+        path = checked_checkpoint(name)
+        policy, payload = policy_from_checkpoint(path, device=options.device)
+        config = policy.config
+        if tuple(config.image_size) != (options.image_size, options.image_size):
+            raise ValueError(f"{name} sees {tuple(config.image_size)} frames, the benchmark renders {options.image_size} px")
+        random = getattr(config, "sparsity_range", None) is not None
+        sparsity = (float(options.random_sparsity) if options.random_sparsity is not None else float(config.sparsity)) if random else None
+        info = {"checkpoint": str(path), "model_type": payload["model_type"], "demo_length": config.demo_length,
+                "sparsity": float(config.sparsity), "sparsity_range": list(config.sparsity_range) if random else None}
+        models.append(BenchModel(model_label(name), policy, {"checkpoint_sha256": file_sha256(path), "sparsity": sparsity}, info))
+    return models
+
+
+def evaluate_model(model: BenchModel, config, progress: bool = False) -> list[dict]:
+    """Per-episode records of one model on a cell's episodes (open-loop replay without rendering: the same episodes)."""
+    import dataclasses
+
+    from spf_rl.train import evaluation
+
+    if model.policy is None:
+        config = dataclasses.replace(config, render=False)
+    return evaluation.evaluate_policy(model.at_length(config.demo_length), config, progress=progress)[1]
+
+
+# --------------------------------------------------------------------- statistics
+def paired_against(a: dict, b: dict, houses: Sequence, num_resamples: int, metrics: Sequence[str] = PAIRED_METRICS) -> dict:
+    """Paired bootstrap of ``a`` - ``b`` (per-episode columns ``{metric: values}`` of the same episodes) per metric.
+
+    Returns:
+        ``{metric: {"difference", "ci", "p_greater", "p_two_sided"}}``.
+
+    Examples:
+        >>> a = {"success": [1, 0, 1, 1], "ndtw": [0.9, 0.2, 0.8, 0.7]}
+        >>> paired_against(a, a, [0, 0, 1, 1], num_resamples=100)["success"]
+        {'difference': 0.0, 'ci': [0.0, 0.0], 'p_greater': 1.0, 'p_two_sided': 1.0}
+    """
+    out = {}
+    for metric in metrics:
+        result = paired_bootstrap(np.asarray(a[metric], dtype=float), np.asarray(b[metric], dtype=float), np.asarray(houses),
+                                  CONFIDENCE, num_resamples)
+        out[metric] = {"difference": result.difference, "ci": list(result.ci), "p_greater": result.p_greater,
+                       "p_two_sided": result.p_two_sided}
+    return out
+
+
+def cell_stats(cell: dict, num_resamples: int) -> dict:
+    """Per model of a complete cell: the mean and house-level interval of each of :data:`METRICS`,
+    and (models other than open-loop replay) ``vs_open_loop``: :func:`paired_against` open-loop replay."""
+    houses = np.asarray(cell["episodes"]["house_seed"])
+    floor = cell["models"][OPEN_LOOP]["records"]
+    stats = {}
+    for label, entry in cell["models"].items():
+        records = entry["records"]
+        row = {"episodes": int(houses.size), "houses": int(np.unique(houses).size)}
+        for metric in METRICS:
+            values = np.asarray(records[metric], dtype=float)
+            row[metric] = {"mean": float(values.mean()),
+                           "ci": list(hierarchical_bootstrap_ci(values, houses, CONFIDENCE, num_resamples))}
+        if label != OPEN_LOOP:
+            row["vs_open_loop"] = paired_against(records, floor, houses, num_resamples)
+        stats[label] = row
+    return stats
+
+
+# ------------------------------------------------------------------------ reports
+def format_table(content: dict) -> str:
+    """The markdown table of a benchmark's JSON content: a row per set x style x bucket, a column per
+    model, ``success / nDTW`` (``*``: paired difference from open-loop replay with two-sided p < 0.05).
+
+    Examples:
+        >>> def model(success, ndtw, p=None):
+        ...     row = {"success": {"mean": success}, "ndtw": {"mean": ndtw}}
+        ...     if p is not None:
+        ...         row["vs_open_loop"] = {"success": {"p_two_sided": p}, "ndtw": {"p_two_sided": 0.5}}
+        ...     return row
+        >>> cells = {"test/tour/10-30": {"set": "test", "style": "tour", "bucket": [10, 30],
+        ...          "stats": {"open_loop": model(0.25, 0.5), "spf-s0.8": model(0.75, 0.875, p=0.01)}}}
+        >>> content = {"setup": {"episodes": 8, "models": {"open_loop": {}, "spf-s0.8": {}}}, "cells": cells}
+        >>> print(format_table(content))
+        | set | style | steps | open_loop | spf-s0.8 |
+        |---|---|---|---|---|
+        | test | tour | 10-30 | 0.25 / 0.50 | 0.75* / 0.88 |
+        <BLANKLINE>
+        success / nDTW, mean over 8 episodes per cell; * after a number: paired difference from open-loop replay on the same episodes, two-sided p < 0.05 (house-level bootstrap).
+    """
+    labels = list(content["setup"]["models"])
+    lines = ["| set | style | steps | " + " | ".join(labels) + " |", "|---" * (3 + len(labels)) + "|"]
+    for cell in content["cells"].values():
+        stats = cell.get("stats")
+        if not stats:
+            continue
+        entries = []
+        for label in labels:
+            row = stats.get(label)
+            if row is None:
+                entries.append("-")
+                continue
+            paired = row.get("vs_open_loop", {})
+            marks = {m: "*" if m in paired and paired[m]["p_two_sided"] < ALPHA else "" for m in PAIRED_METRICS}
+            entries.append(f"{row['success']['mean']:.2f}{marks['success']} / {row['ndtw']['mean']:.2f}{marks['ndtw']}")
+        lines.append(f"| {cell['set']} | {cell['style']} | {bucket_name(cell['bucket'])} | " + " | ".join(entries) + " |")
+    lines += ["", f"success / nDTW, mean over {content['setup']['episodes']} episodes per cell; * after a number: paired "
+              "difference from open-loop replay on the same episodes, two-sided p < 0.05 (house-level bootstrap)."]
+    return "\n".join(lines)
+
+
+def plot_bench(content: dict, path: str | Path) -> Path:
+    """Success (95% CI) by length bucket, a panel per set (row) and style (column), a line per model, to a PNG."""
+    from spf_rl.viz import pyplot, save_figure
+
+    plt = pyplot()
+    setup = content["setup"]
+    sets, styles, buckets = list(setup["sets"]), setup["styles"], [tuple(b) for b in setup["buckets"]]
+    fig, axes = plt.subplots(len(sets), len(styles), figsize=(3.6 * len(styles), 3.0 * len(sets)), squeeze=False, sharey=True)
+    for i, set_name in enumerate(sets):
+        for j, style in enumerate(styles):
+            ax = axes[i][j]
+            for k, label in enumerate(setup["models"]):
+                xs, ys, errors = [], [], []
+                for x, bucket in enumerate(buckets):
+                    row = (content["cells"].get(cell_key(set_name, style, bucket), {}).get("stats") or {}).get(label)
+                    if row is not None:
+                        mean, (low, high) = row["success"]["mean"], row["success"]["ci"]
+                        xs.append(x + 0.04 * (k - len(setup["models"]) / 2))
+                        ys.append(mean)
+                        errors.append((mean - low, high - mean))
+                if xs:
+                    style_kw = {"color": "black", "linestyle": "--"} if label == OPEN_LOOP else {"linestyle": "-"}
+                    ax.errorbar(xs, ys, yerr=np.asarray(errors).T, fmt="o", capsize=2, markersize=3, label=label, **style_kw)
+            ax.set_xticks(range(len(buckets)), [bucket_name(b) for b in buckets])
+            ax.set_xlim(-0.5, len(buckets) - 0.5)
+            ax.set_ylim(0, 1.02)
+            ax.set_title(f"{style} ({set_name})", fontsize=9)
+            ax.set_xlabel("route length (steps)")
+            if j == 0:
+                ax.set_ylabel("success (95% CI)")
+    axes[0][0].legend(fontsize=6)
+    return save_figure(fig, path, f"route benchmark: success by route length ({setup['episodes']} episodes per cell, "
+                                  f"{setup['noise']} noise)")
+
+
+# ------------------------------------------------------------------------ the run
+def setup_of(options: BenchOptions, models: list[BenchModel]) -> dict:
+    """The set-up written to the JSON."""
+    from envs.version import ENV_VERSION
+
+    return {
+        "episodes": options.episodes, "seed": options.seed, "noise": options.noise, "split": "test",
+        "sets": dict(options.set_houses), "styles": list(options.styles), "buckets": [list(b) for b in options.buckets],
+        "max_steps": "each route's own: ceil(5/3 n)", "image_size": options.image_size, "num_resamples": options.num_resamples,
+        "random_sparsity": options.random_sparsity, "env_version": ENV_VERSION,
+        "models": {m.label: {**m.info, **m.identity} for m in models},
+    }
+
+
+def load_previous(path: Path) -> dict:
+    """The cells of an earlier run's JSON at ``path`` (``{}`` if there is none, or it is unreadable)."""
+    import json
+
+    if not path.is_file():
+        return {}
+    try:
+        return dict(json.loads(path.read_text())["cells"])
+    except (ValueError, KeyError, TypeError) as err:
+        logger.warning("%s is unreadable (%s): starting afresh", path, err)
+        return {}
+
+
+def episodes_of(records: list[dict]) -> dict:
+    return {key: [r[key] for r in records] for key in EPISODE_KEYS}
+
+
+def run_bench(options: BenchOptions) -> dict:
+    """Evaluate every model and open-loop replay on every cell of ``options`` (skipping what ``options.out``
+    already holds for the same episodes and checkpoints), then write the JSON, ``.md`` table and ``.png`` figure.
+
+    The JSON is written after every evaluation (a cell's statistics once all its models have played), so an
+    interrupted run keeps its results and a rerun resumes; what an earlier file holds for other episodes,
+    checkpoints or models is dropped (logged).
+
+    Returns:
+        The JSON content: ``recipe``, ``setup``, ``statistics``, ``cells`` (``{key: {set, style, bucket,
+        identity, episodes, models: {label: {identity, records}}, stats}}``, records as per-episode columns in
+        the order of ``episodes``), ``table`` (markdown) and ``figure``.
+
+    Raises:
+        ValueError: two models of a cell played different episodes.
+    """
+    models = load_models(options)
+    out = Path(options.out)
+    previous = load_previous(out)
+    content = {"recipe": RECIPE, "setup": setup_of(options, models), "statistics": STATISTICS, "cells": {}}
+    plan = [(s, style, b) for s in options.sets for style in options.styles for b in options.buckets]
+    for set_name, style, bucket in plan:
+        key = cell_key(set_name, style, bucket)
+        config = cell_config(options, set_name, style, bucket)
+        identity = cell_identity(config)
+        old = previous.pop(key, None)
+        if old is not None and old.get("identity") != identity:
+            logger.info("%s: the file's episodes differ (other set-up): evaluating again", key)
+            old = None
+        cell = {"set": set_name, "style": style, "bucket": list(bucket), "identity": identity,
+                "episodes": (old or {}).get("episodes"), "models": {}, "stats": None}
+        content["cells"][key] = cell
+        for model in models:
+            done = (old or {}).get("models", {}).get(model.label)
+            if done is not None and done.get("identity") == model.identity:
+                cell["models"][model.label] = done
+                continue
+            logger.info("%s: %s on %d episodes", key, model.label, options.episodes)
+            records = evaluate_model(model, config, options.progress)
+            episodes = episodes_of(records)
+            if cell["episodes"] is None:
+                cell["episodes"] = episodes
+            elif episodes != cell["episodes"]:
+                raise ValueError(f"{key}: {model.label} played other episodes than the cell's first model")
+            cell["models"][model.label] = {"identity": model.identity,
+                                           "records": {k: [r[k] for r in records] for k in RECORD_KEYS}}
+            atomic_write_json(out, content, indent=1)
+        cell["stats"] = cell_stats(cell, options.num_resamples)
+        logger.info("%s: success %s", key, ", ".join(f"{label} {row['success']['mean']:.2f}" for label, row in cell["stats"].items()))
+        atomic_write_json(out, content, indent=1)
+        for label in set((old or {}).get("models", {})) - set(cell["models"]):
+            logger.warning("%s: dropping the file's records of %s (not a model of this run)", key, label)
+    for key in previous:
+        logger.warning("dropping the file's cell %s (not a cell of this run)", key)
+    content["table"] = format_table(content)
+    from spf_rl.viz import plot_if_available
+
+    figure = plot_if_available(plot_bench, content, out.with_suffix(".png"))
+    content["figure"] = None if figure is None else str(figure)
+    atomic_write_json(out, content, indent=1)
+    from envs.atomic_io import atomic_write_text
+
+    atomic_write_text(out.with_suffix(".md"), content["table"] + "\n")
+    return content

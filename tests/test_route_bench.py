@@ -1,0 +1,127 @@
+"""The route benchmark (spf_rl.eval.route_bench, recipes/route_bench.py): options, a tiny run, resuming."""
+from __future__ import annotations
+
+import json
+
+import pytest
+import route_bench as recipe
+
+from spf_rl.checkpoint import save_checkpoint
+from spf_rl.eval import route_bench
+from spf_rl.modules.policy import SPFConfig
+from spf_rl.modules.registry import build_policy
+from spf_rl.train import evaluation
+
+
+def test_buckets_are_parsed_sorted_and_checked():
+    assert route_bench.parse_buckets("61-100,10-30, 31-60") == ((10, 30), (31, 60), (61, 100))
+    assert route_bench.parse_buckets("20") == ((20, 20),)
+    for text, match in [("10-30,30-60", "overlap"), ("30-10", "lo <= hi"), ("10-101", "<= 100"), ("a-b", "is not lo-hi"),
+                        ("", "no buckets")]:
+        with pytest.raises(ValueError, match=f"argument --buckets: .*{match}"):
+            route_bench.parse_buckets(text)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "option"),
+    [
+        ({"episodes": 0}, "--episodes"),
+        ({"episodes": -3}, "--episodes"),
+        ({"models": ("spf-s0.9",)}, "--models"),
+        ({"models": ("missing/best.pt",)}, "--models"),
+        ({"styles": ("zigzag",)}, "--styles"),
+        ({"buckets": ((5, 30),)}, "--buckets"),
+        ({"sets": ("val",)}, "--sets"),
+        ({"noise": "loud"}, "--noise"),
+        ({"seed": -1}, "--seed"),
+        ({"num_resamples": 0}, "--num-resamples"),
+        ({"random_sparsity": 1.5}, "--random-sparsity"),
+        ({"num_collectors": 0}, "--num-collectors"),
+    ],
+)
+def test_bad_options_are_refused_naming_the_option(kwargs, option):
+    with pytest.raises(ValueError, match=f"argument {option}:"):
+        route_bench.BenchOptions(**{"models": ("spf-s0.8",), **kwargs})
+
+
+def test_defaults_leave_out_homing_and_ppo_and_quick_is_small():
+    models = route_bench.BenchOptions().models
+    assert "spf-s0.8" in models and "lengths-spf-s0.8" in models and "spf_random-s0.2-1" in models
+    assert not any(m.startswith(("homing-", "ppo-")) for m in models)
+    quick = route_bench.BenchOptions(quick=True)
+    assert (quick.models, quick.episodes, quick.sets, quick.buckets) == (route_bench.QUICK_MODELS, 8, ("test",), ((10, 30), (31, 60)))
+    assert route_bench.BenchOptions(models=("ppo-spf-s0.8",)).models == ("ppo-spf-s0.8",)  # named: allowed
+
+
+@pytest.mark.parametrize("argv", [["--episodes", "0"], ["--models", "nope"], ["--buckets", "10-5"], ["--styles", "walk"]])
+def test_the_recipe_refuses_bad_arguments_before_any_work(argv, capsys, monkeypatch):
+    monkeypatch.setattr(route_bench, "run_bench", lambda options: pytest.fail("ran"))
+    with pytest.raises(SystemExit) as info:
+        recipe.main(argv)
+    assert info.value.code == 2
+    assert "error: argument --" in capsys.readouterr().err
+
+
+def test_a_tiny_run_pairs_models_by_episode_and_resumes(tmp_path, monkeypatch):
+    config = SPFConfig(demo_length=10, feature_dim=8, hidden_size=8, image_size=(16, 16))
+    checkpoint = tmp_path / "tiny" / "best.pt"
+    checkpoint.parent.mkdir()
+    save_checkpoint(checkpoint, "spf", config, {"model": build_policy("spf", config).state_dict()})
+    out = tmp_path / "bench.json"
+    options = route_bench.BenchOptions(
+        models=(str(checkpoint),), styles=("driven",), buckets=((10, 12),), sets=("test",), episodes=2, test_houses=2,
+        image_size=16, num_resamples=200, out=out, store_root=str(tmp_path / "stores"),
+    )
+    content = route_bench.run_bench(options)
+
+    saved = json.loads(out.read_text())
+    assert list(saved["cells"]) == ["test/driven/10-12"]
+    assert saved["setup"]["episodes"] == 2 and saved["setup"]["sets"] == {"test": 2} and saved["setup"]["seed"] == 2
+    assert list(saved["setup"]["models"]) == ["open_loop", "tiny/best"]
+    cell = saved["cells"]["test/driven/10-12"]
+    assert cell["identity"]["route_lengths"] == [10, 12] and cell["identity"]["demo_length"] == 12
+    assert len(cell["episodes"]["episode_seed"]) == 2 and len(set(cell["episodes"]["house_seed"])) <= 2
+    for label in ("open_loop", "tiny/best"):
+        records = cell["models"][label]["records"]
+        assert all(len(records[key]) == 2 for key in route_bench.RECORD_KEYS)
+        stats = cell["stats"][label]
+        assert set(route_bench.METRICS) <= set(stats) and stats["episodes"] == 2
+    assert set(cell["stats"]["tiny/best"]["vs_open_loop"]) == {"success", "ndtw"}
+    floor = cell["models"]["open_loop"]["records"]
+    same = route_bench.paired_against(floor, floor, cell["episodes"]["house_seed"], num_resamples=200)
+    assert same["success"]["difference"] == 0.0 and same["ndtw"]["difference"] == 0.0
+    assert "| test | driven | 10-12 |" in content["table"] and (tmp_path / "bench.png").is_file()
+    assert (tmp_path / "bench.md").read_text().strip() == content["table"]
+
+    # a rerun of the same set-up evaluates nothing; one more model plays only itself, on the same episodes
+    played = []
+
+    def fail(policy, config, progress=False):
+        raise AssertionError("a finished cell was evaluated again")
+
+    monkeypatch.setattr(evaluation, "evaluate_policy", fail)
+    again = route_bench.run_bench(options)
+    assert again["cells"]["test/driven/10-12"]["models"] == cell["models"]
+
+    monkeypatch.undo()
+    real = evaluation.evaluate_policy
+
+    def counting(policy, config, progress=False):
+        played.append(type(policy).__name__)
+        return real(policy, config, progress)
+
+    monkeypatch.setattr(evaluation, "evaluate_policy", counting)
+    twin = tmp_path / "twin" / "best.pt"
+    twin.parent.mkdir()
+    twin.write_bytes(checkpoint.read_bytes())
+    more = route_bench.run_bench(route_bench.BenchOptions(**{**_fields(options), "models": (str(checkpoint), str(twin))}))
+    assert played == ["SPFPolicy"]
+    cell = more["cells"]["test/driven/10-12"]
+    assert cell["models"]["twin/best"]["records"] == cell["models"]["tiny/best"]["records"]  # same weights, same episodes
+    assert cell["stats"]["twin/best"]["vs_open_loop"] == cell["stats"]["tiny/best"]["vs_open_loop"]
+
+
+def _fields(options) -> dict:
+    names = ("models", "styles", "buckets", "sets", "episodes", "seed", "noise", "out", "quick", "device", "random_sparsity",
+             "num_resamples", "test_houses", "image_size", "num_agents", "num_collectors", "store_root", "progress")
+    return {name: getattr(options, name) for name in names}
