@@ -137,7 +137,7 @@ def evaluate_checkpoint(target: str, options: EvalOptions) -> dict:
     from spf_rl.hub import policy_from_checkpoint, resolve_checkpoint
     from spf_rl.modules.open_loop import OpenLoopPolicy
     from spf_rl.train.bc import model_memory_bytes
-    from spf_rl.train.evaluation import EvalConfig, evaluate_policy
+    from spf_rl.train.evaluation import EvalConfig, config_dict, evaluate_policy
 
     if target == OPEN_LOOP:
         policy, model_type, demo_length, image_size, sparsity = OpenLoopPolicy(), OPEN_LOOP, options.demo_length, options.image_size, 0.0
@@ -179,7 +179,7 @@ def evaluate_checkpoint(target: str, options: EvalOptions) -> dict:
         "memory_bytes": memory,
         "device": str(module_device(policy)),  # the CPU for open-loop replay, which has no weights
         **summary,
-        "eval": vars(eval_config),
+        "eval": config_dict(eval_config),
         "episodes_records": records,
     }
 

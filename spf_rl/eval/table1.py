@@ -188,6 +188,8 @@ def build_table(
     Raises:
         ValueError: two evaluations of one set did not play the same episodes.
     """
+    from spf_rl.train.evaluation import config_dict
+
     reference: dict = {}
     rows = []
     for line in lines:
@@ -207,7 +209,7 @@ def build_table(
         rows.append(entry)
     houses = {name: ref[1] for name, ref in reference.items()}
     return {
-        "sets": {name: dataclasses.asdict(config) for name, config in sets.items()},
+        "sets": {name: config_dict(config) for name, config in sets.items()},
         "seeds": list(seeds),
         "statistics": {"description": STATISTICS, "confidence": CONFIDENCE, "alpha": ALPHA, "num_resamples": num_resamples},
         "rows": rows,

@@ -124,19 +124,35 @@ class EvalConfig:
         return default_max_steps(self.demo_length) if self.max_steps is None else self.max_steps
 
 
+#: Fields of :class:`EvalConfig` that choose the routes' style (``None``: the planner's, as before they existed).
+ROUTE_FIELDS = ("route_style", "route_lengths")
 #: Fields of :class:`EvalConfig` that choose how episodes are played, never which.
 HOW_FIELDS = ("store_root", "num_collectors")
 
 
+def config_dict(config: EvalConfig) -> dict:
+    """``config``'s fields as JSON writes them; the route fields only when a route style is set, so
+    the JSON of the planner's episodes is what it was before route styles existed.
+
+    Examples:
+        >>> "route_style" in config_dict(EvalConfig()), config_dict(EvalConfig(route_style="tour"))["route_lengths"]
+        (False, (30, 30))
+    """
+    return {key: value for key, value in dataclasses.asdict(config).items() if not (key in ROUTE_FIELDS and value is None)}
+
+
 def episode_identity(config: EvalConfig) -> dict:
     """The fields of ``config`` that fix its episodes and scores (all but :data:`HOW_FIELDS`):
-    the key of cached per-episode records.
+    the key of cached per-episode records. The route fields appear only when a route style is
+    set, so the key of the planner's episodes is what it was before route styles existed.
 
     Examples:
         >>> episode_identity(EvalConfig(store_root="a")) == episode_identity(EvalConfig())
         True
+        >>> "route_style" in episode_identity(EvalConfig()), episode_identity(EvalConfig(route_style="tour"))["route_style"]
+        (False, 'tour=1.0')
     """
-    return {key: value for key, value in dataclasses.asdict(config).items() if key not in HOW_FIELDS}
+    return {key: value for key, value in config_dict(config).items() if key not in HOW_FIELDS}
 
 
 def with_episode_sizes(config: EvalConfig, sizes) -> EvalConfig:
