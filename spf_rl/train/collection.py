@@ -37,8 +37,10 @@ from torchrl.modules.utils import get_primers_from_module
 
 from envs.checks import check_episode_source, check_positive_ints
 from envs.demo_store import DemoStore
+from envs.follow import default_max_steps
 from envs.house_grid import check_demo_length
 from envs.nav_env import PathFollowEnv
+from envs.route_styles import route_mixture_for
 from envs.transforms import DEFAULT_NOISE, ActuationNoise
 from spf_rl.device import DEFAULT_DEVICE, resolve_device
 
@@ -59,24 +61,40 @@ class CollectionEnvConfig:
         split: house split (``"train"``, ``"val"``, ``"test"``).
         noise: actuation-noise preset.
         num_houses: houses of the split (``None``: its default).
-        demo_length: demonstration length n.
-        max_steps: episode limit.
+        demo_length: demonstration length n (with ``route_lengths``: the longest, to which
+            shorter demonstrations are padded).
+        max_steps: episode limit, steps; ``None``: each demonstration's own, ``ceil(5/3 n)``.
         image_size: frame side, pixels.
         with_expert: emit the expert's action (``"expert_action"``) at every step.
+        route_style: the style of the episodes' routes (:mod:`envs.route_styles`); ``None``:
+            the planner's, as the paper samples them.
+        route_lengths: ``(shortest, longest)`` steps of routes with ``route_style`` (``None``: ``demo_length``).
     """
 
     split: str = "train"
     noise: str = DEFAULT_NOISE
     num_houses: int | None = None
     demo_length: int = 30
-    max_steps: int = 50
+    max_steps: int | None = 50
     image_size: int = 64
     with_expert: bool = True
+    route_style: str | None = None
+    route_lengths: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
         check_episode_source(self.split, self.num_houses, self.noise)
-        check_positive_ints(self, ("max_steps", "image_size"))
+        check_positive_ints(self, ("image_size",) if self.max_steps is None else ("max_steps", "image_size"))
         check_demo_length(self.demo_length)
+        if self.route_lengths is not None and not isinstance(self.route_lengths, str):
+            self.route_lengths = tuple(self.route_lengths)  # a list in YAML and JSON
+        mixture = route_mixture_for(self.route_style, self.route_lengths, self.demo_length)
+        if mixture is not None:  # one spelling, as the stores write it
+            self.route_style, self.route_lengths = mixture.spec, (mixture.min_length, mixture.max_length)
+
+    @property
+    def step_limit(self) -> int:
+        """The longest an episode may be, steps: ``max_steps``, or the rule's for ``demo_length``."""
+        return default_max_steps(self.demo_length) if self.max_steps is None else self.max_steps
 
 
 @dataclass
@@ -168,6 +186,8 @@ def _base_env(env_config: CollectionEnvConfig, num_agents: int | None, store: _S
         max_steps=env_config.max_steps,
         image_size=env_config.image_size,
         with_expert=env_config.with_expert,
+        route_style=env_config.route_style,
+        route_lengths=env_config.route_lengths,
         **(
             {}
             if store is None

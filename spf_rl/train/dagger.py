@@ -311,7 +311,7 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
         round_config = RoundConfig(
             round_index=round_index, seed=round_seed, beta=beta, num_episodes=config.episodes_per_round,
             demo_length=env.demo_length, max_steps=env.max_steps, image_size=env.image_size, split=env.split,
-            num_houses=env.num_houses, noise=env.noise,
+            num_houses=env.num_houses, noise=env.noise, route_style=env.route_style, route_lengths=env.route_lengths,
         )
         if (round_dir / "meta.json").exists():  # stored before an interruption (collection is deterministic): reuse it
             episodes = RoundStore.read(round_dir, round_config.collection()).episodes
@@ -382,7 +382,7 @@ def _collect_round(policy: TensorDictModuleBase, config: DAggerConfig, round_con
     try:
         with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
             return gather_episode_steps(
-                collector, 0, round_config.num_episodes, STEP_KEYS, env.max_steps,
+                collector, 0, round_config.num_episodes, STEP_KEYS, env.step_limit,
                 episode_keys=("demo_id", "episode_seed"), progress=config.progress,
             )
     finally:

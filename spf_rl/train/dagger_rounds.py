@@ -52,11 +52,14 @@ class RoundConfig:
         beta: the expert's probability in the round's behaviour policy.
         num_episodes: episodes stored.
         demo_length: demonstration length n.
-        max_steps: episode limit (steps are padded to it).
+        max_steps: episode limit (steps are padded to it); ``None``: each demonstration's own,
+            ``ceil(5/3 n)`` (steps padded to that of ``demo_length``).
         image_size: frame side, pixels.
         split: house split of the episodes.
         num_houses: houses of the split (``None``: its default).
         noise: actuation-noise preset.
+        route_style, route_lengths: the routes' style and lengths (:mod:`envs.route_styles`;
+            ``None``: the planner's routes of ``demo_length`` steps).
     """
 
     round_index: int
@@ -64,14 +67,20 @@ class RoundConfig:
     beta: float
     num_episodes: int
     demo_length: int
-    max_steps: int
+    max_steps: int | None
     image_size: int
     split: str = "train"
     num_houses: int | None = None
     noise: str = DEFAULT_NOISE
+    route_style: str | None = None
+    route_lengths: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
-        check_positive_ints(self, ("round_index", "num_episodes", "max_steps", "image_size"))
+        check_positive_ints(self, ("round_index", "num_episodes", "image_size"))
+        if self.max_steps is not None:
+            check_positive_ints(self, ("max_steps",))
+        if self.route_lengths is not None:  # a list when read back from meta.json
+            object.__setattr__(self, "route_lengths", tuple(self.route_lengths))
         check_demo_length(self.demo_length)
         check_episode_source(self.split, self.num_houses, self.noise)
         if not 0.0 <= self.beta <= 1.0:
@@ -132,7 +141,7 @@ class RoundStore(TensorStore):
     def empty(config: RoundConfig) -> TensorDict:
         sizes = DatasetConfig(
             num_episodes=config.num_episodes, demo_length=config.demo_length, max_steps=config.max_steps,
-            image_size=config.image_size,
+            image_size=config.image_size, route_style=config.route_style, route_lengths=config.route_lengths,
         )
         return EpisodeDataset.empty(sizes)
 
