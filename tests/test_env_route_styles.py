@@ -104,3 +104,32 @@ def test_a_dataset_and_an_evaluation_of_a_route_style(tmp_path):
     summary, records = evaluate_policy(OpenLoopPolicy(), config, progress=False)
     assert summary["episodes"] == 4 and all(0.0 < r["ndtw"] <= 1.0 for r in records)
     assert all(r["steps"] <= default_max_steps(16) for r in records)
+
+
+def test_dagger_rounds_of_a_route_style(tmp_path):
+    from spf_rl.checkpoint import save_checkpoint
+    from spf_rl.modules.config import SPFConfig
+    from spf_rl.modules.registry import build_policy
+    from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig
+    from spf_rl.train.dagger import DAggerConfig, train_dagger
+    from spf_rl.train.dagger_rounds import RoundStore
+    from spf_rl.train.evaluation import EvalConfig
+
+    torch.manual_seed(0)
+    config = SPFConfig(demo_length=12, sparsity_range=(0.2, 1.0), feature_dim=8, hidden_size=8, image_size=(16, 16))
+    save_checkpoint(tmp_path / "bc.pt", "spf_random", config, {"model": build_policy("spf_random", config).state_dict()})
+    routes = {"demo_length": 12, "max_steps": None, "image_size": 16, "num_houses": 1, "route_style": "driven", "route_lengths": (10, 12)}
+    evaluation = dict(num_episodes=2, num_agents=2, **routes)
+    results = train_dagger(DAggerConfig(
+        checkpoint=str(tmp_path / "bc.pt"), output_dir=str(tmp_path / "dagger"), device="cpu", rounds=1, episodes_per_round=4,
+        beta0=0.5, steps_per_round=None, window_rounds=None, aggregate_bc_data=False, logger="", progress=False,
+        env=CollectionEnvConfig(**routes), collector=CollectorConfig(num_agents=2),
+        val=EvalConfig(split="val", seed=1, **evaluation), test=EvalConfig(split="test", seed=2, **evaluation),
+    ))
+    assert [r["round"] for r in results["history"]] == [0, 1]
+    stored = RoundStore(tmp_path / "dagger" / "rounds" / "round-01")
+    assert stored.config.route_style == "driven=1.0" and stored.config.route_lengths == (10, 12)
+    rows = stored[torch.arange(4)]
+    steps = rows["demo_steps"].squeeze(-1)
+    assert ((steps >= 10) & (steps <= 12)).all()  # the round's routes, each with its own length
+    assert (rows["length"] <= torch.tensor([default_max_steps(int(n)) for n in steps])).all()
