@@ -88,17 +88,37 @@ def test_numbered_collection_refuses_resets_at_each_batch(tmp_path):
 def test_first_batch_is_a_function_of_the_seed_without_resets(num_collectors):
     """Collectors reset their envs when built, before the seed: the first batch must still be seeded."""
     forward = TensorDictModule(lambda p: torch.zeros(p.shape[0], dtype=torch.long), ["pixels"], ["action"])
+    config = CollectorConfig(num_agents=2, num_collectors=num_collectors)
 
-    def first_batch(seed: int):
-        config = CollectorConfig(num_agents=2, num_collectors=num_collectors)
-        collector = make_collector(forward, TINY_ENV, config, frames_per_batch=8 * num_collectors, seed=seed)
+    def build(seed: int):
+        return make_collector(forward, TINY_ENV, config, frames_per_batch=8 * num_collectors, seed=seed)
+
+    def first_batch(collector):
+        return next(iter(collector))["episode_seed"].flatten()
+
+    collector = build(3)
+    try:
+        batches = iter(collector)  # one iterator: a multi-process collector's second iter() restarts badly
+        built = next(batches)["episode_seed"].flatten()
+
+        def reseeded_batch(seed: int):
+            """The next batch of the collector seeded again and reset: a function of ``seed`` by construction."""
+            collector.set_seed(seed)
+            collector.reset()
+            return next(batches)["episode_seed"].flatten()
+
+        # the first batch of a newly built collector is the seeded one (an unseeded one would differ) ...
+        assert torch.equal(built, reseeded_batch(3))
+        # ... and another seed gives other episodes
+        assert not torch.equal(built, reseeded_batch(4))
+    finally:
+        collector.shutdown()
+    if num_collectors == 1:  # in this process, a second build is cheap: two builds of one seed agree
+        second = build(3)
         try:
-            return next(iter(collector))["episode_seed"].flatten()
+            assert torch.equal(built, first_batch(second))
         finally:
-            collector.shutdown()
-
-    assert torch.equal(first_batch(3), first_batch(3))
-    assert not torch.equal(first_batch(3), first_batch(4))
+            second.shutdown()
 
 
 def test_parallel_env_mode_matches_spec():
@@ -113,50 +133,44 @@ def test_parallel_env_mode_matches_spec():
 
 
 @pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason="ray is not installed (pip install '.[distributed]')")
-def test_ray_backend_collects_a_batch_on_a_local_cluster(tmp_path):
-    import ray
+def test_ray_backend_collects_a_batch_on_a_local_cluster(tmp_path, ray_cluster):
+    policy = tiny_policy().eval()
+    behaviour = ExpertMixturePolicy(policy, beta=0.0)
+    collector = make_collector(
+        behaviour,
+        TINY_ENV,
+        CollectorConfig(backend="ray", num_collectors=1, num_agents=2),
+        frames_per_batch=12,
+        total_frames=12,
+        seed=1,
+        reset_at_each_iter=True,
+    )
+    batches = [batch for batch in collector]  # not list(): RayCollector.__len__ fails in torchrl 0.14
+    collector.shutdown()
+    assert len(batches) == 1
+    batch = batches[0].reshape(-1, batches[0].shape[-1])
+    assert batch.batch_size == torch.Size([2, 6])
+    assert batch["is_init"][:, 0].all()
+    assert "spf_hidden" in batch.keys() and "expert_action" in batch.keys()
+    # beta=0: the actions are the remote learner's greedy actions; recomputing them here gives the same
+    with torch.no_grad():
+        local = policy(batch[:, :1].clone().squeeze(1))
+    assert torch.equal(local["logits"].argmax(-1), batch["action"][:, 0])
+    # the actuation noise reached the Ray actor's env: executed turns differ from the nominal ones
+    from envs.demos import nominal_motion
 
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
-    try:
-        policy = tiny_policy().eval()
-        behaviour = ExpertMixturePolicy(policy, beta=0.0)
-        collector = make_collector(
-            behaviour,
-            TINY_ENV,
-            CollectorConfig(backend="ray", num_collectors=1, num_agents=2),
-            frames_per_batch=12,
-            total_frames=12,
-            seed=1,
-            reset_at_each_iter=True,
-        )
-        batches = [batch for batch in collector]  # not list(): RayCollector.__len__ fails in torchrl 0.14
-        collector.shutdown()
-        assert len(batches) == 1
-        batch = batches[0].reshape(-1, batches[0].shape[-1])
-        assert batch.batch_size == torch.Size([2, 6])
-        assert batch["is_init"][:, 0].all()
-        assert "spf_hidden" in batch.keys() and "expert_action" in batch.keys()
-        # beta=0: the actions are the remote learner's greedy actions; recomputing them here gives the same
-        with torch.no_grad():
-            local = policy(batch[:, :1].clone().squeeze(1))
-        assert torch.equal(local["logits"].argmax(-1), batch["action"][:, 0])
-        # the actuation noise reached the Ray actor's env: executed turns differ from the nominal ones
-        from envs.demos import nominal_motion
-
-        turned = (batch["next", "pose"][..., 2] - batch["pose"][..., 2]).numpy()
-        nominal = nominal_motion(batch["action"].numpy())[..., 2]
-        deviation = np.abs(np.angle(np.exp(1j * (turned - nominal))))
-        assert TINY_ENV.noise == "paper" and (deviation > np.deg2rad(1.0)).mean() > 0.5
-        # numbered episodes of an episode store: two Ray actors play the same episodes as one local collector
-        store = episode_store(tmp_path / "store", count=5, seed=2)
-        behaviour = ExpertMixturePolicy(FramesFromStore(policy, store), beta=0.0)
-        local = play_store(behaviour, store, 5, 2, CollectorConfig(num_agents=2))
-        remote = play_store(behaviour, store, 5, 2, CollectorConfig(backend="ray", num_collectors=2, num_agents=2))
-        for key in ("pixels", "action", "mask"):
-            assert torch.equal(local["steps", key], remote["steps", key]), key
-        assert torch.equal(local["length"], remote["length"])
-    finally:
-        ray.shutdown()
+    turned = (batch["next", "pose"][..., 2] - batch["pose"][..., 2]).numpy()
+    nominal = nominal_motion(batch["action"].numpy())[..., 2]
+    deviation = np.abs(np.angle(np.exp(1j * (turned - nominal))))
+    assert TINY_ENV.noise == "paper" and (deviation > np.deg2rad(1.0)).mean() > 0.5
+    # numbered episodes of an episode store: two Ray actors play the same episodes as one local collector
+    store = episode_store(tmp_path / "store", count=5, seed=2)
+    behaviour = ExpertMixturePolicy(FramesFromStore(policy, store), beta=0.0)
+    local = play_store(behaviour, store, 5, 2, CollectorConfig(num_agents=2))
+    remote = play_store(behaviour, store, 5, 2, CollectorConfig(backend="ray", num_collectors=2, num_agents=2))
+    for key in ("pixels", "action", "mask"):
+        assert torch.equal(local["steps", key], remote["steps", key]), key
+    assert torch.equal(local["length"], remote["length"])
 
 
 def test_primer_of_a_wrapped_recurrent_policy_is_found():

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
 import pytest
 import torch
@@ -100,19 +101,63 @@ def tiny_config(tmp_path, checkpoint, **overrides) -> DAggerConfig:
     return DAggerConfig(**base)
 
 
-@pytest.fixture()
-def bc_checkpoint(tmp_path):
+def save_bc_checkpoint(directory) -> Path:
     torch.manual_seed(0)
     config = SPFConfig(demo_length=5, sparsity=0.4, feature_dim=8, hidden_size=8, image_size=(32, 32))
     policy = build_policy("spf", config)
-    path = tmp_path / "bc.pt"
+    path = directory / "bc.pt"
     save_checkpoint(path, "spf", config, {"model": policy.state_dict()})
     return path
 
 
-def test_rounds_aggregate_retrain_and_report(tmp_path, bc_checkpoint):
-    results = train_dagger(tiny_config(tmp_path, bc_checkpoint))
-    output = tmp_path / "dagger"
+@pytest.fixture()
+def bc_checkpoint(tmp_path):
+    return save_bc_checkpoint(tmp_path)
+
+
+# Runs shared by the module's tests (each run once per test process). They start from one
+# checkpoint file (a run's config names it: a resumed copy must start from the same file).
+# Tests read them, never change them: a test that changes a run works on its own copy (copy_run).
+@pytest.fixture(scope="module")
+def shared_checkpoint(tmp_path_factory) -> Path:
+    return save_bc_checkpoint(tmp_path_factory.mktemp("bc"))
+
+
+@pytest.fixture(scope="module")
+def two_rounds(tmp_path_factory, shared_checkpoint) -> tuple[Path, dict]:
+    """``tiny_config``'s run (2 rounds): its directory (of ``dagger/``) and results."""
+    root = tmp_path_factory.mktemp("two_rounds")
+    return root, train_dagger(tiny_config(root, shared_checkpoint))
+
+
+@pytest.fixture(scope="module")
+def one_round(tmp_path_factory, shared_checkpoint) -> Path:
+    """The directory (of ``dagger/``) of ``tiny_config``'s run stopped after round 1."""
+    root = tmp_path_factory.mktemp("one_round")
+    train_dagger(tiny_config(root, shared_checkpoint, rounds=1))
+    return root
+
+
+@pytest.fixture(scope="module")
+def three_learner_driven_rounds(tmp_path_factory, shared_checkpoint) -> tuple[DAggerConfig, dict]:
+    """Learner-driven rounds (beta 0) of 3 gradient steps on a window of 2 rounds, tested
+    only at round 0 and after the last round: the config and results."""
+    config = tiny_config(
+        tmp_path_factory.mktemp("three_rounds"), shared_checkpoint, rounds=3, beta0=0.0, steps_per_round=3,
+        window_rounds=2, test_every_round=False,
+    )
+    config.optim.batch_size = 2
+    return config, train_dagger(config)
+
+
+def copy_run(run: Path, to: Path) -> None:
+    """A private copy of a shared run's ``dagger/`` directory under ``to``."""
+    shutil.copytree(run / "dagger", to / "dagger")
+
+
+def test_rounds_aggregate_retrain_and_report(two_rounds, shared_checkpoint):
+    run, results = two_rounds
+    output = run / "dagger"
     history = results["history"]
     assert [r["round"] for r in history] == [0, 1, 2]
     assert [r["beta"] for r in history] == [None, 0.5, 0.25]
@@ -138,7 +183,7 @@ def test_rounds_aggregate_retrain_and_report(tmp_path, bc_checkpoint):
     labels = episodes["steps", "expert_action"][episodes["steps", "mask"]]
     assert labels.numel() > 0 and labels.min() >= 0 and labels.max() <= 2
     # the learner changed, and its checkpoints load weights-only into the start's model type
-    start = load_checkpoint(bc_checkpoint)["model"]
+    start = load_checkpoint(shared_checkpoint)["model"]
     last = load_checkpoint(output / "last.pt", expected_model_type="spf")
     assert last["round"] == 2
     assert any(not torch.equal(start[k], last["model"][k]) for k in start)
@@ -174,26 +219,26 @@ def test_a_round_is_the_same_whatever_the_collector_layout(tmp_path, bc_checkpoi
         assert all(torch.equal(first[key], other[key]) for key in first.keys(True, True)), name
 
 
-def test_interrupted_run_resumes_to_the_same_result(tmp_path, bc_checkpoint):
-    straight = train_dagger(tiny_config(tmp_path / "a", bc_checkpoint))
-    train_dagger(tiny_config(tmp_path / "b", bc_checkpoint, rounds=1))  # "interrupted" after round 1
+def test_interrupted_run_resumes_to_the_same_result(tmp_path, two_rounds, one_round, shared_checkpoint):
+    straight_run, straight = two_rounds
+    copy_run(one_round, tmp_path / "b")  # "interrupted" after round 1
     round_one = (tmp_path / "b" / "dagger" / "rounds" / "round-01").stat().st_mtime_ns
     # an interruption after round 2's episodes were stored but before last.pt: they are reused
     for name in ("round-02-demos", "round-02"):
-        shutil.copytree(tmp_path / "a" / "dagger" / "rounds" / name, tmp_path / "b" / "dagger" / "rounds" / name)
-    resumed = train_dagger(tiny_config(tmp_path / "b", bc_checkpoint))
+        shutil.copytree(straight_run / "dagger" / "rounds" / name, tmp_path / "b" / "dagger" / "rounds" / name)
+    resumed = train_dagger(tiny_config(tmp_path / "b", shared_checkpoint))
     assert (tmp_path / "b" / "dagger" / "rounds" / "round-01").stat().st_mtime_ns == round_one  # not re-collected
     assert [r["round"] for r in resumed["history"]] == [0, 1, 2]
-    a = load_checkpoint(tmp_path / "a" / "dagger" / "last.pt")["model"]
+    a = load_checkpoint(straight_run / "dagger" / "last.pt")["model"]
     b = load_checkpoint(tmp_path / "b" / "dagger" / "last.pt")["model"]
     assert all(torch.equal(a[k], b[k]) for k in a)
     assert straight["history"][2]["val_success"] == resumed["history"][2]["val_success"]
 
 
-def test_a_stored_round_of_another_run_or_corrupt_is_refused(tmp_path, bc_checkpoint):
+def test_a_stored_round_of_another_run_or_corrupt_is_refused(tmp_path, one_round, shared_checkpoint):
     """Resuming never trains on a round collected by another config, or on damaged bytes."""
-    train_dagger(tiny_config(tmp_path / "a", bc_checkpoint, rounds=1))
-    other = tiny_config(tmp_path / "b", bc_checkpoint, rounds=1, seed=1)
+    copy_run(one_round, tmp_path / "a")
+    other = tiny_config(tmp_path / "b", shared_checkpoint, rounds=1, seed=1)
     (tmp_path / "b" / "dagger" / "rounds").mkdir(parents=True)
     shutil.copytree(tmp_path / "a" / "dagger" / "rounds" / "round-01", tmp_path / "b" / "dagger" / "rounds" / "round-01")
     with pytest.raises(RoundError, match="belongs to another run"):
@@ -205,16 +250,16 @@ def test_a_stored_round_of_another_run_or_corrupt_is_refused(tmp_path, bc_checkp
     damaged[0] ^= 0xFF
     pixels.write_bytes(bytes(damaged))
     with pytest.raises(RoundError, match="checksum mismatch"):
-        train_dagger(tiny_config(tmp_path / "a", bc_checkpoint, rounds=1))
+        train_dagger(tiny_config(tmp_path / "a", shared_checkpoint, rounds=1))
 
 
-def test_a_round_of_an_older_layout_or_without_its_demonstrations_is_refused(tmp_path, bc_checkpoint):
-    train_dagger(tiny_config(tmp_path, bc_checkpoint, rounds=1))
+def test_a_round_of_an_older_layout_or_without_its_demonstrations_is_refused(tmp_path, one_round, shared_checkpoint):
+    copy_run(one_round, tmp_path)
     round_dir = tmp_path / "dagger" / "rounds" / "round-01"
     (tmp_path / "dagger" / "last.pt").unlink()  # as if interrupted after storing round 1
     shutil.rmtree(round_dir.with_name("round-01-demos"))
     with pytest.raises(RoundError, match="round-01-demos are missing"):
-        train_dagger(tiny_config(tmp_path, bc_checkpoint, rounds=1))
+        train_dagger(tiny_config(tmp_path, shared_checkpoint, rounds=1))
     meta = json.loads((round_dir / "meta.json").read_text())
     meta["format_version"] = 1
     (round_dir / "meta.json").write_text(json.dumps(meta))
@@ -259,10 +304,8 @@ def test_recipe_configs_load_and_refuse_unknown_keys():
         load_config(DAggerConfig, "dagger", ["no_such_key=1"])
 
 
-def test_learner_driven_rounds_train_fixed_steps_on_a_sliding_window(tmp_path, bc_checkpoint):
-    config = tiny_config(tmp_path, bc_checkpoint, rounds=3, beta0=0.0, steps_per_round=3, window_rounds=2)
-    config.optim.batch_size = 2
-    history = train_dagger(config)["history"]
+def test_learner_driven_rounds_train_fixed_steps_on_a_sliding_window(three_learner_driven_rounds):
+    history = three_learner_driven_rounds[1]["history"]
     assert [r["beta"] for r in history] == [None, 0.0, 0.0, 0.0]
     assert [r.get("gradient_steps") for r in history] == [None, 3, 3, 3]
     assert [r["training_episodes"] for r in history] == [0, 4, 8, 8]  # round 3 trains on rounds 2 and 3
@@ -281,14 +324,13 @@ def test_resuming_without_the_round_data_names_what_is_missing(tmp_path):
     assert len(training_sources(None, tmp_path, round_index=1, window=4)) == 1
 
 
-def test_the_best_round_is_tested_from_best_pt(tmp_path, bc_checkpoint):
+def test_the_best_round_is_tested_from_best_pt(three_learner_driven_rounds):
     """Without a test after every round, the run still tests the checkpoint it ships (best.pt)."""
     from spf_rl.train.evaluation import evaluate_policy
 
-    config = tiny_config(tmp_path, bc_checkpoint, rounds=3, test_every_round=False)
-    results = train_dagger(config)
+    config, results = three_learner_driven_rounds
     assert [("test_success" in r) for r in results["history"]] == [True, False, False, True]
-    best = load_checkpoint(tmp_path / "dagger" / "best.pt", expected_model_type="spf")
+    best = load_checkpoint(Path(config.output_dir) / "best.pt", expected_model_type="spf")
     assert best["round"] == results["best"]["round"]
     policy = build_policy("spf", best["model_config"])
     policy.load_state_dict(best["model"])

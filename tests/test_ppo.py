@@ -281,18 +281,12 @@ def test_bad_values_through_the_recipe_config(tmp_path, checkpoint):
 
 
 @pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason="ray is not installed (pip install '.[distributed]')")
-def test_ray_collector_acts_with_the_updated_weights(tmp_path, checkpoint):
-    import ray
-
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
-    try:
-        config = tiny_config(
-            tmp_path, checkpoint, iterations=2, critic_warmup_iters=0, lr=3e-3, val_every=10, logger="",
-            collector=CollectorConfig(backend="ray", num_collectors=1, num_agents=AGENTS),
-        )
-        history = train_ppo(config)["history"]
-    finally:
-        ray.shutdown()
+def test_ray_collector_acts_with_the_updated_weights(tmp_path, checkpoint, ray_cluster):
+    config = tiny_config(
+        tmp_path, checkpoint, iterations=2, critic_warmup_iters=0, lr=3e-3, val_every=10, logger="",
+        collector=CollectorConfig(backend="ray", num_collectors=1, num_agents=AGENTS),
+    )
+    history = train_ppo(config)["history"]
     # iteration 1 moved the policy away from the weights that collected its batch ...
     assert history[0]["max_abs_log_ratio"] > 1e-3
     # ... and the remote collector collected iteration 2's batch with the new weights

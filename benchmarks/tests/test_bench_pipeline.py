@@ -176,7 +176,7 @@ def test_smoke_every_measure_runs_against_the_working_tree(tmp_path):
         bench_pipeline.Sizes(),
         dataset_episodes=4, dagger_episodes=2, num_agents=2, eval_episodes=2, eval_agents=2,
         bc_steps=1, bc_warmup_steps=0, collection_batches=1, raw_chunks=1, raw_chunk_frames=20,
-        num_houses=1, demo_length=5, max_steps=6, image_size=32, workers=1,
+        num_houses=1, demo_length=5, max_steps=6, image_size=32, workers=1, store_demos=4,
     )
     argv = bench_pipeline._worker_argv(bench_pipeline.MEASURES, sizes, tmp_path / "new", threads=1)
     output = bench_baseline.run_json_child(argv, ROOT, timeout=300)
