@@ -6,7 +6,7 @@ whose ``PYTHONPATH`` is the tree (:func:`run_json_child`), the baseline from a
 ``git worktree`` of its commit (:func:`baseline_worktree`). Figures are taken over
 repeats interleaved between the trees (:func:`interleaved_runs`: old, new, old,
 new, ...), so drifts in the machine's speed hit both. Used by
-``benchmarks/bench_policy.py`` and ``benchmarks/bench_pipeline.py``.
+``benchmarks/bench_pipeline.py`` (the training baseline).
 """
 from __future__ import annotations
 

@@ -24,6 +24,7 @@ import torch
 from envs.demo_store import DemoStore, DemoStoreConfig
 from envs.demos import apply_motion, nominal_motion
 from envs.factory import make_path_follow_env
+from envs.house_mesh import house_model
 from envs.render import FirstPersonRenderer
 from envs.scenes import build_house
 
@@ -88,13 +89,7 @@ def make_bench_env(**kwargs: Any):
 
 def compile_house_model(seed: int) -> None:
     """Compile a house's MuJoCo model now (it is cached with the house), outside any timed loop."""
-    house = build_house(seed)
-    try:
-        from envs.house_mesh import house_model
-    except ImportError:  # bench_pipeline's baseline tree, where the layout compiled its own model
-        house.model  # noqa: B018  (the property compiles it)
-        return
-    house_model(house)
+    house_model(build_house(seed))
 
 
 def make_bench_env_without_demo_frames(**kwargs: Any):

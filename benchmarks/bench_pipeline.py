@@ -1,53 +1,36 @@
-"""Benchmark: the learning pipelines' old and new paths side by side, in one invocation (issue #10 point 5).
+"""Benchmark: the learning pipelines against this machine's limits, in one invocation.
 
-*Old* is the commit before issue #10's first change (:data:`BASELINE_COMMIT`,
-``--baseline``), run from a ``git worktree`` of it (``--baseline-dir``, reused when
-it is already there at that commit); *new* is the working tree. Both trees share
-module names (``envs``, ``spf_rl``), so each runs in its own child process with
-``PYTHONPATH`` pointing at it (``benchmarks/bench_pipeline_worker.py``, the same
-script for both, calling only what both trees have), with the same worker counts
-and episode counts (:class:`Sizes`). Measures:
+Each pipeline figure is a ratio to a reference measured in the same run, so it
+carries from one machine of a kind to another:
 
-* ``dataset_generation`` (episodes/s): ``EpisodeDataset.build`` of a BC dataset into a
-  fresh directory, ``--workers`` processes;
-* ``dagger_collection`` (episodes/s): one DAgger round's collection with the learner
-  driving (``spf_rl.train.dagger._collect_round``, ``beta = 0``);
-* ``evaluation`` (episodes/s): ``evaluate_policy`` of the learner;
-* ``evaluation_repeat`` (episodes/s): a second evaluation of the same episodes, as
-  every validation of a training run after the first (the new tree reads the episode
-  store the first one kept under ``store_root``);
-* ``bc_training`` (labelled steps/s): expert-labelled (``mask``-ed) steps through
-  ``bc_loss`` + backward + Adam step per second, at each tree's default batch size;
-* ``collection`` (frames/s): the learner in ``make_collector`` with the expert's
-  labels and ``paper`` noise (from a demo store with policy-side look-up where the tree
-  has one, else the default env), and the raw render loop (``bench_env_paths.bench_raw``)
-  in the same process, as the reference of the ratio.
+* **collection** (``ratios_to_raw``): frames rendered per second by BC dataset
+  generation, one DAgger round's collection (the learner driving) and evaluation,
+  each divided by the frames per second of the raw render loop of one process
+  (pose update, render, uint8 tensor; ``bench_env_paths.bench_raw``);
+* **training**: the achieved FLOP/s of the BC training step (the FLOPs of the timed
+  steps counted from the model, forward and backward), divided by the FLOP/s of a dense
+  fp32 matmul of size 2048 at the training's thread count (``fraction_of_matmul``).
 
-The learner is each tree's default SPF model with random weights. Each figure is
-the median of ``--repeats`` (at least 3) repeats interleaved between the trees
-(old, new, old, new, ...). Speed-ups are new/old.
-
-Targets of the issue (ratios measured in one run on 2 cores), recorded in the
-JSON's ``targets`` with whether each holds:
-
-* dataset generation >= 4x old; evaluation >= 4x old; BC training >= 1.5x old;
-* collection as the pipelines run it >= 1.0x the raw render loop (the new tree's).
+``baseline`` is the training speed of :data:`BASELINE_COMMIT` (``--baseline``: main
+when issue #30 was filed), run from a ``git worktree`` of it in the same invocation,
+for the training speed-up (``training_speedup``: labelled steps/s new / baseline).
+Every figure is the median of ``--repeats`` (at least 3) repeats, interleaved
+(baseline training, then the working tree's measures, then again). Each repeat runs
+in fresh child processes (``benchmarks/bench_pipeline_worker.py``): the baseline's
+training; the working tree's raw loop and collection pipelines; its matmul and training.
 
 Writes ``benchmarks/results/pipeline.json`` (or ``--output``), atomically::
 
-    {"baseline_commit": sha, "quick": bool, "raw_fps": x,
-     "measures": {name: {"old": x, "new": x, "unit": "...", ...}},
-     "speedups": {"dataset_generation": x, "dagger_collection": x, "evaluation": x, "bc_training": x},
-     "store_lookup_ratio_to_raw": x, "targets": {...}, "setup": {...}, "machine": {...}, "runs": {...}}
+    {"raw_fps": x, "matmul_flops": x, "workers": n, "quick": bool,
+     "ratios_to_raw": {"dataset_generation": x, "dagger_collection": x, "evaluation": x},
+     "training": {"labelled_steps_per_s": x, "flops_per_s": x, "fraction_of_matmul": x},
+     "baseline": {"commit": sha, "labelled_steps_per_s": x},
+     "training_speedup": x, "targets": {...}, "measures": {...}, "setup": {...}, "runs": {...}}
 
 Usage::
 
-    python benchmarks/bench_pipeline.py                    # sized for well under an hour on 2 cores
-    python benchmarks/bench_pipeline.py --quick            # sized for at most 10 minutes on 2 idle cores
-
-(Both sizes are estimates from single measures timed on a loaded machine; neither run
-has been timed on idle cores yet.)
-    python benchmarks/bench_pipeline.py --only evaluation,bc_training --repeats 5
+    python benchmarks/bench_pipeline.py            # the default sizes
+    python benchmarks/bench_pipeline.py --quick    # at most 10 minutes on 2 idle cores
 """
 from __future__ import annotations
 
@@ -63,76 +46,74 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Sequence
 
-# this checkout's recipes; never its packages here: the workers import this module, and each
-# must import ``envs`` and ``spf_rl`` from its own tree (its ``PYTHONPATH``)
-from bench_baseline import SIDES, baseline_worktree, interleaved_runs, resolve_commit, run_json_child
+from bench_baseline import baseline_worktree, resolve_commit, run_json_child
 
 ROOT = Path(__file__).resolve().parents[1]
-#: The commit before issue #10's first change: the "old" paths.
-BASELINE_COMMIT = "5b5e344"
+#: main when issue #30 (collection and training speed) was filed: the training baseline.
+BASELINE_COMMIT = "a5a7302"
 RESULTS = ROOT / "benchmarks" / "results" / "pipeline.json"
-#: Where the baseline's worktree is made (and reused by later runs).
+#: Where the baseline's worktree is made (and reused by later runs; ignored by git).
 BASELINE_DIR = ROOT / "runs" / "bench_pipeline" / "baseline"
 WORKER = Path(__file__).resolve().parent / "bench_pipeline_worker.py"
-#: Repeats per tree: each figure is the median of at least this many.
+#: Repeats: each figure is the median of at least this many.
 MIN_REPEATS = 3
-#: Seconds one worker run may take before the benchmark gives up.
+#: Seconds one child may take before the benchmark gives up.
 WORKER_TIMEOUT_S = 3600
 
 logger = logging.getLogger("bench_pipeline")
 
-#: Each measure and the unit of its figure.
+#: Each measure and the unit of its figure, in the order a repeat runs them.
 UNITS = {
-    "dataset_generation": "episodes/s",
-    "dagger_collection": "episodes/s",
-    "evaluation": "episodes/s",
-    "evaluation_repeat": "episodes/s",
-    "bc_training": "labelled steps/s",
-    "collection": "frames/s",
+    "raw": "frames/s",
+    "matmul": "FLOP/s",
+    "dataset_generation": "frames/s",
+    "dagger_collection": "frames/s",
+    "evaluation": "frames/s",
+    "training": "labelled steps/s",
 }
 MEASURES = tuple(UNITS)
-#: The measures whose new/old ratio goes to ``speedups``.
-SPEEDUPS = ("dataset_generation", "dagger_collection", "evaluation", "evaluation_repeat", "bc_training")
-#: The issue's targets: (minimum, what is compared).
+#: The collection pipelines, each reported as a ratio to the raw loop.
+COLLECTION = ("dataset_generation", "dagger_collection", "evaluation")
+#: What each child process of the working tree measures: the raw loop with the collection
+#: pipelines, and the matmul with the training (at the same thread count; the baseline's
+#: child runs ``training`` alone, so each tree's training runs in a fresh process).
+CHILDREN = (("raw", *COLLECTION), ("matmul", "training"))
+#: The issue's targets: figure -> minimum.
 TARGETS = {
-    "dataset_generation": (4.0, "speed-up new/old"),
-    "evaluation": (4.0, "speed-up new/old"),
-    "bc_training": (1.5, "speed-up new/old"),
-    "collection": (1.0, "new collection frames/s over the raw render loop's (store_lookup_ratio_to_raw)"),
+    "dataset_generation": 0.8,
+    "dagger_collection": 0.6,
+    "evaluation": 0.6,
+    "training_speedup": 1.3,
+    "fraction_of_matmul": 0.5,
 }
 
 
 @dataclass(frozen=True)
 class Sizes:
-    """What every measure plays, the same for both trees.
+    """What every measure plays.
 
     Args:
-        dataset_episodes: episodes of the BC dataset built (``dataset_generation``,
-            and the dataset ``bc_training`` samples from).
+        dataset_episodes: episodes of the BC dataset built (``dataset_generation``; the dataset
+            ``training`` samples from is built once per tree, untimed, at this size).
         dagger_episodes: episodes of the DAgger round collected.
         eval_episodes: episodes evaluated.
-        bc_steps: timed gradient steps (after ``bc_warmup_steps``).
-        bc_warmup_steps: gradient steps before timing.
-        collection_batches: timed collector batches (after one warm-up batch).
+        train_steps: timed gradient steps (after ``train_warmup_steps``).
+        train_warmup_steps: gradient steps before timing.
         raw_chunks, raw_chunk_frames: the raw render loop's timed chunks (median kept).
-        workers: worker processes of dataset generation (and of evaluation, in a tree whose
-            ``EvalConfig`` has ``num_workers`` or ``num_collectors``).
-        collectors: collectors of DAgger and of collection (``CollectorConfig``'s default;
-            more than one fails in DAgger rounds of more than one batch, in both trees).
-        num_agents: agents per collector (``CollectorConfig``'s default).
+        workers: worker processes of dataset generation and collectors of evaluation.
+        collectors: collectors of the DAgger round (``CollectorConfig``'s default).
+        num_agents: agents per DAgger collector (``CollectorConfig``'s default).
         eval_agents: agents stepped together by the evaluation (``EvalConfig``'s default).
         num_houses: houses of each split.
-        demo_length, max_steps, image_size: the episodes' sizes.
-        store_demos: demonstrations of the demo store, where a tree collects from one.
+        demo_length, max_steps, image_size: the episodes' sizes (the defaults').
         seed: seed of weights, episodes and batches.
     """
 
     dataset_episodes: int = 512
     dagger_episodes: int = 256
     eval_episodes: int = 500
-    bc_steps: int = 30
-    bc_warmup_steps: int = 2
-    collection_batches: int = 10
+    train_steps: int = 40
+    train_warmup_steps: int = 3
     raw_chunks: int = 5
     raw_chunk_frames: int = 2000
     workers: int = 2
@@ -143,41 +124,32 @@ class Sizes:
     demo_length: int = 30
     max_steps: int = 50
     image_size: int = 64
-    store_demos: int = 1000
     seed: int = 0
 
 
-#: ``--quick``: sized for at most 10 minutes on 2 idle cores with 3 repeats of both trees (an
-#: estimate from runs of single measures on a loaded machine, not yet timed on idle cores).
+#: ``--quick``: at most 10 minutes on 2 idle cores with 3 repeats.
 QUICK_SIZES = Sizes(
-    dataset_episodes=128, dagger_episodes=64, eval_episodes=100, bc_steps=8, bc_warmup_steps=1,
-    collection_batches=4, raw_chunks=3, raw_chunk_frames=800, store_demos=200,
+    dataset_episodes=128, dagger_episodes=64, eval_episodes=100, train_steps=12, train_warmup_steps=2,
+    raw_chunks=3, raw_chunk_frames=800,
 )
 
 
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
-    """The options, checked before any work: the baseline resolved to its SHA (``args.baseline_sha``),
-    ``args.measures`` the measures to run and ``args.sizes`` their :class:`Sizes`."""
+    """The options, checked before any work: the baseline resolved to its SHA (``args.baseline_sha``)
+    and ``args.sizes`` the :class:`Sizes`."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--baseline", default=BASELINE_COMMIT, help="the old paths' commit (default: %(default)s)")
+    parser.add_argument("--baseline", default=BASELINE_COMMIT, help="the training baseline's commit (default: %(default)s)")
     parser.add_argument("--baseline-dir", type=Path, default=BASELINE_DIR, help="its worktree, reused if already there")
     parser.add_argument("--quick", action="store_true", help="smaller sizes (at most 10 minutes on 2 idle cores)")
-    parser.add_argument("--repeats", type=int, default=MIN_REPEATS, help=f"interleaved repeats per tree (>= {MIN_REPEATS})")
-    parser.add_argument("--only", default=None, help=f"comma-separated measures (default: all of {', '.join(MEASURES)})")
-    parser.add_argument("--workers", type=int, default=None, help="worker processes / collectors (default: 2)")
-    parser.add_argument("--threads", type=int, default=None, help="torch threads in each worker (default: torch's)")
+    parser.add_argument("--repeats", type=int, default=MIN_REPEATS, help=f"interleaved repeats (>= {MIN_REPEATS})")
+    parser.add_argument("--workers", type=int, default=None, help="dataset workers and evaluation collectors (default: 2)")
     parser.add_argument("--output", type=Path, default=RESULTS)
     parser.add_argument("--scratch", type=Path, default=None, help="datasets and stores (default: a temporary directory)")
     args = parser.parse_args(argv)
     if args.repeats < MIN_REPEATS:
         parser.error(f"--repeats must be >= {MIN_REPEATS} (each figure is a median of interleaved repeats), got {args.repeats}")
-    args.measures = list(MEASURES) if args.only is None else [name.strip() for name in args.only.split(",") if name.strip()]
-    unknown = [name for name in args.measures if name not in MEASURES]
-    if unknown or not args.measures:
-        parser.error(f"--only: unknown measure(s) {unknown or [args.only]}; choose from {', '.join(MEASURES)}")
-    for name in ("workers", "threads"):
-        if getattr(args, name) is not None and getattr(args, name) < 1:
-            parser.error(f"--{name} must be >= 1, got {getattr(args, name)}")
+    if args.workers is not None and args.workers < 1:
+        parser.error(f"--workers must be >= 1, got {args.workers}")
     try:
         args.baseline_sha = resolve_commit(args.baseline, ROOT)
     except ValueError as err:
@@ -187,92 +159,75 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     return args
 
 
-def _median(values: list[float | None]) -> float | None:
-    present = [value for value in values if value is not None]
-    return float(statistics.median(present)) if present else None
+def _median(values: list[float]) -> float | None:
+    return float(statistics.median(values)) if values else None
 
 
 def _ratio(numerator: float | None, denominator: float | None) -> float | None:
     return numerator / denominator if numerator is not None and denominator else None
 
 
-def evaluate_targets(speedups: dict[str, float | None], ratio_to_raw: float | None) -> dict:
-    """Each target of the issue: its minimum, the measured figure (``None``: not measured) and whether it holds."""
-    measured = {**speedups, "collection": ratio_to_raw}
-    return {
-        name: {
-            "target": minimum,
-            "of": what,
-            "measured": measured.get(name),
-            "holds": None if measured.get(name) is None else measured[name] >= minimum,
-        }
-        for name, (minimum, what) in TARGETS.items()
-    }
+def summarise(new: list[dict], baseline: list[dict]) -> dict:
+    """Medians over repeats, the ratios and the targets, from the children's outputs (one per repeat).
 
+    Each ratio is taken within a repeat (the pipeline and its reference measured minutes apart),
+    and the median of those is reported; ``measures`` holds every repeat's figures.
+    """
 
-def summarise(runs: dict[str, list[dict]], measures: Sequence[str]) -> dict:
-    """Medians over repeats, speed-ups, the raw loop, the ratio to it and the targets, from the workers' outputs
-    (``runs[side]``: one output per repeat, in order)."""
-    table = {}
-    for name in measures:
-        repeats = {side: [run["measures"][name]["value"] for run in runs[side]] for side in SIDES}
-        old, new = _median(repeats["old"]), _median(repeats["new"])
-        table[name] = {
-            "old": old,
-            "new": new,
-            "unit": UNITS[name],
-            "new_over_old": _ratio(new, old),
-            "old_repeats": repeats["old"],
-            "new_repeats": repeats["new"],
-        }
-    speedups = {name: table[name]["new_over_old"] if name in table else None for name in SPEEDUPS}
-    raw = {
-        side: [run["measures"]["collection"]["raw_fps"] for run in runs[side]] if "collection" in table else []
-        for side in SIDES
-    }
-    raw_fps = _median(raw["new"])
-    ratio = _ratio(table["collection"]["new"], raw_fps) if "collection" in table else None
+    def values(runs: list[dict], name: str, key: str = "value") -> list[float]:
+        return [run["measures"][name][key] for run in runs]
+
+    raw, matmul = values(new, "raw"), values(new, "matmul")
+    ratios = {name: _median([v / r for v, r in zip(values(new, name), raw)]) for name in COLLECTION}
+    flops = values(new, "training", "flops_per_s")
+    labelled, base = _median(values(new, "training")), _median(values(baseline, "training"))
+    speedup = _median([v / b for v, b in zip(values(new, "training"), values(baseline, "training"))])
+    fraction = _median([f / m for f, m in zip(flops, matmul)])
+    measured = {**ratios, "training_speedup": speedup, "fraction_of_matmul": fraction}
     return {
-        "raw_fps": raw_fps,
-        "measures": table,
-        "speedups": speedups,
-        "store_lookup_ratio_to_raw": ratio,
-        "targets": evaluate_targets(speedups, ratio),
-        "raw_loop": {
-            "what": "benchmarks/bench_env_paths.py bench_raw (working tree's code) run in each tree's collection worker; "
-            "raw_fps and the ratio use the new tree's",
-            "old_tree_fps": _median(raw["old"]),
-            "old_repeats": raw["old"],
-            "new_repeats": raw["new"],
-            "old_collection_ratio_to_its_raw": _ratio(table["collection"]["old"], _median(raw["old"])) if raw["old"] else None,
+        "raw_fps": _median(raw),
+        "matmul_flops": _median(matmul),
+        "ratios_to_raw": ratios,
+        "training": {"labelled_steps_per_s": labelled, "flops_per_s": _median(flops), "fraction_of_matmul": fraction},
+        "training_speedup": speedup,
+        "targets": {
+            name: {"target": minimum, "measured": measured[name], "holds": measured[name] >= minimum}
+            for name, minimum in TARGETS.items()
         },
-        "collection_path": {side: runs[side][0]["branches"].get("collection") for side in SIDES} if raw["new"] else None,
+        "measures": {
+            name: {"unit": UNITS[name], "median": _median(values(new, name)), "repeats": values(new, name)}
+            for name in MEASURES
+        },
+        "baseline_training_repeats": values(baseline, "training"),
+        "baseline_labelled_steps_per_s": base,
     }
 
 
-def _worker_argv(measures: Sequence[str], sizes: Sizes, scratch: Path, threads: int | None) -> list[str]:
+def _child(measures: Sequence[str], sizes: Sizes, scratch: Path, tree: Path) -> dict:
     argv = [str(WORKER), "--measures", ",".join(measures), "--sizes", json.dumps(asdict(sizes)), "--scratch", str(scratch)]
-    return argv + (["--threads", str(threads)] if threads is not None else [])
+    start = time.perf_counter()
+    output = run_json_child(argv, tree, timeout=WORKER_TIMEOUT_S, after=[WORKER.parent])
+    imported = Path(output["spf_rl_file"]).resolve()
+    if not imported.is_relative_to(tree.resolve()):
+        raise RuntimeError(f"a child imported spf_rl from {imported}, not from its tree {tree}.")
+    figures = ", ".join(f"{name} {m['value']:.4g} {m['unit']}" for name, m in output["measures"].items())
+    logger.info("%s (%.0f s): %s", tree, time.perf_counter() - start, figures)
+    return {**output, "wall_seconds": time.perf_counter() - start}
 
 
-def run_benchmark(args: argparse.Namespace, trees: dict[str, Path], scratch: Path) -> dict[str, list[dict]]:
-    """Every repeat of every tree's worker, interleaved; the workers' outputs by side."""
-
-    def run(side: str, repeat: int) -> dict:
-        start = time.perf_counter()
-        output = run_json_child(
-            _worker_argv(args.measures, args.sizes, scratch / side, args.threads), trees[side], timeout=WORKER_TIMEOUT_S
-        )
-        if "spf_rl_file" not in output:
-            raise RuntimeError(f"the {side} worker did not report where it imported spf_rl from.")
-        imported = Path(output["spf_rl_file"]).resolve()
-        if not imported.is_relative_to(Path(trees[side]).resolve()):
-            raise RuntimeError(f"the {side} worker imported spf_rl from {imported}, not from its tree {trees[side]}.")
-        figures = ", ".join(f"{name} {m['value']:.1f} {m['unit']}" for name, m in output["measures"].items())
-        logger.info("repeat %d/%d %s (%.0f s): %s", repeat + 1, args.repeats, side, time.perf_counter() - start, figures)
-        return {**output, "wall_seconds": time.perf_counter() - start}
-
-    return interleaved_runs(run, args.repeats)
+def run_benchmark(args: argparse.Namespace, baseline_tree: Path, scratch: Path) -> tuple[list[dict], list[dict]]:
+    """Every repeat, interleaved: the baseline's training, then the working tree's children
+    (:data:`CHILDREN`); the working tree's outputs are merged into one per repeat."""
+    new, baseline = [], []
+    for repeat in range(args.repeats):
+        logger.info("repeat %d/%d", repeat + 1, args.repeats)
+        baseline.append(_child(["training"], args.sizes, scratch / "baseline", baseline_tree))
+        outputs = [_child(names, args.sizes, scratch / "new", ROOT) for names in CHILDREN]
+        merged = {**outputs[-1], "measures": {}, "wall_seconds": sum(output["wall_seconds"] for output in outputs)}
+        for output in outputs:
+            merged["measures"].update(output["measures"])
+        new.append(merged)
+    return new, baseline
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
@@ -287,33 +242,36 @@ def main(argv: Sequence[str] | None = None) -> dict:
     with baseline_worktree(ROOT, args.baseline_sha, args.baseline_dir) as worktree, tempfile.TemporaryDirectory(
         prefix="bench_pipeline-"
     ) as temporary:
-        scratch = args.scratch or Path(temporary)
-        runs = run_benchmark(args, {"old": worktree, "new": ROOT}, scratch)
+        new, baseline = run_benchmark(args, worktree, args.scratch or Path(temporary))
     machine, note = load.finish()
+    summary = summarise(new, baseline)
     result = {
-        "baseline_commit": args.baseline_sha,
+        "raw_fps": summary.pop("raw_fps"),
+        "matmul_flops": summary.pop("matmul_flops"),
+        "workers": args.sizes.workers,
         "quick": args.quick,
-        **summarise(runs, args.measures),
+        "ratios_to_raw": summary.pop("ratios_to_raw"),
+        "training": summary.pop("training"),
+        "baseline": {"commit": args.baseline_sha, "labelled_steps_per_s": summary.pop("baseline_labelled_steps_per_s")},
+        **summary,
         "setup": {
-            "measures": args.measures,
             "repeats": args.repeats,
-            "order": "interleaved: old, new, old, new, ...",
+            "order": "interleaved: baseline training, then the working tree's measures, each repeat",
             "sizes": asdict(args.sizes),
-            "torch_threads": {side: runs[side][0]["torch_threads"] for side in SIDES},
-            "baseline_worktree": str(args.baseline_dir),
-            "branches": {side: runs[side][0]["branches"] for side in SIDES},
-            "learner": "each tree's ModelConfig() SPF policy, random weights (torch.manual_seed(sizes.seed))",
+            "torch_threads": new[0]["torch_threads"],
+            "learner": "ModelConfig() SPF policy, random weights (torch.manual_seed(sizes.seed))",
+            "frames": "demonstration frames + each episode's observations (reset and every step)",
         },
         "machine": machine,
         "notes": [note] if note else [],
         "wall_seconds": time.perf_counter() - start,
         "command": "python benchmarks/bench_pipeline.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "runs": runs,
+        "runs": {"new": new, "baseline": baseline},
     }
     args.output.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_json(args.output, result, default=str)
     for name, target in result["targets"].items():
-        logger.info("target %s >= %.1f: measured %s, holds %s", name, target["target"], target["measured"], target["holds"])
+        logger.info("target %s >= %.2f: measured %.3f, holds %s", name, target["target"], target["measured"], target["holds"])
     logger.info("wrote %s", args.output)
     return result
 

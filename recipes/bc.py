@@ -15,6 +15,7 @@ Usage::
     python recipes/bc.py model=rpf             # full memory baseline
     python recipes/bc.py model=spf sparsity=0.4 noise=paper optim.epochs=4
     python recipes/bc.py device=cuda optim.amp=true   # GPU, bf16 mixed precision (default device=auto)
+    torchrun --standalone --nproc_per_node 2 recipes/bc.py   # data-parallel: 2 processes, the same global batch
 """
 from __future__ import annotations
 
@@ -49,6 +50,8 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error(f"--quick is --preset bc_quick; it cannot be combined with --preset {args.preset}")
     config = config_or_exit(parser, load_config, BCConfig, "bc", args.overrides, preset="bc_quick" if args.quick else args.preset)
     results = train_bc(config)
+    if "test" not in results:  # a rank other than 0 of a torchrun run: rank 0 reports
+        return results
     test = results["test"]
     summary = {
         "model": results["model"],

@@ -360,13 +360,18 @@ class EpisodeDataset(TensorStore):
         dataset.demos  # refuses a demonstration store of another configuration now
         return dataset
 
-    def replay_buffer(self, batch_size: int, seed: int = 0, drop_last: bool = False) -> TensorDictReplayBuffer:
+    def replay_buffer(
+        self, batch_size: int, seed: int = 0, drop_last: bool = False, sampler: SamplerWithoutReplacement | None = None
+    ) -> TensorDictReplayBuffer:
         """A read-only TorchRL replay buffer over whole episodes (one epoch without replacement at a time);
-        its batches carry ``demo_frames`` and ``demo_actions`` (:meth:`with_demonstrations`)."""
+        its batches carry ``demo_frames`` and ``demo_actions`` (:meth:`with_demonstrations`).
+
+        ``sampler`` replaces the default ``SamplerWithoutReplacement(drop_last=drop_last)``
+        (e.g. a data-parallel rank's :class:`~spf_rl.train.distributed.ShardedSampler`)."""
         buffer = TensorDictReplayBuffer(
             storage=TensorStorage(self.episodes),
             writer=ImmutableDatasetWriter(),
-            sampler=SamplerWithoutReplacement(drop_last=drop_last),
+            sampler=SamplerWithoutReplacement(drop_last=drop_last) if sampler is None else sampler,
             batch_size=batch_size,
             transform=self.with_demonstrations,
         )

@@ -1,5 +1,5 @@
-"""benchmarks/bench_pipeline.py: the baseline worktree, interleaved medians, the JSON and its targets, bad options,
-and a tiny smoke run of every measure against the working tree (a smoke run, not a result)."""
+"""benchmarks/bench_pipeline.py: the baseline worktree, per-repeat ratios and their medians, the JSON and its
+targets, bad options, and a tiny smoke run of every measure against the working tree (a smoke run, not a result)."""
 from __future__ import annotations
 
 import contextlib
@@ -62,35 +62,37 @@ def test_unknown_commit_is_refused(tiny_repo):
         bench_baseline.resolve_commit("0123456789abcdef", repo)
 
 
-def _output(values: dict[str, float], raw_fps: float = 1000.0) -> dict:
-    """A worker's output with these measure values (canned)."""
+def _output(values: dict[str, float], flops_per_s: float = 0.0) -> dict:
+    """A child's output with these measure values (canned)."""
     measures = {name: {"value": value, "unit": bench_pipeline.UNITS[name]} for name, value in values.items()}
-    if "collection" in measures:
-        measures["collection"]["raw_fps"] = raw_fps
-    return {"measures": measures, "branches": {"collection": ["default env"]}, "torch_threads": 2}
+    if "training" in measures:
+        measures["training"]["flops_per_s"] = flops_per_s
+    return {"measures": measures, "torch_threads": 2, "spf_rl_file": str(ROOT / "spf_rl" / "__init__.py")}
 
 
-def test_repeats_are_interleaved_and_each_figure_is_the_median():
-    old = iter([3.0, 1.0, 2.0])
-    new = iter([10.0, 30.0, 20.0])
-    order = []
+def _repeat(raw: float, pipelines: float, matmul: float, training: float, flops: float) -> dict:
+    values = {"raw": raw, "matmul": matmul, "dataset_generation": pipelines, "dagger_collection": pipelines / 2,
+              "evaluation": pipelines / 4, "training": training}
+    return _output(values, flops_per_s=flops)
 
-    def fake_measure(side: str, repeat: int) -> dict:
-        order.append(side)
-        return _output({"evaluation": next(old if side == "old" else new)})
 
-    runs = bench_baseline.interleaved_runs(fake_measure, 3)
-    assert order == ["old", "new"] * 3
-    summary = bench_pipeline.summarise(runs, ["evaluation"])
-    evaluation = summary["measures"]["evaluation"]
-    assert (evaluation["old"], evaluation["new"], evaluation["unit"]) == (2.0, 20.0, "episodes/s")
-    assert evaluation["old_repeats"] == [3.0, 1.0, 2.0] and evaluation["new_repeats"] == [10.0, 30.0, 20.0]
-    assert summary["speedups"] == {
-        "dataset_generation": None, "dagger_collection": None, "evaluation": 10.0, "evaluation_repeat": None, "bc_training": None
-    }
-    assert summary["targets"]["evaluation"]["holds"] is True
-    assert summary["targets"]["bc_training"] == {"target": 1.5, "of": "speed-up new/old", "measured": None, "holds": None}
-    assert summary["raw_fps"] is None and summary["store_lookup_ratio_to_raw"] is None
+def test_ratios_are_taken_within_a_repeat_and_each_figure_is_the_median():
+    # the machine slows down in repeat 2: the pipelines and their reference move together
+    new = [_repeat(1000.0, 800.0, 100.0, 50.0, 40.0), _repeat(500.0, 400.0, 50.0, 25.0, 20.0),
+           _repeat(1000.0, 900.0, 100.0, 60.0, 60.0)]
+    baseline = [_output({"training": value}) for value in (25.0, 20.0, 50.0)]
+    summary = bench_pipeline.summarise(new, baseline)
+    assert summary["ratios_to_raw"]["dataset_generation"] == pytest.approx(0.8)  # median of 0.8, 0.8, 0.9
+    assert summary["ratios_to_raw"]["dagger_collection"] == pytest.approx(0.4)
+    assert summary["ratios_to_raw"]["evaluation"] == pytest.approx(0.2)
+    assert summary["raw_fps"] == 1000.0 and summary["matmul_flops"] == 100.0
+    assert summary["training"] == {"labelled_steps_per_s": 50.0, "flops_per_s": 40.0, "fraction_of_matmul": 0.4}
+    assert summary["training_speedup"] == pytest.approx(1.25)  # median of 2.0, 1.25, 1.2
+    assert summary["baseline_labelled_steps_per_s"] == 25.0
+    assert summary["measures"]["raw"]["repeats"] == [1000.0, 500.0, 1000.0]
+    holds = {name: target["holds"] for name, target in summary["targets"].items()}
+    assert holds == {"dataset_generation": True, "dagger_collection": False, "evaluation": False,
+                     "training_speedup": False, "fraction_of_matmul": False}
 
 
 @contextlib.contextmanager
@@ -98,20 +100,14 @@ def _no_worktree(repo, sha, path=None):
     yield Path("/nonexistent-baseline")
 
 
-def test_json_layout_and_targets_from_canned_worker_outputs(tmp_path, monkeypatch):
-    old = {"dataset_generation": 10.0, "dagger_collection": 4.0, "evaluation": 10.0, "evaluation_repeat": 10.0,
-           "bc_training": 100.0, "collection": 500.0}
-    new = {"dataset_generation": 50.0, "dagger_collection": 8.0, "evaluation": 30.0, "evaluation_repeat": 40.0,
-           "bc_training": 150.0, "collection": 900.0}
-    canned = {
-        "old": [_output(old, raw_fps=2000.0) for _ in range(3)],
-        "new": [_output(new, raw_fps=raw) for raw in (1000.0, 900.0, 1100.0)],
-    }
+def test_json_layout_from_canned_child_outputs(tmp_path, monkeypatch):
+    new = [_repeat(1000.0, 900.0, 1e11, 300.0, 6e10) for _ in range(3)]
+    baseline = [_output({"training": 200.0}) for _ in range(3)]
     seen = {}
 
-    def fake_benchmark(args, trees, scratch):
-        seen.update(trees=trees, sizes=args.sizes, repeats=args.repeats)
-        return canned
+    def fake_benchmark(args, baseline_tree, scratch):
+        seen.update(tree=baseline_tree, sizes=args.sizes, repeats=args.repeats)
+        return new, baseline
 
     monkeypatch.setattr(bench_pipeline, "baseline_worktree", _no_worktree)
     monkeypatch.setattr(bench_pipeline, "run_benchmark", fake_benchmark)
@@ -120,45 +116,28 @@ def test_json_layout_and_targets_from_canned_worker_outputs(tmp_path, monkeypatc
     written = json.loads(out.read_text())
     assert written == json.loads(json.dumps(result))
     assert not list(out.parent.glob(".*.tmp*"))  # written through a temporary file, renamed
-    assert seen["trees"] == {"old": Path("/nonexistent-baseline"), "new": ROOT}
-    assert seen["sizes"] == bench_pipeline.QUICK_SIZES and seen["repeats"] == 3
-    assert written["baseline_commit"] == _git(ROOT, "rev-parse", "HEAD") and written["quick"] is True
-    for key in ("raw_fps", "measures", "speedups", "store_lookup_ratio_to_raw", "targets", "setup", "machine", "runs"):
-        assert key in written
-    assert set(written["speedups"]) == {"dataset_generation", "dagger_collection", "evaluation", "evaluation_repeat", "bc_training"}
-    assert written["speedups"]["dataset_generation"] == 5.0 and written["speedups"]["dagger_collection"] == 2.0
-    assert written["speedups"]["evaluation_repeat"] == 4.0
-    bc = written["measures"]["bc_training"]
-    assert (bc["old"], bc["new"], bc["unit"], bc["new_over_old"]) == (100.0, 150.0, "labelled steps/s", 1.5)
-    assert written["raw_fps"] == 1000.0  # the median of the new tree's raw loop
-    assert written["store_lookup_ratio_to_raw"] == 0.9
-    assert written["raw_loop"]["old_collection_ratio_to_its_raw"] == 0.25
-    targets = written["targets"]
-    assert {name: targets[name]["holds"] for name in targets} == {
-        "dataset_generation": True,  # 5.0 >= 4
-        "evaluation": False,  # 3.0 < 4
-        "bc_training": True,  # 1.5 >= 1.5
-        "collection": False,  # 0.9 < 1.0
-    }
-    assert targets["collection"]["measured"] == 0.9 and targets["collection"]["target"] == 1.0
-    assert written["setup"]["repeats"] == 3 and written["setup"]["sizes"]["dataset_episodes"] == 128
-    assert written["machine"]["cpu_count"] >= 1 and written["runs"] == canned
+    assert seen == {"tree": Path("/nonexistent-baseline"), "sizes": bench_pipeline.QUICK_SIZES, "repeats": 3}
+    # the shape the issue asks for
+    assert written["raw_fps"] == 1000.0 and written["matmul_flops"] == 1e11
+    assert written["workers"] == 2 and written["quick"] is True
+    assert set(written["ratios_to_raw"]) == {"dataset_generation", "dagger_collection", "evaluation"}
+    assert written["ratios_to_raw"]["dataset_generation"] == pytest.approx(0.9)
+    assert written["training"] == {"labelled_steps_per_s": 300.0, "flops_per_s": 6e10, "fraction_of_matmul": 0.6}
+    assert written["baseline"] == {"commit": _git(ROOT, "rev-parse", "HEAD"), "labelled_steps_per_s": 200.0}
+    assert written["training_speedup"] == 1.5
+    assert written["targets"]["training_speedup"] == {"target": 1.3, "measured": 1.5, "holds": True}
+    assert written["setup"]["sizes"]["dataset_episodes"] == 128 and written["machine"]["cpu_count"] >= 1
+    assert written["runs"] == {"new": new, "baseline": baseline}
 
 
 #: Bad command lines; the option named first is the one the error must name.
-BAD_COMMAND_LINES = [
-    "--repeats 0",
-    "--repeats 2",
-    "--only evaluation,nonsense",
-    "--only ,",
-    "--workers 0",
-    "--baseline 0123456789abcdef0123",
-]
+BAD_COMMAND_LINES = ["--repeats 0", "--repeats 2", "--workers 0", "--baseline 0123456789abcdef0123"]
 
 
 @pytest.mark.parametrize("line", BAD_COMMAND_LINES)
 def test_bad_options_are_refused_before_any_work(line, monkeypatch, capsys):
     argv = line.split()
+
     def no_work(*args, **kwargs):
         raise AssertionError("work started despite a bad option")
 
@@ -170,30 +149,37 @@ def test_bad_options_are_refused_before_any_work(line, monkeypatch, capsys):
     assert argv[0] in capsys.readouterr().err
 
 
+def test_the_worker_has_a_function_for_every_measure():
+    import bench_pipeline_worker
+
+    assert tuple(bench_pipeline_worker.MEASURE_FUNCTIONS) == bench_pipeline.MEASURES
+
+
 def test_smoke_every_measure_runs_against_the_working_tree(tmp_path):
-    """A tiny run of the worker (the script the benchmark runs in each tree), here on the working tree only."""
+    """A tiny run of the child (the script the benchmark runs in each tree), here on the working tree only."""
     sizes = dataclasses.replace(
         bench_pipeline.Sizes(),
         dataset_episodes=4, dagger_episodes=2, num_agents=2, eval_episodes=2, eval_agents=2,
-        bc_steps=1, bc_warmup_steps=0, collection_batches=1, raw_chunks=1, raw_chunk_frames=20,
-        num_houses=1, demo_length=5, max_steps=6, image_size=32, workers=1, store_demos=4,
+        train_steps=1, train_warmup_steps=1, raw_chunks=1, raw_chunk_frames=20,
+        num_houses=1, demo_length=5, max_steps=6, image_size=32, workers=1,
     )
-    argv = bench_pipeline._worker_argv(bench_pipeline.MEASURES, sizes, tmp_path / "new", threads=1)
-    output = bench_baseline.run_json_child(argv, ROOT, timeout=300)
+    output = bench_pipeline._child(bench_pipeline.MEASURES, sizes, tmp_path / "new", ROOT)
     assert output["spf_rl_file"] == str(ROOT / "spf_rl" / "__init__.py")
     measures = output["measures"]
     assert list(measures) == list(bench_pipeline.MEASURES)
     assert all(m["value"] > 0 and m["unit"] == bench_pipeline.UNITS[name] for name, m in measures.items())
-    assert measures["dataset_generation"]["episodes"] == 4 and measures["evaluation"]["episodes"] == 2
-    assert measures["bc_training"]["labelled_steps"] <= 4 * 6  # at most every step of the 4 episodes
-    assert measures["collection"]["raw_fps"] > 0 and measures["collection"]["frames_per_batch"] == 2 * 6
-    assert (tmp_path / "new" / "bc_data" / "meta.json").exists()  # the first dataset built, kept for bc_training
-    assert output["branches"]["collection"][0].startswith("demo store")  # this tree collects from a demo store
+    # frames: 5 demonstration frames per episode, then at most 6 steps and the reset frame
+    assert 4 * (5 + 2) <= measures["dataset_generation"]["frames"] <= 4 * (5 + 7)
+    assert measures["evaluation"]["episodes"] == 2 and measures["dagger_collection"]["episodes"] == 2
+    training = measures["training"]
+    assert 1 <= training["labelled_steps"] <= 16 * 6 and training["gradient_steps"] == 1
+    assert training["flops"] > 0 and training["flops_per_s"] > 0
+    assert (tmp_path / "new" / "bc_data" / "meta.json").exists()  # the training dataset, kept across repeats
 
 
 def test_a_worker_imports_the_packages_of_its_own_tree(tmp_path):
     """Importing the driver module (as the worker does) must not put this checkout's packages
-    ahead of the tree on ``PYTHONPATH``: otherwise "old" would measure the working tree."""
+    ahead of the tree on ``PYTHONPATH``: otherwise the baseline would measure the working tree."""
     tree = tmp_path / "tree"
     (tree / "spf_rl").mkdir(parents=True)
     (tree / "spf_rl" / "__init__.py").write_text("")
@@ -202,9 +188,7 @@ def test_a_worker_imports_the_packages_of_its_own_tree(tmp_path):
     assert Path(output["spf_rl_file"]).resolve() == (tree / "spf_rl" / "__init__.py").resolve()
 
 
-def test_a_worker_that_imported_another_tree_is_refused(tmp_path, monkeypatch):
-    monkeypatch.setattr(bench_pipeline, "run_json_child", lambda argv, tree, timeout=None: {
-        **_output({"evaluation": 1.0}), "spf_rl_file": str(ROOT / "spf_rl" / "__init__.py")})
-    args = bench_pipeline.parse_args(["--quick", "--only", "evaluation"])
-    with pytest.raises(RuntimeError, match="the old worker imported spf_rl from"):
-        bench_pipeline.run_benchmark(args, {"old": tmp_path / "baseline", "new": ROOT}, tmp_path)
+def test_a_child_that_imported_another_tree_is_refused(tmp_path, monkeypatch):
+    monkeypatch.setattr(bench_pipeline, "run_json_child", lambda argv, tree, timeout=None, after=(): _output({"training": 1.0}))
+    with pytest.raises(RuntimeError, match="imported spf_rl from"):
+        bench_pipeline._child(["training"], bench_pipeline.QUICK_SIZES, tmp_path, tmp_path / "baseline")

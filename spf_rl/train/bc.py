@@ -36,6 +36,7 @@ from spf_rl.device import DEFAULT_DEVICE, autocast, check_device, module_device,
 from spf_rl.modules.memory import memory_bytes
 from spf_rl.modules.policy import SPFPolicy
 from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
+from spf_rl.train.distributed import ShardedSampler, barrier, init_distributed
 from spf_rl.train.evaluation import EvalConfig, episode_store_root, evaluate_policy, with_episode_sizes
 from spf_rl.train.run import OptimConfig, TrainingRun, run_on_device, start_run
 
@@ -203,6 +204,9 @@ def model_memory_bytes(model_type: str, demo_length: int, sparsity: float, image
 def train_bc(config: BCConfig) -> dict:
     """Run (or resume) a behaviour-cloning run and return its results dict (also written to ``results.json``).
 
+    Under ``torchrun --nproc_per_node N`` the run is data-parallel (:mod:`spf_rl.train.distributed`):
+    rank 0 returns the results and writes every file; the other ranks return their rank and history.
+
     Raises:
         ValueError: an unknown ``config.device``, or a run in ``output_dir`` with other settings (before any work).
     """
@@ -211,7 +215,8 @@ def train_bc(config: BCConfig) -> dict:
 
 def _train_bc(config: BCConfig, device: torch.device) -> dict:
     start_time = time.time()
-    output = start_run(config)
+    ranks, device = init_distributed(device)
+    output = start_run(config, ranks=ranks)
     dataset = EpisodeDataset.build(config.resolved_data_dir(), config.data, config.num_workers, config.progress)
     logger.info("dataset: %s", dataset.statistics())
 
@@ -222,24 +227,29 @@ def _train_bc(config: BCConfig, device: torch.device) -> dict:
     batches_per_epoch = -(-len(dataset) // config.optim.batch_size)
     run = TrainingRun(
         output, model_type, policy_config, policy, config.optim, batches_per_epoch * config.optim.epochs, config.keep_epochs,
-        loss_fn=bc_loss,
+        loss_fn=bc_loss, ranks=ranks,
     )
     start_epoch = run.resume()
 
-    run_logger = get_logger(config.logger, logger_name=str(output / "logs"), experiment_name="bc") if config.logger else None
+    run_logger = get_logger(config.logger, logger_name=str(output / "logs"), experiment_name="bc") if config.logger and ranks.is_main else None
     val_config = with_episode_sizes(config.val, config.data)
     for epoch in range(start_epoch, config.optim.epochs):
-        buffer = dataset.replay_buffer(config.optim.batch_size, seed=config.seed * 1000 + epoch)
+        sampler = ShardedSampler(ranks) if ranks.distributed else None
+        buffer = dataset.replay_buffer(config.optim.batch_size, seed=config.seed * 1000 + epoch, sampler=sampler)
         batches = (buffer.sample() for _ in range(batches_per_epoch))
         losses, accuracies, train_seconds = run.train_epoch(
-            batches, batches_per_epoch, f"epoch {epoch + 1}/{config.optim.epochs}", config.progress, run_logger
+            batches, batches_per_epoch, f"epoch {epoch + 1}/{config.optim.epochs}", config.progress and ranks.is_main, run_logger
         )
-        val = evaluate_policy(policy, val_config, progress=False)[0] if config.validates_after(epoch + 1) else None
+        validate = config.validates_after(epoch + 1) and ranks.is_main
+        val = evaluate_policy(policy, val_config, progress=False)[0] if validate else None
         record = run.end_epoch(epoch, losses, accuracies, train_seconds, val, run_logger)
         logger.info("epoch %d: %s", epoch + 1, record)
+        barrier(ranks)  # the other ranks wait for rank 0's validation and checkpoints
     history, best = run.history, run.best
     if run_logger is not None and hasattr(run_logger, "experiment"):
         run_logger = None
+    if not ranks.is_main:
+        return {"rank": ranks.rank, "history": history}
 
     run.load_best()
     test_config = with_episode_sizes(config.test, config.data)

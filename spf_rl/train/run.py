@@ -15,11 +15,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
+from torch.nn.parallel import DistributedDataParallel
 from tqdm.auto import tqdm
 
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.device import exact_float32, resolve_device
 from spf_rl.modules.policy import SPFPolicy
+from spf_rl.train.distributed import Ranks, all_ranks_sum, barrier, global_mean_weight
 from spf_rl.train.run_config import BC_RESUME_FREE, write_run_config
 
 logger = logging.getLogger(__name__)
@@ -68,6 +70,10 @@ class TrainingRun:
         keep_epochs: also write every epoch's weights to ``epochs/epoch-NNN.pt``.
         loss_fn: ``loss_fn(policy, batch, amp=...) -> (loss, accuracy)`` of a batch
             (:func:`spf_rl.train.bc.bc_loss` for behaviour cloning).
+        ranks: this process's place in a data-parallel run (:mod:`spf_rl.train.distributed`):
+            with more than one rank the policy is wrapped in DistributedDataParallel, each
+            batch is this rank's shard, the logged loss and accuracy are the whole batch's,
+            and only rank 0 writes checkpoints.
     """
 
     def __init__(
@@ -81,8 +87,13 @@ class TrainingRun:
         keep_epochs: bool = False,
         *,
         loss_fn: Callable[..., tuple[torch.Tensor, torch.Tensor]],
+        ranks: Ranks = Ranks(),
     ) -> None:
-        self.loss_fn = loss_fn
+        self.loss_fn, self.ranks = loss_fn, ranks
+        self.module = policy
+        if ranks.distributed:
+            device = next(policy.parameters()).device
+            self.module = DistributedDataParallel(policy, device_ids=[device] if device.type == "cuda" else None)
         self.model_type, self.policy_config, self.policy, self.optim = model_type, policy_config, policy, optim
         self.optimizer = torch.optim.Adam(policy.parameters(), lr=optim.lr, weight_decay=optim.weight_decay)
         self.scheduler = (
@@ -119,14 +130,24 @@ class TrainingRun:
         ``policy_of(batch)``, if given, is the module that computes a batch's loss (a view of
         the policy sharing its parameters, e.g. for another demonstration length).
         """
+        if policy_of is not None and self.ranks.distributed:
+            raise ValueError("policy_of (a view of the policy per batch) does not run data-parallel; start one process.")
         self.policy.train()
         losses, accuracies, start = [], [], time.time()
         bar = tqdm(batches, total=num_batches, desc=desc, disable=not progress)
+        device = next(self.policy.parameters()).device
         for batch in bar:
-            policy = self.policy if policy_of is None else policy_of(batch).train()
+            policy = self.module if policy_of is None else policy_of(batch).train()
             loss, accuracy = self.loss_fn(policy, batch, amp=self.optim.amp)
             self.optimizer.zero_grad(set_to_none=True)
-            loss.backward()
+            if self.ranks.distributed:  # weighted so that the averaged gradient is the whole batch's mean's
+                labelled = int(batch.get(("steps", "mask")).sum())
+                weight, total = global_mean_weight(labelled, self.ranks, device)
+                (loss * weight).backward()
+                loss = torch.tensor(all_ranks_sum(loss.item() * labelled, self.ranks, device) / total)
+                accuracy = torch.tensor(all_ranks_sum(accuracy.item() * labelled, self.ranks, device) / total)
+            else:
+                loss.backward()
             torch.nn.utils.clip_grad_norm_(self.policy.parameters(), self.optim.max_grad_norm)
             self.optimizer.step()
             self.scheduler.step()
@@ -160,6 +181,8 @@ class TrainingRun:
             for key in ("train_accuracy", "val_success", "val_spl"):
                 if record[key] is not None:
                     run_logger.log_scalar(f"epoch/{key}", record[key], step=self.step)
+        if not self.ranks.is_main:
+            return record
         state = {"model": self.policy.state_dict(), "epoch": epoch + 1}
         if val is not None and (val["success"], val["spl"]) > (self.best["success"], self.best["spl"]):
             self.best = {"success": val["success"], "spl": val["spl"], "epoch": epoch + 1}
@@ -197,10 +220,13 @@ def run_on_device(train, config) -> dict:
         return train(config, device)
 
 
-def start_run(config, free: Collection[str] = BC_RESUME_FREE) -> Path:
+def start_run(config, free: Collection[str] = BC_RESUME_FREE, ranks: Ranks = Ranks()) -> Path:
     """Create ``config.output_dir``, write its ``config.json`` (:func:`write_run_config`; the
-    settings in ``free`` may change on resume), seed torch."""
+    settings in ``free`` may change on resume), seed torch. In a data-parallel run rank 0
+    writes, and the other ranks wait for it."""
     output = Path(config.output_dir)
-    write_run_config(output, config, free=free)
+    if ranks.is_main:
+        write_run_config(output, config, free=free)
+    barrier(ranks)
     torch.manual_seed(config.seed)
     return output
