@@ -100,7 +100,7 @@ class Sizes:
         train_steps: timed gradient steps (after ``train_warmup_steps``).
         train_warmup_steps: gradient steps before timing.
         raw_chunks, raw_chunk_frames: the raw render loop's timed chunks (median kept).
-        workers: worker processes of dataset generation and collectors of evaluation.
+        workers: worker processes of dataset generation (evaluation runs ``EvalConfig()``'s collectors).
         collectors: collectors of the DAgger round (``CollectorConfig``'s default).
         num_agents: agents per DAgger collector (``CollectorConfig``'s default).
         eval_agents: agents stepped together by the evaluation (``EvalConfig``'s default).
@@ -142,7 +142,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--baseline-dir", type=Path, default=BASELINE_DIR, help="its worktree, reused if already there")
     parser.add_argument("--quick", action="store_true", help="smaller sizes (at most 10 minutes on 2 idle cores)")
     parser.add_argument("--repeats", type=int, default=MIN_REPEATS, help=f"interleaved repeats (>= {MIN_REPEATS})")
-    parser.add_argument("--workers", type=int, default=None, help="dataset workers and evaluation collectors (default: 2)")
+    parser.add_argument("--workers", type=int, default=None, help="dataset generation's worker processes (default: 2)")
     parser.add_argument("--output", type=Path, default=RESULTS)
     parser.add_argument("--scratch", type=Path, default=None, help="datasets and stores (default: a temporary directory)")
     args = parser.parse_args(argv)

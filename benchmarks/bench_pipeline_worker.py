@@ -157,12 +157,12 @@ def measure_dagger_collection(sizes: Sizes, scratch: Path) -> dict:
 
 def measure_evaluation(sizes: Sizes, scratch: Path) -> dict:
     """Frames/s of ``evaluate_policy`` of the learner (greedy) on the test split, as ``EvalConfig()``
-    runs it, with ``sizes.workers`` collectors: its demonstrations rendered, then its episodes."""
+    runs it (its default collectors): its demonstrations rendered, then its episodes."""
     from spf_rl.train.evaluation import EvalConfig, evaluate_policy
 
     config = dataclasses.replace(
         EvalConfig(), split="test", num_episodes=sizes.eval_episodes, noise="paper", seed=sizes.seed,
-        num_agents=sizes.eval_agents, num_houses=sizes.num_houses, num_collectors=sizes.workers, **_episode_sizes(sizes),
+        num_agents=sizes.eval_agents, num_houses=sizes.num_houses, **_episode_sizes(sizes),
     )
     policy = build_learner(sizes)
     start = time.perf_counter()
