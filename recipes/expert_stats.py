@@ -1,7 +1,7 @@
 """Success and SPL of the scripted policies: the geodesic expert and open-loop replay.
 
 Writes ``benchmarks/results/expert_stats.json`` and prints a markdown table.
-Each (policy, noise) pair is scored with :func:`envs.scripted.run_episodes` on
+Each (policy, noise) pair is scored with :func:`envs.episodes.run_episodes` on
 the same episodes (a batched env with a fixed seed: agent ``i``'s k-th episode
 depends only on the seed, ``i`` and ``k``), without rendering
 (``render=False``, ``with_expert=True``). Means come with 95% percentile

@@ -18,7 +18,7 @@ per episode, ``demo_id`` (its row in the store), the follow episode step by step
 up by ``demo_id``.
 
 The behaviour policy (:class:`~envs.scripted.EpsilonExpertPolicy`) is stepped by a
-TorchRL collector (:func:`~envs.scripted.play_episode_steps`), the env emitting
+TorchRL collector (:func:`~envs.episodes.play_episode_steps`), the env emitting
 ``demo_id`` instead of the frames. Episodes are generated in chunks, in parallel
 worker processes; every episode is a pure function of ``(seed, its number)``, so an
 interrupted run resumes where it stopped (from ``<root>.partial``) and gives the same
@@ -217,7 +217,8 @@ def generate_chunk(config: DatasetConfig, chunk: int, demos: str | os.PathLike) 
     (the expert, or a random action with probability ``random_action_prob``) through a
     TorchRL collector; every step is labelled with the expert's action.
     """
-    from envs.scripted import EpsilonExpertPolicy, play_episode_steps
+    from envs.episodes import play_episode_steps
+    from envs.scripted import EpsilonExpertPolicy
 
     first = chunk * config.chunk_size
     count = min(config.chunk_size, config.num_episodes - first)

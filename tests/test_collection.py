@@ -9,7 +9,7 @@ import torch
 from tensordict.nn import TensorDictModule
 
 from envs.demo_store import DemoStore, DemoStoreConfig
-from envs.scripted import gather_episode_steps
+from envs.episodes import gather_episode_steps
 from spf_rl.data import STEP_KEYS
 from spf_rl.modules import SPFConfig, make_spf_policy
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig, make_collection_env, make_collector

@@ -219,7 +219,8 @@ def test_wrong_action_is_a_clear_error() -> None:
 
 def test_lab_success_is_reported_beside_ours() -> None:
     """The RPF lab code's criterion: horizontal Euclidean distance < 0.8 m or < 10% of the initial one."""
-    from envs.scripted import ExpertPolicy, run_episodes
+    from envs.episodes import run_episodes
+    from envs.scripted import ExpertPolicy
     from spf_rl.metrics import summarize
 
     env = TransformedEnv(PathFollowEnv(**{**SMALL, "num_agents": 4, "with_expert": True}), ActuationNoise("paper"))

@@ -208,7 +208,8 @@ def test_collected_datasets_match_the_hand_loop_datasets_in_distribution(tmp_pat
 
 
 def test_episodes_the_numbering_never_reaches_are_an_error_not_a_hang(built):
-    from envs.scripted import EpsilonExpertPolicy, play_episode_steps
+    from envs.episodes import play_episode_steps
+    from envs.scripted import EpsilonExpertPolicy
     from spf_rl.data import STEP_KEYS, _chunk_env
 
     config = DatasetConfig(**TINY)

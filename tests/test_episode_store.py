@@ -17,8 +17,9 @@ from torchrl.envs import Compose, InitTracker, TransformedEnv
 
 import envs.demo_store as demo_store_module
 from envs.demo_store import DemoStore, DemoStoreConfig
+from envs.episodes import run_episodes
 from envs.nav_env import PathFollowEnv
-from envs.scripted import ExpertPolicy, run_episodes
+from envs.scripted import ExpertPolicy
 from envs.transforms import ActuationNoise
 from spf_rl.modules.policy import SPFConfig
 from spf_rl.modules.registry import build_policy

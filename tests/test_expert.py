@@ -6,10 +6,11 @@ import pytest
 from torchrl.envs import TransformedEnv
 
 from envs.demos import sample_demonstration
+from envs.episodes import run_episodes
 from envs.expert import FORWARD, TURN_LEFT, TURN_RIGHT, GeodesicExpert
 from envs.nav_env import PathFollowEnv
 from envs.scenes import build_house
-from envs.scripted import ExpertPolicy, OpenLoopReplay, run_episodes
+from envs.scripted import ExpertPolicy, OpenLoopReplay
 from envs.transforms import ActuationNoise
 
 #: Episodes per rate: ``pytest --full-samples`` plays the full sample, by default a smaller one.

@@ -7,11 +7,12 @@ import torch
 
 from envs import DemoStore, DemoStoreConfig, PathFollowEnv, demonstration_from_actions, make_path_follow_env
 from envs.demos import apply_motion, nominal_motion
+from envs.episodes import run_episodes
 from envs.expert import FORWARD, FORWARD_STEP_M, TURN_ANGLE_DEG, TURN_LEFT, TURN_RIGHT
 from envs.homing import HOMING, check_task, homing_demonstration, reversed_poses
 from envs.render import FirstPersonRenderer
 from envs.scenes import build_house
-from envs.scripted import ExpertPolicy, run_episodes
+from envs.scripted import ExpertPolicy
 
 #: A route in house 0 (the corridor y in [1, 2] m is free from x = 7 to 12 m).
 START = (7.5, 1.5, 0.0)

@@ -176,8 +176,9 @@ def test_episode_numbers_fix_the_episodes_whatever_the_number_of_agents():
 
 
 def test_episode_records_name_the_house_each_episode_was_played_in():
-    """``house_seed`` (env output and :func:`~envs.scripted.run_episodes` record) is the house the agent drove in."""
-    from envs.scripted import OpenLoopReplay, run_episodes
+    """``house_seed`` (env output and :func:`~envs.episodes.run_episodes` record) is the house the agent drove in."""
+    from envs.episodes import run_episodes
+    from envs.scripted import OpenLoopReplay
     from envs.specs import PRIVILEGED_KEYS
 
     assert "house_seed" in PRIVILEGED_KEYS

@@ -2,7 +2,7 @@
 the same episodes (``recipes/expert_stats.py`` runs it and writes
 ``benchmarks/results/expert_stats*.json``).
 
-Each (split, policy, noise) run plays :func:`envs.scripted.run_episodes` on a batched
+Each (split, policy, noise) run plays :func:`envs.episodes.run_episodes` on a batched
 env with a fixed seed (agent ``i``'s k-th episode depends only on the seed, ``i`` and
 ``k``), without rendering. Means come with 95% percentile bootstrap intervals
 (:func:`spf_rl.stats.bootstrap_ci`).
@@ -24,10 +24,11 @@ import torch
 
 from envs.atomic_io import atomic_write_json
 from envs.demos import DEFAULT_DEMO_LENGTH
+from envs.episodes import run_episodes
 from envs.factory import make_path_follow_env
 from envs.homing import FOLLOW
 from envs.scenes import SPLIT_SEED_OFFSETS, build_house
-from envs.scripted import ExpertPolicy, OpenLoopReplay, run_episodes
+from envs.scripted import ExpertPolicy, OpenLoopReplay
 from envs.transforms import NOISE_PRESETS
 from spf_rl.stats import bootstrap_ci
 

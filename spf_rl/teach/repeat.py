@@ -32,12 +32,12 @@ from tqdm.auto import tqdm
 
 from envs.atomic_io import atomic_write_json
 from envs.demos import Demonstration
+from envs.episodes import episode_record
 from envs.follow import SUCCESS_FRACTION, SUCCESS_RADIUS_M, default_max_steps
 from envs.homing import FOLLOW, HOMING
 from envs.nav_env import PathFollowEnv
 from envs.render import draw_top_down_map
 from envs.scenes import build_house, split_seeds
-from envs.scripted import episode_record
 from envs.transforms import DEFAULT_NOISE, NOISE_PRESETS, ActuationNoise
 from envs.user_demos import ACTION_LETTERS
 from spf_rl.metrics import summarize
@@ -140,7 +140,7 @@ class Repeat:
     """One repeat of the route by the policy.
 
     Attributes:
-        record: ``repeat`` (from 1) and :func:`~envs.scripted.episode_record`'s keys
+        record: ``repeat`` (from 1) and :func:`~envs.episodes.episode_record`'s keys
             (``success``, ``spl``, ``goal_distance``, ``path_length``, ``steps``, ...; metres).
         poses: ``(T + 1, 3)`` poses (x m, y m, heading rad): the start, then after each step.
         frames: ``(T + 1, H, W, 3)`` uint8 first-person frames at those poses.

@@ -17,7 +17,7 @@ for them from two small configs:
 
 With ``demo_store`` (an episode store), :func:`make_collector`'s envs play that
 store's numbered episodes and emit ``demo_id`` instead of the frames (the policy
-looks them up); :func:`~envs.scripted.gather_episode_steps` keeps each episode's
+looks them up); :func:`~envs.episodes.gather_episode_steps` keeps each episode's
 steps, in the layout of :mod:`spf_rl.data`, whatever the number of collectors: the
 path of DAgger's rounds.
 """
@@ -291,7 +291,7 @@ def make_collector(
             An episode store (:meth:`~envs.demo_store.DemoStoreConfig.of_episodes` with
             ``episodes_seed = seed``) is played as numbered episodes: every env seeded with
             ``seed``, collector ``w`` of ``W`` playing episode numbers ``w, w + W, ...``
-            (:func:`~envs.scripted.gather_episode_steps` keeps them). Any other store: a
+            (:func:`~envs.episodes.gather_episode_steps` keeps them). Any other store: a
             random demonstration of it per episode, the envs seeded by the collector.
             ``None``: each env renders a random demonstration at every reset.
 

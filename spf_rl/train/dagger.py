@@ -47,7 +47,8 @@ from tqdm.auto import tqdm
 
 from envs.atomic_io import atomic_write_json
 from envs.demo_store import DemoStore
-from envs.scripted import STEPS_PER_BATCH, behaviour_coins, gather_episode_steps
+from envs.episodes import STEPS_PER_BATCH, gather_episode_steps
+from envs.scripted import behaviour_coins
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.data import STEP_KEYS, DatasetConfig, EpisodeDataset, demos_root
 from spf_rl.device import DEFAULT_DEVICE, check_device, exact_float32, module_device

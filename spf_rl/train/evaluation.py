@@ -44,12 +44,12 @@ from torchrl.modules.utils import get_primers_from_module
 
 from envs.checks import check_episode_source, check_positive_ints
 from envs.demo_store import DemoStore, DemoStoreConfig
+from envs.episodes import STEPS_PER_BATCH, record_episodes, run_episodes
 from envs.follow import default_max_steps
 from envs.homing import FOLLOW, check_task
 from envs.house_grid import check_demo_length
 from envs.nav_env import PathFollowEnv
 from envs.route_styles import route_mixture_for
-from envs.scripted import STEPS_PER_BATCH, record_episodes, run_episodes
 from envs.transforms import DEFAULT_NOISE, ActuationNoise
 from envs.version import ENV_VERSION
 from spf_rl.device import act_on_device, module_device
