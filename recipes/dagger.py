@@ -18,6 +18,7 @@ Usage::
     python recipes/dagger.py checkpoint=runs/bc/spf-s0.8-seed0/best.pt rounds=6
     python recipes/dagger.py collector.backend=ray collector.num_collectors=2 device=cpu   # pip install '.[distributed]'
     python recipes/dagger.py device=cuda:1                    # the learner on the second GPU (default device=auto)
+    torchrun --standalone --nproc_per_node 2 recipes/dagger.py   # retraining data-parallel; rank 0 collects and validates
 """
 from __future__ import annotations
 
@@ -55,6 +56,8 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error(f"--quick is --preset dagger_quick; it cannot be combined with --preset {args.preset}")
     config = config_or_exit(parser, load_config, DAggerConfig, "dagger", args.overrides, preset="dagger_quick" if args.quick else args.preset)
     results = train_dagger(config)
+    if "model" not in results:  # a rank other than 0 of a torchrun run: rank 0 reports
+        return results
 
     def scores(record: dict) -> dict:
         return {key: round(record[key], 3) for key in ("val_success", "val_spl", "test_success", "test_spl") if key in record}

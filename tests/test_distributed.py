@@ -13,9 +13,13 @@ import torch
 
 import spf_rl
 from spf_rl.checkpoint import load_checkpoint
+from spf_rl.train.dagger_rounds import round_directory
 from spf_rl.train.distributed import Ranks, shard_indices
 
-BC_RECIPE = Path(spf_rl.__file__).resolve().parents[1] / "recipes" / "bc.py"
+RECIPES = Path(spf_rl.__file__).resolve().parents[1] / "recipes"
+TORCHRUN = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"]
+#: The episodes' sizes of every run here (the BC dataset's, DAgger's rounds' and the evaluations').
+SIZES = ["demo_length=5", "max_steps=8", "image_size=32", "num_houses=2"]
 #: Largest difference allowed between the 1-process and 2-process runs (losses, accuracies,
 #: weights): the two differ only in the order of float sums (the gradient all-reduce).
 TOLERANCE = 1e-5
@@ -49,34 +53,67 @@ def test_shards_cover_the_global_batch(batch, world_size):
     assert len(covered) == batch + (-batch % world_size)
 
 
-def _bc(tmp_path: Path, name: str, launcher: list[str]) -> dict:
-    overrides = [
-        "seed=0", "num_workers=1", "progress=false", f"data_dir={tmp_path / 'data'}", f"output_dir={tmp_path / name}",
-        "data.num_episodes=16", "data.num_houses=2", "data.demo_length=5", "data.max_steps=8", "data.image_size=32",
-        "optim.batch_size=8", "optim.epochs=2", "val.num_episodes=4", "val.num_agents=4", "val.store_root=null",
-        "test.num_episodes=4", "test.num_agents=4", "test.store_root=null",
-    ]
+def _run(recipe: str, launcher: list[str], overrides: list[str], output: Path) -> dict:
     environment = {**os.environ, "OMP_NUM_THREADS": "1"}
     result = subprocess.run(
-        [*launcher, str(BC_RECIPE), *overrides], capture_output=True, text=True, timeout=600, env=environment
+        [*launcher, str(RECIPES / recipe), *overrides, f"output_dir={output}"],
+        capture_output=True, text=True, timeout=600, env=environment,
     )
     assert result.returncode == 0, result.stderr[-4000:]
-    return json.loads((tmp_path / name / "results.json").read_text())
+    return json.loads((output / "results.json").read_text())
+
+
+def _evaluations(prefix: str) -> list[str]:
+    return [f"{prefix}.num_episodes=4", f"{prefix}.num_agents=4", f"{prefix}.store_root=null"]
+
+
+def _bc(tmp_path: Path, name: str, launcher: list[str]) -> dict:
+    overrides = [
+        "seed=0", "num_workers=1", "progress=false", f"data_dir={tmp_path / 'data'}", "data.num_episodes=16",
+        *(f"data.{size}" for size in SIZES), "optim.batch_size=8", "optim.epochs=2",
+        *_evaluations("val"), *_evaluations("test"),
+    ]
+    return _run("bc.py", launcher, overrides, tmp_path / name)
+
+
+def _assert_same_weights(first: Path, second: Path) -> None:
+    weights = [load_checkpoint(path)["model"] for path in (first, second)]
+    for key, value in weights[0].items():
+        torch.testing.assert_close(weights[1][key], value, atol=TOLERANCE, rtol=0)
 
 
 def test_two_processes_follow_one_at_the_same_global_batch(tmp_path):
     one = _bc(tmp_path, "one", [sys.executable])
-    torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"]
-    two = _bc(tmp_path, "two", torchrun)
+    two = _bc(tmp_path, "two", TORCHRUN)
     assert len(one["history"]) == len(two["history"]) == 2
     for a, b in zip(one["history"], two["history"]):
         assert a["step"] == b["step"] == 2 * a["epoch"]  # 16 episodes, global batch 8: 2 steps an epoch
         assert abs(a["train_loss"] - b["train_loss"]) < TOLERANCE
         assert abs(a["train_accuracy"] - b["train_accuracy"]) < TOLERANCE
-    weights = [load_checkpoint(tmp_path / name / "last.pt")["model"] for name in ("one", "two")]
-    for key, value in weights[0].items():
-        torch.testing.assert_close(weights[1][key], value, atol=TOLERANCE, rtol=0)
+    _assert_same_weights(tmp_path / "one" / "last.pt", tmp_path / "two" / "last.pt")
     # rank 0 alone wrote the run's files: one set, in the 2-process run's directory
     assert sorted(path.name for path in (tmp_path / "two").iterdir()) == sorted(
         path.name for path in (tmp_path / "one").iterdir()
     )
+
+
+def test_dagger_retrains_on_two_processes_as_on_one(tmp_path):
+    _bc(tmp_path, "bc", [sys.executable])  # the start checkpoint
+    overrides = [
+        f"checkpoint={tmp_path / 'bc' / 'best.pt'}", "seed=0", "num_workers=1", "progress=false", "rounds=2",
+        "episodes_per_round=4", "steps_per_round=3", "window_rounds=2", "test_every_round=false",
+        "optim.batch_size=6", f"bc_data_dir={tmp_path / 'data'}", "bc_data.num_episodes=16",
+        *(f"bc_data.{size}" for size in SIZES), *(f"env.{size}" for size in SIZES), "collector.num_agents=2",
+        *_evaluations("val"), *_evaluations("test"),
+    ]
+    one = _run("dagger.py", [sys.executable], overrides, tmp_path / "one")
+    two = _run("dagger.py", TORCHRUN, overrides, tmp_path / "two")
+    assert [r["round"] for r in one["history"]] == [r["round"] for r in two["history"]] == [0, 1, 2]
+    for a, b in zip(one["history"][1:], two["history"][1:]):
+        assert a["gradient_steps"] == b["gradient_steps"] == 3 and a["training_episodes"] == b["training_episodes"]
+        assert abs(a["train_loss"] - b["train_loss"]) < TOLERANCE
+    _assert_same_weights(tmp_path / "one" / "last.pt", tmp_path / "two" / "last.pt")
+    # rank 0 alone collected each round, the same episodes as one process (the stores' checksums)
+    for index in (1, 2):
+        metas = [json.loads((round_directory(tmp_path / name, index) / "meta.json").read_text()) for name in ("one", "two")]
+        assert metas[0]["checksums"] == metas[1]["checksums"]

@@ -41,6 +41,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+from torch.nn.parallel import DistributedDataParallel
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.record.loggers import get_logger
 from tqdm.auto import tqdm
@@ -64,6 +65,7 @@ from spf_rl.train.dagger_rounds import (
     source_rows,
     training_sources,
 )
+from spf_rl.train.distributed import Ranks, backward_on_shard, barrier, init_distributed, shard_indices
 from spf_rl.train.evaluation import EvalConfig, FramesFromStore, evaluate_policy, with_episode_sizes
 from spf_rl.train.run import OptimConfig
 from spf_rl.train.run_config import DAGGER_RESUME_FREE, write_run_config
@@ -245,9 +247,12 @@ def train_dagger(config: DAggerConfig) -> dict:
 
 def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
     start_time = time.time()
+    ranks, device = init_distributed(device)
     output = Path(config.output_dir)
-    write_run_config(output, config, free=DAGGER_RESUME_FREE)
-    (output / "rounds").mkdir(parents=True, exist_ok=True)
+    if ranks.is_main:
+        write_run_config(output, config, free=DAGGER_RESUME_FREE)
+        (output / "rounds").mkdir(parents=True, exist_ok=True)
+    barrier(ranks)
     payload = load_checkpoint(checked_checkpoint(config.checkpoint))
     model_type, policy_config = payload["model_type"], payload["model_config"]
     env = config.env
@@ -260,6 +265,7 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
     policy.load_state_dict(payload["model"])
     logger.info("DAgger on %s%s", device, " with bf16 autocast for retraining" if config.optim.amp else "")
     optimizer = torch.optim.Adam(policy.parameters(), lr=config.optim.lr, weight_decay=config.optim.weight_decay)
+    trained = DistributedDataParallel(policy, device_ids=[device] if device.type == "cuda" else None) if ranks.distributed else policy
     val_config, test_config = with_episode_sizes(config.val, env), with_episode_sizes(config.test, env)
 
     last_path, best_path = output / "last.pt", output / "best.pt"
@@ -277,7 +283,11 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
         bc_dir = config.bc_data_dir or BCConfig(data=config.bc_data).resolved_data_dir()
         bc_data = EpisodeDataset.build(bc_dir, config.bc_data, config.num_workers, config.progress)
 
-    run_logger = get_logger(config.logger, logger_name=str(output / "logs"), experiment_name="dagger") if config.logger else None
+    run_logger = (
+        get_logger(config.logger, logger_name=str(output / "logs"), experiment_name="dagger")
+        if config.logger and ranks.is_main
+        else None
+    )
 
     def score(round_index: int, extra: dict) -> dict:
         val, _ = evaluate_policy(policy, val_config)
@@ -299,11 +309,12 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
             {"model": policy.state_dict(), "optimizer": optimizer.state_dict(), "round": round_index, "history": history},
         )
 
-    if done_rounds == 0 and not history:
+    if done_rounds == 0 and not history and ranks.is_main:
         bc_count = len(bc_data) if bc_data is not None else 0
         history.append(score(0, {"beta": None, "training_episodes": bc_count}))
         save_checkpoint(best_path, model_type, policy_config, {"model": policy.state_dict(), "round": 0})
         save(0)
+    barrier(ranks)
 
     for round_index in range(done_rounds + 1, config.rounds + 1):
         round_seed = int(np.random.SeedSequence([config.seed, round_index]).generate_state(1)[0] % (2**31))
@@ -314,21 +325,29 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
             demo_length=env.demo_length, max_steps=env.max_steps, image_size=env.image_size, split=env.split,
             num_houses=env.num_houses, noise=env.noise, route_style=env.route_style, route_lengths=env.route_lengths,
         )
-        if (round_dir / "meta.json").exists():  # stored before an interruption (collection is deterministic): reuse it
-            episodes = RoundStore.read(round_dir, round_config.collection()).episodes
-            logger.info("round %d: reusing the episodes stored in %s", round_index, round_dir)
-        else:
-            episodes = _collect_round(policy, config, round_config, round_dir)
-            RoundStore.write(round_dir, round_config, episodes)
+        if ranks.is_main and not (round_dir / "meta.json").exists():  # rank 0 collects, the others read its store
+            RoundStore.write(round_dir, round_config, _collect_round(policy, config, round_config, round_dir))
+        barrier(ranks)
+        # stored before an interruption too (collection is deterministic): reused
+        episodes = RoundStore.read(round_dir, round_config.collection()).episodes
         collected = {"beta": beta, **behaviour_statistics(episodes)}
         sources = training_sources(bc_data, output, round_index, config.window_rounds)
         collected["training_episodes"] = sum(len(source) for source in sources)
-        collected["train_loss"], collected["gradient_steps"] = _train_round(policy, optimizer, sources, config, round_index)
-        history.append(score(round_index, collected))
-        best = max(history, key=lambda r: (r["val_success"], r["val_spl"]))
-        if best["round"] == round_index:
-            save_checkpoint(best_path, model_type, policy_config, {"model": policy.state_dict(), "round": round_index})
-        save(round_index)
+        collected["train_loss"], collected["gradient_steps"] = _train_round(
+            trained, optimizer, sources, config, round_index, ranks
+        )
+        if ranks.is_main:
+            history.append(score(round_index, collected))
+            best = max(history, key=lambda r: (r["val_success"], r["val_spl"]))
+            if best["round"] == round_index:
+                save_checkpoint(best_path, model_type, policy_config, {"model": policy.state_dict(), "round": round_index})
+            save(round_index)
+        else:
+            history.append({"round": round_index, **collected})
+        barrier(ranks)  # the other ranks wait for rank 0's validation and checkpoints
+
+    if not ranks.is_main:
+        return {"rank": ranks.rank, "history": history}
 
     best = max(history, key=lambda r: (r["val_success"], r["val_spl"]))
     if "test_success" not in best:  # the shipped checkpoint (best.pt) gets its own test
@@ -392,15 +411,24 @@ def _collect_round(policy: TensorDictModuleBase, config: DAggerConfig, round_con
 
 
 def _train_round(
-    policy, optimizer, sources: list[EpisodeDataset | RoundStore], config: DAggerConfig, round_index: int
+    policy,
+    optimizer,
+    sources: list[EpisodeDataset | RoundStore],
+    config: DAggerConfig,
+    round_index: int,
+    ranks: Ranks = Ranks(),
 ) -> tuple[float, int]:
     """Retrain on ``sources``: ``steps_per_round`` steps (or ``epochs_per_round`` passes) of
     batches drawn without replacement, pass after pass, in an order fixed by the seed and round.
 
+    In a data-parallel run ``policy`` is the DistributedDataParallel module, and each rank
+    trains on its shard of every batch (:mod:`spf_rl.train.distributed`).
+
     Returns:
-        the mean loss and the number of gradient steps.
+        the mean loss (over whole batches) and the number of gradient steps.
     """
     policy.train()
+    device = next(policy.parameters()).device
     sizes = torch.tensor([len(source) for source in sources])
     offsets = torch.cumsum(sizes, 0)
     total, batch_size = int(offsets[-1]), config.optim.batch_size
@@ -411,18 +439,19 @@ def _train_round(
     losses = []
     bar = tqdm(range(steps), desc=f"round {round_index} retraining", disable=not config.progress)
     for step in bar:
-        rows = order[step * batch_size : (step + 1) * batch_size]
+        rows = shard_indices(order[step * batch_size : (step + 1) * batch_size], ranks)
         source_of_row = torch.searchsorted(offsets, rows, right=True)
         parts = [
             source_rows(sources[k], rows[source_of_row == k] - (offsets[k] - sizes[k]))
             for k in source_of_row.unique().tolist()
         ]
-        loss, _ = bc_loss(policy, torch.cat(parts, 0), amp=config.optim.amp)
+        batch = torch.cat(parts, 0)
+        loss, accuracy = bc_loss(policy, batch, amp=config.optim.amp)
         optimizer.zero_grad(set_to_none=True)
-        loss.backward()
+        loss_value, _ = backward_on_shard(loss, accuracy, batch, ranks, device)
         torch.nn.utils.clip_grad_norm_(policy.parameters(), config.optim.max_grad_norm)
         optimizer.step()
-        losses.append(loss.item())
+        losses.append(loss_value)
         bar.set_postfix(loss=f"{losses[-1]:.3f}")
     return float(sum(losses) / len(losses)), steps
 

@@ -1,7 +1,7 @@
 """Data-parallel training under ``torchrun``: which rank this process is, its shard of every batch,
 and the loss weight that makes the ranks' gradients those of the whole batch.
 
-A BC run started with ``torchrun --nproc_per_node N recipes/bc.py ...`` trains one
+A BC or DAgger run started with ``torchrun --nproc_per_node N recipes/bc.py ...`` trains one
 model on ``N`` processes with :class:`~torch.nn.parallel.DistributedDataParallel`
 (the ``gloo`` back-end on the CPU, ``nccl`` on CUDA, one GPU per rank:
 ``cuda:LOCAL_RANK``). Every rank draws the same global batch of
@@ -12,7 +12,8 @@ from the memory-mapped store. Each rank's mean loss is weighted by its share of 
 batch's labelled steps (:func:`global_mean_weight`), so the averaged gradient is the
 gradient of the whole batch's mean: the run follows the single-process run with the
 same global batch, up to float rounding. Rank 0 validates, tests and writes every
-file; the others train and wait.
+file (and collects DAgger's rounds, which the others read from its store); the others
+train and wait.
 
 Examples:
     >>> Ranks()
@@ -26,6 +27,7 @@ Examples:
 """
 from __future__ import annotations
 
+import datetime
 import logging
 import os
 from dataclasses import dataclass
@@ -36,6 +38,9 @@ from torchrl.data import SamplerWithoutReplacement
 
 logger = logging.getLogger(__name__)
 
+#: How long the other ranks may wait on rank 0 (validation, testing, DAgger's collection)
+#: before the process group gives up.
+WAIT_FOR_RANK_0 = datetime.timedelta(hours=3)
 #: The environment variables ``torchrun`` sets for each process.
 RANK_ENV, WORLD_SIZE_ENV, LOCAL_RANK_ENV = "RANK", "WORLD_SIZE", "LOCAL_RANK"
 
@@ -97,7 +102,7 @@ def init_distributed(device: torch.device) -> tuple[Ranks, torch.device]:
         device = torch.device("cuda", ranks.local_rank)
         torch.cuda.set_device(device)
     if not dist.is_initialized():
-        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo", timeout=WAIT_FOR_RANK_0)
     logger.info("rank %d of %d on %s", ranks.rank, ranks.world_size, device)
     return ranks, device
 
@@ -168,6 +173,25 @@ def all_ranks_sum(value: float, ranks: Ranks, device: torch.device) -> float:
     return float(total.item())
 
 
+def backward_on_shard(
+    loss: torch.Tensor, accuracy: torch.Tensor, batch, ranks: Ranks, device: torch.device
+) -> tuple[float, float]:
+    """``loss.backward()`` for this rank's shard of a batch, and the whole batch's mean loss and accuracy.
+
+    ``loss`` and ``accuracy`` are means over the shard's labelled steps (``batch["steps", "mask"]``);
+    with more than one rank the loss is weighted first (:func:`global_mean_weight`), so that
+    DistributedDataParallel's averaged gradient is the whole batch's.
+    """
+    if not ranks.distributed:
+        loss.backward()
+        return loss.item(), accuracy.item()
+    labelled = int(batch.get(("steps", "mask")).sum())
+    weight, total = global_mean_weight(labelled, ranks, device)
+    (loss * weight).backward()
+    mean_loss = all_ranks_sum(loss.item() * labelled, ranks, device) / max(total, 1)
+    return mean_loss, all_ranks_sum(accuracy.item() * labelled, ranks, device) / max(total, 1)
+
+
 def barrier(ranks: Ranks) -> None:
     """Wait for every rank (nothing to wait for in one process)."""
     if ranks.distributed:
@@ -178,6 +202,7 @@ __all__ = [
     "Ranks",
     "ShardedSampler",
     "all_ranks_sum",
+    "backward_on_shard",
     "barrier",
     "global_mean_weight",
     "init_distributed",

@@ -21,7 +21,7 @@ from tqdm.auto import tqdm
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.device import exact_float32, resolve_device
 from spf_rl.modules.policy import SPFPolicy
-from spf_rl.train.distributed import Ranks, all_ranks_sum, barrier, global_mean_weight
+from spf_rl.train.distributed import Ranks, backward_on_shard, barrier
 from spf_rl.train.run_config import BC_RESUME_FREE, write_run_config
 
 logger = logging.getLogger(__name__)
@@ -140,20 +140,13 @@ class TrainingRun:
             policy = self.module if policy_of is None else policy_of(batch).train()
             loss, accuracy = self.loss_fn(policy, batch, amp=self.optim.amp)
             self.optimizer.zero_grad(set_to_none=True)
-            if self.ranks.distributed:  # weighted so that the averaged gradient is the whole batch's mean's
-                labelled = int(batch.get(("steps", "mask")).sum())
-                weight, total = global_mean_weight(labelled, self.ranks, device)
-                (loss * weight).backward()
-                loss = torch.tensor(all_ranks_sum(loss.item() * labelled, self.ranks, device) / total)
-                accuracy = torch.tensor(all_ranks_sum(accuracy.item() * labelled, self.ranks, device) / total)
-            else:
-                loss.backward()
+            loss_value, accuracy_value = backward_on_shard(loss, accuracy, batch, self.ranks, device)
             torch.nn.utils.clip_grad_norm_(self.policy.parameters(), self.optim.max_grad_norm)
             self.optimizer.step()
             self.scheduler.step()
             self.step += 1
-            losses.append(loss.item())
-            accuracies.append(accuracy.item())
+            losses.append(loss_value)
+            accuracies.append(accuracy_value)
             bar.set_postfix(loss=f"{losses[-1]:.3f}", acc=f"{accuracies[-1]:.2f}")
             if run_logger is not None:
                 run_logger.log_scalar("train/loss", losses[-1], step=self.step)
