@@ -15,6 +15,7 @@ Usage::
     python recipes/dagger.py --preset dagger_rpf              # after bc.py --preset bc_row model=rpf sparsity=1
     python recipes/dagger.py --preset dagger_rpf_original     # after bc.py --preset bc_row model=rpf_original sparsity=1
     python recipes/dagger.py --preset dagger_spf_rpf_pointer  # after SPF 0.8 with RPF's pointer rule (python recipes/table1.py --rows spf_rpf_pointer-s0.8)
+    python recipes/dagger.py --preset dagger_routes           # after bc.py --preset bc_routes: rounds on the routes people teach
     python recipes/dagger.py checkpoint=runs/bc/spf-s0.8-seed0/best.pt rounds=6
     python recipes/dagger.py collector.backend=ray collector.num_collectors=2 device=cpu   # pip install '.[distributed]'
     python recipes/dagger.py device=cuda:1                    # the learner on the second GPU (default device=auto)
@@ -31,7 +32,7 @@ from spf_rl.config import config_or_exit, load_config
 #: Presets in recipes/configs/ that --preset accepts.
 PRESETS = (
     "dagger_quick", "dagger_control", "dagger_long", "dagger_rpf", "dagger_rpf_original", "dagger_spf_rpf_pointer",
-    "dagger_pointer_long",
+    "dagger_pointer_long", "dagger_routes",
 )
 
 
@@ -43,7 +44,8 @@ def main(argv: list[str] | None = None) -> dict:
         choices=PRESETS,
         default=None,
         help="dagger_quick (smoke run), dagger_control (the expert drives every step: the control at equal steps), "
-        "or the DAgger runs after Table 1's rows: dagger_long, dagger_rpf, dagger_rpf_original, dagger_spf_rpf_pointer, dagger_pointer_long",
+        "the DAgger runs after Table 1's rows: dagger_long, dagger_rpf, dagger_rpf_original, dagger_spf_rpf_pointer, dagger_pointer_long, "
+        "or dagger_routes (after bc.py --preset bc_routes: rounds on the same route mixture)",
     )
     parser.add_argument("overrides", nargs="*", help="key=value config overrides")
     args = parser.parse_args(argv)

@@ -191,3 +191,24 @@ def test_a_config_typo_prints_the_message_alone_and_exits_2(recipe, schema, tmp_
     if schema in ("BCConfig", "MixedLengthConfig"):
         assert err.endswith("Did you mean: 'model'?\n")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_routes_dagger_starts_from_the_routes_bc_run_on_its_data_and_routes():
+    """dagger_routes reuses bc_routes' dataset (the same DatasetConfig), starts from its best.pt,
+    and collects, validates and tests on the same route mixture and lengths."""
+    from spf_rl.train.dagger import DAggerConfig
+    from spf_rl.train.evaluation import with_episode_sizes
+
+    for seed in (0, 2):
+        bc = load_config(BCConfig, "bc", [f"seed={seed}"], preset="bc_routes")
+        dagger = load_config(DAggerConfig, "dagger", [f"seed={seed}"], preset="dagger_routes")
+        assert dagger.bc_data == bc.data
+        assert dagger.checkpoint == f"{bc.output_dir}/best.pt"
+        env = dagger.env
+        assert (env.demo_length, env.max_steps, env.route_style, env.route_lengths) == (
+            bc.data.demo_length, bc.data.max_steps, bc.data.route_style, bc.data.route_lengths
+        )
+        for evaluation in (with_episode_sizes(dagger.val, env), with_episode_sizes(dagger.test, env)):
+            assert (evaluation.route_style, evaluation.route_lengths, evaluation.demo_length) == (
+                bc.data.route_style, bc.data.route_lengths, 100
+            )
