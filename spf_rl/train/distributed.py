@@ -53,6 +53,11 @@ class Ranks:
         rank: the process's rank, ``0 .. world_size - 1``.
         world_size: the number of processes.
         local_rank: the rank on this machine (the GPU a CUDA rank uses).
+
+    Examples:
+        >>> second = Ranks(rank=1, world_size=2, local_rank=1)
+        >>> second.is_main, second.distributed, Ranks().distributed
+        (False, True, False)
     """
 
     rank: int = 0
