@@ -68,6 +68,7 @@ from envs.house_grid import check_demo_length
 from envs.path_fidelity import path_fidelity
 from envs.playlist import DemonstrationPlaylist, EpisodeSource
 from envs.render import FirstPersonRenderer
+from envs.route_expert import EXPERTS, RouteExpert
 from envs.route_styles import RouteMixture, route_mixture_for
 from envs.scenes import House
 from envs.specs import NUM_DEMO_ACTIONS, NUM_RGB_CHANNELS, path_follow_specs
@@ -104,7 +105,11 @@ class PathFollowEnv(EnvBase):
             :func:`~envs.house_grid.default_grid_size_cells`); not with ``house_seeds``.
         image_size: side of the square first-person frames, pixels.
         stop_action: add a STOP action (index 3) that ends the episode.
-        with_expert: also emit ``expert_action``, the expert's action at every step.
+        with_expert: also emit ``expert_action``, the action of ``expert`` at every step.
+        expert: ``"goal"``: the shortest way to the route's end (:class:`~envs.expert.GeodesicExpert`);
+            ``"route"``: along the route's path (:class:`~envs.route_expert.RouteExpert`). ``None``
+            (default): ``"route"`` with ``route_style`` or ``demonstrations``, ``"goal"`` for the
+            planner's routes (on which both take the same path).
         render: render frames; ``False`` emits black frames (``pixels``, and the
             demonstration's frames unless they come from ``demo_store``) and never
             opens an OpenGL context (fast protocol statistics, expert labelling).
@@ -159,6 +164,7 @@ class PathFollowEnv(EnvBase):
         grid_size_cells: int | None = None,
         stop_action: bool = False,
         with_expert: bool = False,
+        expert: str | None = None,
         render: bool = True,
         success_radius_m: float = SUCCESS_RADIUS_M,
         success_fraction: float = SUCCESS_FRACTION,
@@ -173,6 +179,8 @@ class PathFollowEnv(EnvBase):
         device: torch.device | str = "cpu",
     ) -> None:
         check_demo_length(demo_length)
+        if expert not in (*EXPERTS, None):
+            raise ValueError(f"expert must be one of {', '.join(map(repr, EXPERTS))} or None, got {expert!r}.")
         route_mixture = route_mixture_for(route_style, route_lengths, demo_length)
         self._fixed_max_steps = max_steps is not None
         max_steps = default_max_steps(demo_length) if max_steps is None else max_steps
@@ -201,6 +209,7 @@ class PathFollowEnv(EnvBase):
         self.image_size = int(image_size)
         self.stop_action = bool(stop_action)
         self.with_expert = bool(with_expert)
+        self.expert = expert or ("route" if route_mixture is not None or demonstrations is not None else "goal")
         self.render_frames = bool(render)
         self.success_radius_m = float(success_radius_m)
         self.success_fraction = float(success_fraction)
@@ -250,7 +259,7 @@ class PathFollowEnv(EnvBase):
         count, n, size = self._count, self.demo_length, self.image_size
         self._houses: list[House | None] = [None] * count
         self._demos: list[Demonstration | None] = [None] * count
-        self._experts: list[GeodesicExpert | None] = [None] * count
+        self._experts: list[GeodesicExpert | RouteExpert | None] = [None] * count
         self._pose = np.zeros((count, 3))
         self._steps = np.zeros(count, dtype=np.int64)
         self._path_length = np.zeros(count)
@@ -330,9 +339,11 @@ class PathFollowEnv(EnvBase):
         house, demo, self._demo_id[index] = self._source.episode(index, episode_seed, self._episode_index[index])
         self._houses[index], self._house_seed[index] = house, house.seed
         self._demos[index] = demo
-        self._experts[index] = GeodesicExpert(
-            house.occupancy, demo.end_field, stop_radius_m=self.rules.radius(demo.shortest_length_m) if self.stop_action else None
-        )
+        stop_radius_m = self.rules.radius(demo.shortest_length_m) if self.stop_action else None
+        if self.expert == "goal":
+            self._experts[index] = GeodesicExpert(house.occupancy, demo.end_field, stop_radius_m=stop_radius_m)
+        else:
+            self._experts[index] = RouteExpert(house, demo, stop_radius_m=stop_radius_m)
         self._episode_seed[index] = episode_seed
         self._pose[index] = demo.start_pose
         self._steps[index] = 0

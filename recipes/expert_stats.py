@@ -13,6 +13,8 @@ Usage::
     python recipes/expert_stats.py --splits train --episodes 100
     python recipes/expert_stats.py --task homing --episodes 100 --runs expert:paper   # -> expert_stats_homing_n30.json
     python recipes/expert_stats.py --demo-length 100 --episodes 100 --runs expert:paper  # -> expert_stats_follow_n100.json
+    python recipes/expert_stats.py --splits test --demo-length 100 --route-style driven --route-lengths 61 100 \
+        --expert goal --runs expert:paper --episodes 64 --output benchmarks/results/expert_route_driven_goal.json
 
 Runs of another task or demonstration length than the paper's (follow, n = 30) write
 ``expert_stats_<task>_n<n>.json`` beside it unless ``--output`` is given.
@@ -26,7 +28,10 @@ from pathlib import Path
 import torch
 
 import envs  # noqa: F401  (selects the headless GL back-end first)
+from envs.demos import DEFAULT_DEMO_LENGTH
 from envs.homing import FOLLOW, TASKS
+from envs.route_expert import EXPERTS
+from envs.route_styles import route_mixture_for
 from spf_rl.eval.scripted import (
     DEFAULT_RUNS,
     RESULTS_NAME,
@@ -53,6 +58,9 @@ def main() -> None:
     parser.add_argument(
         "--runs", nargs="+", default=[f"{p}:{n}" for p, n in DEFAULT_RUNS], help="policy:noise pairs (expert|open_loop)"
     )
+    parser.add_argument("--route-style", default=None, help="route style or mixture (envs.route_styles), e.g. driven or planner=1,driven=1")
+    parser.add_argument("--route-lengths", type=int, nargs=2, default=None, metavar=("SHORTEST", "LONGEST"), help="route lengths, steps")
+    parser.add_argument("--expert", default=None, choices=EXPERTS, help="the env's expert (default: route with --route-style)")
     parser.add_argument("--jobs", type=int, default=1, help="worker processes (runs are independent)")
     parser.add_argument("--output", type=Path, default=None, help=f"default {RESULTS_PATH.name}, or expert_stats_<task>_n<n>.json")
     args = parser.parse_args()
@@ -62,12 +70,14 @@ def main() -> None:
     try:  # the whole config first, before any episode is played
         runs = parse_runs(args.runs)
         check_splits(args.splits)
+        route_mixture_for(args.route_style, args.route_lengths, args.demo_length or DEFAULT_DEMO_LENGTH)
     except ValueError as err:
         parser.error(str(err))
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     torch.set_num_threads(1)
 
-    env_kwargs = study_env_kwargs(args.num_agents, args.task, args.demo_length)
+    route_lengths = None if args.route_lengths is None else tuple(args.route_lengths)
+    env_kwargs = study_env_kwargs(args.num_agents, args.task, args.demo_length, args.route_style, route_lengths, args.expert)
     content = run_study(args.splits, runs, output, episodes=args.episodes, env_kwargs=env_kwargs, seed=args.seed,
                         resamples=args.resamples, jobs=args.jobs)
     print("\n" + markdown_table(content["results"]))

@@ -1,7 +1,11 @@
 """spf_rl.eval.scripted: the expert and open-loop scores of recipes/expert_stats.py."""
 from __future__ import annotations
 
+import json
 import math
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 
@@ -24,15 +28,45 @@ def test_a_run_scores_the_same_episodes_for_every_policy_and_repeats():
 
 def test_score_summarises_records_with_intervals():
     records = [
-        {"success": s, "spl": 0.9 * s, "steps": 10, "goal_distance": 0.5, "path_length": 3.0, "shortest_path_length": 2.7}
+        {"success": s, "spl": 0.9 * s, "steps": 10, "goal_distance": 0.5, "path_length": 3.0, "shortest_path_length": 2.7,
+         "ndtw": 0.2 + 0.4 * s, "path_length_ratio": 1.0 + 0.2 * s}
         for s in (1, 0, 1, 1)
     ]
     row = score(records, seed=0, resamples=500)
     assert row["episodes"] == 4 and row["success"] == 0.75 and math.isclose(row["spl"], 0.675)
     assert row["success_ci95"][0] <= 0.75 <= row["success_ci95"][1]
     assert row["mean_path_length_m"] == 3.0
+    assert math.isclose(row["ndtw"], 0.5) and math.isclose(row["mean_path_length_ratio"], 1.15)
 
 
 def test_an_unknown_policy_is_refused_before_any_work():
     with pytest.raises(ValueError, match=r"policy_name must be one of \('expert', 'open_loop'\), got 'random'"):
         run_one("train", "random", "none", 4, ENV, seed=0, resamples=200, progress=False)
+
+
+EXPERT_STATS = Path(__file__).resolve().parents[1] / "recipes" / "expert_stats.py"
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--route-style", "bogus"], "route_style must be one of 'planner', 'tour', 'driven', got 'bogus'."),
+        (["--route-style", "driven", "--route-lengths", "10", "40"], "route_lengths"),
+        (["--expert", "shortest"], "argument --expert: invalid choice: 'shortest'"),
+    ],
+)
+def test_expert_stats_refuses_bad_route_options_before_any_work(tmp_path, args, message):
+    out = tmp_path / "stats.json"
+    result = subprocess.run([sys.executable, str(EXPERT_STATS), *args, "--output", str(out)], capture_output=True, text=True)
+    assert result.returncode == 2 and message in result.stderr and not out.exists()
+
+
+def test_expert_stats_scores_an_expert_on_a_route_style(tmp_path):
+    out = tmp_path / "stats.json"
+    args = ["--splits", "test", "--demo-length", "20", "--route-style", "driven", "--route-lengths", "10", "20",
+            "--expert", "route", "--runs", "expert:none", "--episodes", "2", "--num-agents", "2", "--resamples", "50"]
+    subprocess.run([sys.executable, str(EXPERT_STATS), *args, "--output", str(out)], check=True, capture_output=True)
+    content = json.loads(out.read_text())
+    assert content["setup"]["expert"] == "route" and content["setup"]["route_lengths"] == [10, 20]
+    row = content["results"][0]
+    assert row["success"] == 1.0 and row["ndtw"] > 0.8  # noise-free, the route expert replays the route

@@ -83,6 +83,8 @@ def score(records: list[dict], seed: int, resamples: int) -> dict:
         "mean_final_goal_distance_m": float(np.mean([r["goal_distance"] for r in records])),
         "mean_path_length_m": float(np.mean([r["path_length"] for r in records])),
         "mean_shortest_path_length_m": float(np.mean([r["shortest_path_length"] for r in records])),
+        "ndtw": float(np.mean([r["ndtw"] for r in records])),
+        "mean_path_length_ratio": float(np.mean([r["path_length_ratio"] for r in records])),
     }
 
 
@@ -159,16 +161,19 @@ def default_output(results_path: Path, task: str, demo_length: int | None) -> Pa
     return results_path if paper else results_path.with_name(f"expert_stats_{task}_n{length}.json")
 
 
-def study_env_kwargs(num_agents: int, task: str, demo_length: int | None = None) -> dict:
-    """Keyword arguments of the study's envs: no rendering, the expert's labels, ``demo_length`` if given.
+def study_env_kwargs(
+    num_agents: int, task: str, demo_length: int | None = None, route_style: str | None = None,
+    route_lengths: tuple[int, int] | None = None, expert: str | None = None,
+) -> dict:
+    """Keyword arguments of the study's envs: no rendering, the expert's labels, the rest if given.
 
     Examples:
         >>> study_env_kwargs(25, "follow", 50)["demo_length"], study_env_kwargs(25, "follow")["render"]
         (50, False)
     """
     env_kwargs: dict = {"num_agents": num_agents, "render": False, "emit_demo_frames": False, "with_expert": True, "task": task}
-    if demo_length is not None:
-        env_kwargs["demo_length"] = demo_length
+    optional = {"demo_length": demo_length, "route_style": route_style, "route_lengths": route_lengths, "expert": expert}
+    env_kwargs.update({key: value for key, value in optional.items() if value is not None})
     return env_kwargs
 
 
@@ -184,6 +189,9 @@ def study_setup(split: str, env_kwargs: dict, episodes: int, seed: int, resample
         "max_steps": base.max_steps,
         "house_size_m": list(build_house(base.house_seeds[0]).size_m),
         "stop_action": base.stop_action,
+        "route_style": None if base.route_style is None else base.route_style.spec,
+        "route_lengths": None if base.route_style is None else [base.route_style.min_length, base.route_style.max_length],
+        "expert": base.expert,
         "success_radius": f"max({base.success_radius_m} m, {base.success_fraction} x initial geodesic distance)",
         "render": False,
         "ci": f"95% percentile bootstrap of the mean, {resamples} resamples, numpy default_rng(seed)",

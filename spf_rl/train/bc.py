@@ -110,7 +110,8 @@ class BCConfig:
         if self.data_dir:
             return Path(self.data_dir)
         d, task = self.data, "" if self.data.task == FOLLOW else f"-{self.data.task}"
-        routes = "" if d.route_style is None else f"-{d.route_style.replace('=', '').replace(',', '+')}-{d.route_lengths[0]}to{d.route_lengths[1]}"
+        # route styles are labelled by the route expert (envs.route_expert), which the name says
+        routes = "" if d.route_style is None else f"-{d.route_style.replace('=', '').replace(',', '+')}-{d.route_lengths[0]}to{d.route_lengths[1]}-routeexpert"
         name = f"{d.split}-{d.num_episodes}ep-{d.noise}-rand{d.random_action_prob}-n{d.demo_length}{routes}-{d.image_size}px-s{d.seed}"
         return Path("data") / f"{name}-{format_tag()}{task}"
 
