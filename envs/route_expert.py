@@ -121,6 +121,26 @@ class RouteExpert:
             target += 1
         return target
 
+    def route_step(self, pose: np.ndarray) -> int:
+        """Advance the progress index to ``pose`` and return the demonstration step the agent has
+        come to along the route, in the route's order: the step whose pose it matches
+        (:meth:`match`, heading included, so turns on the spot count), else the first step at
+        the progress waypoint or the last matched step, whichever is later (so it never goes back).
+
+        Examples:
+            >>> from envs.route_styles import planner_route
+            >>> from envs.scenes import build_house
+            >>> house = build_house(3)
+            >>> demo = planner_route(house, np.random.default_rng(0), 12)
+            >>> expert = RouteExpert(house, demo)
+            >>> [expert.route_step(pose) for pose in demo.poses[:12]] == list(range(12))
+            True
+        """
+        pose = np.asarray(pose, dtype=np.float64)
+        self.target(pose)
+        matched = self.match(pose)
+        return max(self.matched, int(self._waypoint_pose[self.progress])) if matched is None else matched
+
     def match(self, pose: np.ndarray) -> int | None:
         """The index of the demonstrated pose that ``pose`` matches (``None``: off the route).
 
