@@ -65,6 +65,19 @@ def test_train_resume_and_results(tmp_path):
     assert (run / "best.pt").exists() and (run / "last.pt").exists()
 
 
+def test_rows_logged_after_the_last_checkpoint_are_not_logged_twice(tmp_path):
+    train_bc(tiny_config(tmp_path, epochs=1))
+    loss_log = tmp_path / "run" / "logs" / "bc" / "scalars" / "train" / "loss.csv"
+    steps_one = [int(line.split(",")[0]) for line in loss_log.read_text().splitlines()]
+    with loss_log.open("a") as log:  # the interrupted epoch 2 had logged a step before it stopped
+        log.write(f"{steps_one[-1] + 1},123.0\n")
+    train_bc(tiny_config(tmp_path, epochs=2))
+    rows = [line.split(",") for line in loss_log.read_text().splitlines()]
+    steps = [int(step) for step, _ in rows]
+    assert steps == sorted(set(steps)) and steps[: len(steps_one)] == steps_one and len(steps) == 2 * len(steps_one)
+    assert all(float(value) != 123.0 for _, value in rows)
+
+
 def test_resume_refuses_another_model_type(tmp_path):
     train_bc(tiny_config(tmp_path, epochs=1, model="action_only"))
     from spf_rl.checkpoint import CheckpointError

@@ -90,7 +90,7 @@ def tiny_config(tmp_path, checkpoint, **overrides) -> DAggerConfig:
         steps_per_round=None,
         window_rounds=None,
         aggregate_bc_data=False,
-        logger="",
+        logger="csv",
         progress=False,
         env=CollectionEnvConfig(num_houses=1, demo_length=5, max_steps=6, image_size=32),
         collector=CollectorConfig(num_agents=2),
@@ -226,7 +226,12 @@ def test_interrupted_run_resumes_to_the_same_result(tmp_path, two_rounds, one_ro
     # an interruption after round 2's episodes were stored but before last.pt: they are reused
     for name in ("round-02-demos", "round-02"):
         shutil.copytree(straight_run / "dagger" / "rounds" / name, tmp_path / "b" / "dagger" / "rounds" / name)
+    val_log = tmp_path / "b" / "dagger" / "logs" / "dagger" / "scalars" / "round" / "val_success.csv"
+    with val_log.open("a") as log:  # round 2 was scored and logged, but last.pt did not hold it yet
+        log.write("2,0.123\n")
     resumed = train_dagger(tiny_config(tmp_path / "b", shared_checkpoint))
+    logged = [line.split(",") for line in val_log.read_text().splitlines()]
+    assert [int(r) for r, _ in logged] == [0, 1, 2] and float(logged[2][1]) == resumed["history"][2]["val_success"]
     assert (tmp_path / "b" / "dagger" / "rounds" / "round-01").stat().st_mtime_ns == round_one  # not re-collected
     assert [r["round"] for r in resumed["history"]] == [0, 1, 2]
     a = load_checkpoint(straight_run / "dagger" / "last.pt")["model"]

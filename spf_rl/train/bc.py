@@ -38,7 +38,7 @@ from spf_rl.modules.policy import SPFPolicy
 from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
 from spf_rl.train.distributed import ShardedSampler, barrier, init_distributed
 from spf_rl.train.evaluation import EvalConfig, episode_store_root, evaluate_policy, with_episode_sizes
-from spf_rl.train.run import OptimConfig, TrainingRun, run_on_device, start_run
+from spf_rl.train.run import OptimConfig, TrainingRun, run_on_device, start_run, trim_csv_logs
 
 logger = logging.getLogger(__name__)
 
@@ -231,6 +231,8 @@ def _train_bc(config: BCConfig, device: torch.device) -> dict:
         loss_fn=bc_loss, ranks=ranks,
     )
     start_epoch = run.resume()
+    if config.logger and ranks.is_main:
+        trim_csv_logs(output / "logs", run.step)
 
     run_logger = get_logger(config.logger, logger_name=str(output / "logs"), experiment_name="bc") if config.logger and ranks.is_main else None
     val_config = with_episode_sizes(config.val, config.data)

@@ -67,7 +67,7 @@ from spf_rl.train.dagger_rounds import (
 )
 from spf_rl.train.distributed import Ranks, backward_on_shard, barrier, init_distributed, shard_indices
 from spf_rl.train.evaluation import EvalConfig, FramesFromStore, evaluate_policy, with_episode_sizes
-from spf_rl.train.run import OptimConfig
+from spf_rl.train.run import OptimConfig, trim_csv_logs
 from spf_rl.train.run_config import DAGGER_RESUME_FREE, write_run_config
 from spf_rl.viz import plot_if_available, pyplot
 
@@ -283,6 +283,8 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
         bc_dir = config.bc_data_dir or BCConfig(data=config.bc_data).resolved_data_dir()
         bc_data = EpisodeDataset.build(bc_dir, config.bc_data, config.num_workers, config.progress)
 
+    if config.logger and ranks.is_main:  # rounds logged but not in last.pt are logged again
+        trim_csv_logs(output / "logs", done_rounds if history else -1)
     run_logger = (
         get_logger(config.logger, logger_name=str(output / "logs"), experiment_name="dagger")
         if config.logger and ranks.is_main

@@ -18,6 +18,7 @@ import torch
 from torch.nn.parallel import DistributedDataParallel
 from tqdm.auto import tqdm
 
+from envs.atomic_io import atomic_write_text
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.device import exact_float32, resolve_device
 from spf_rl.modules.policy import SPFPolicy
@@ -198,6 +199,34 @@ class TrainingRun:
 
 #: Where a run with ``keep_epochs`` keeps every epoch's weights.
 EPOCHS_DIR = "epochs"
+
+
+def trim_csv_logs(log_dir: str | os.PathLike, last_step: int) -> int:
+    """Drop the rows past ``last_step`` from every CSV scalar log under ``log_dir``; returns how many.
+
+    TorchRL's :class:`~torchrl.record.loggers.CSVLogger` appends ``step,value`` rows. A run
+    interrupted after logging steps that its ``last.pt`` does not hold logs them again when
+    it resumes; trimming to the resumed step first keeps one row per step. Each file is
+    rewritten atomically, and only if it has rows to drop.
+
+    Examples:
+        >>> import tempfile
+        >>> log = Path(tempfile.mkdtemp()) / "scalars" / "train" / "loss.csv"
+        >>> log.parent.mkdir(parents=True)
+        >>> _ = log.write_text("250,0.9\\n500,0.8\\n750,0.7\\n")
+        >>> trim_csv_logs(log.parents[2], last_step=500), log.read_text()
+        (1, '250,0.9\\n500,0.8\\n')
+    """
+    dropped = 0
+    for path in sorted(Path(log_dir).rglob("*.csv")):
+        lines = path.read_text().splitlines(keepends=True)
+        kept = [line for line in lines if not line.strip() or float(line.split(",", 1)[0]) <= last_step]
+        if len(kept) < len(lines):
+            dropped += len(lines) - len(kept)
+            atomic_write_text(path, "".join(kept))
+    if dropped:
+        logger.info("dropped %d log rows past step %d from %s (logged after the last checkpoint)", dropped, last_step, log_dir)
+    return dropped
 
 
 def epoch_checkpoint(run_dir: str | os.PathLike, epoch: int) -> Path:
