@@ -12,7 +12,8 @@ limit (:func:`~envs.follow.default_max_steps`: ``ceil(5/3 n)``, 50 for n = 30).
 
 Protocol (the paper's, Sec. 4.1; :mod:`envs.follow`): forward 0.3 m, turns of 20 deg
 (and STOP with ``stop_action=True``); success, SPL, termination and the dense reward
-are :class:`~envs.follow.FollowRules`'; the final step reports ``success``, ``spl``,
+are :class:`~envs.follow.FollowRules`' (a route that passes its end before reaching it
+counts arrival only after its excursions, :func:`~envs.follow.route_excursions`); the final step reports ``success``, ``spl``,
 ``goal_distance`` and ``path_length``, and how closely the path followed the route
 (:mod:`envs.path_fidelity`): ``ndtw`` and ``sdtw`` against the demonstrated positions,
 with the success radius as threshold, and ``path_length_ratio`` (travelled over
@@ -54,6 +55,7 @@ from envs.demos import DEFAULT_DEMO_LENGTH, Demonstration, default_min_route_len
 from envs.episode_numbering import EpisodeNumbering
 from envs.expert import GeodesicExpert
 from envs.follow import (
+    EXCURSION_REACH_M,
     PROGRESS_REWARD_PER_M,
     STEP_PENALTY,
     SUCCESS_FRACTION,
@@ -62,6 +64,7 @@ from envs.follow import (
     FollowRules,
     default_max_steps,
     lab_success,
+    route_excursions,
 )
 from envs.homing import FOLLOW, check_task
 from envs.house_grid import check_demo_length
@@ -278,6 +281,10 @@ class PathFollowEnv(EnvBase):
         self._trail = np.zeros((count, self.max_steps + 1, 2))
         self._fidelity = np.zeros((count, 3))  # ndtw, sdtw, path_length_ratio
         self._wall_hits = np.zeros(count, dtype=np.int64)
+        # apexes of each route's excursions (envs.follow.route_excursions) and how many the agent has made
+        self._excursions: list[np.ndarray] = [np.zeros((0, 2))] * count
+        self._excursions_made = np.zeros(count, dtype=np.int64)
+        self._excursion_counts = np.zeros(count, dtype=np.int64)
         # (count, 0, ...) when the frames are not emitted: the per-episode copies cost nothing
         self._demo_frames = torch.zeros(
             (count, n if self.emit_demo_frames else 0, size, size, NUM_RGB_CHANNELS), dtype=torch.uint8
@@ -350,6 +357,9 @@ class PathFollowEnv(EnvBase):
         self._path_length[index] = 0.0
         self._distance[index] = demo.end_field.at(demo.start_pose[:2])
         self._initial_distance[index] = self._distance[index]
+        apexes = route_excursions(demo.end_field.at_many(demo.poses[:, :2]), self.rules.radius(self._distance[index]))
+        self._excursions[index] = demo.poses[apexes, :2]
+        self._excursion_counts[index], self._excursions_made[index] = len(apexes), 0
         self._start_xy[index], self._end_xy[index], self._lab_success[index] = demo.start_pose[:2], demo.end_xy, False
         self._shortest[index] = demo.shortest_length_m
         steps = self._demo_steps[index] = demo.length
@@ -390,6 +400,11 @@ class PathFollowEnv(EnvBase):
         self._wall_hits += travelled < np.hypot(motion[:, 0], motion[:, 1]) - WALL_CONTACT_TOLERANCE_M
         for index in range(self._count):
             self._distance[index] = self._demos[index].end_field.at(self._pose[index])
+        for index in np.flatnonzero(self._excursions_made < self._excursion_counts):
+            apexes, made = self._excursions[index], self._excursions_made[index]
+            while made < len(apexes) and np.hypot(*(self._pose[index, :2] - apexes[made])) <= EXCURSION_REACH_M:
+                made += 1
+            self._excursions_made[index] = made
         self._steps += 1
         self._trail[np.arange(self._count), np.minimum(self._steps, self.max_steps)] = self._pose[:, :2]
         outcome = self.rules.score(
@@ -401,6 +416,7 @@ class PathFollowEnv(EnvBase):
             shortest_length_m=self._shortest,
             steps=self._steps,
             max_steps=self._max_steps,
+            may_arrive=self._excursions_made >= self._excursion_counts,
         )
         self._success, self._spl = outcome.success, outcome.spl
         self._lab_success = outcome.done & lab_success(self._pose[:, :2], self._end_xy, self._start_xy)

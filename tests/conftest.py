@@ -109,3 +109,32 @@ class CountingEncoder(nn.Module):
     def forward(self, x):
         self.frames += x.reshape(-1, *x.shape[-3:]).shape[0]
         return self.inner(x)
+
+
+@pytest.fixture(scope="session")
+def unobstructed_route():
+    """A function ``(actions, houses) -> (house, demo)``: ``actions`` driven noise-free from the
+    spawn point of the first of ``houses`` train houses, at the first heading (in 20-degree
+    steps) where every forward step moves its full 0.3 m (no wall touched)."""
+    import numpy as np
+
+    from envs.demos import demonstration_from_route, move_agents, nominal_motion
+    from envs.expert import FORWARD, FORWARD_STEP_M
+    from envs.scenes import build_house, split_seeds
+
+    def make(actions, houses: int = 12):
+        actions = np.asarray(actions)
+        for seed in split_seeds("train", houses):
+            house = build_house(seed)
+            for heading in np.deg2rad(np.arange(0, 360, 20)):
+                pose = np.array([[*house.spawn_xy, heading]])
+                poses = [pose[0].copy()]
+                for action in actions:
+                    move_agents([house], pose, nominal_motion(np.array([action])))
+                    poses.append(pose[0].copy())
+                poses = np.array(poses)
+                if np.allclose(np.hypot(*np.diff(poses[:, :2], axis=0)[actions == FORWARD].T), FORWARD_STEP_M, atol=1e-6):
+                    return house, demonstration_from_route(house, poses, actions)
+        raise AssertionError(f"no spawn point of {houses} train houses has room for the route")
+
+    return make

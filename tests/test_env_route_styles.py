@@ -133,3 +133,47 @@ def test_dagger_rounds_of_a_route_style(tmp_path):
     steps = rows["demo_steps"].squeeze(-1)
     assert ((steps >= 10) & (steps <= 12)).all()  # the round's routes, each with its own length
     assert (rows["length"] <= torch.tensor([default_max_steps(int(n)) for n in steps])).all()
+
+
+def play(house, demo, actions) -> dict:
+    env = PathFollowEnv(house_seeds=[house.seed], demo_length=demo.length, render=False, emit_demo_frames=False, demonstrations=[demo])
+    env.set_seed(0)
+    env.reset()
+    for step, action in enumerate(actions, start=1):
+        out = env.step(TensorDictAction(action))["next"]
+        if out["done"].item():
+            return {"steps": step, "success": bool(out["success"].item()), "ndtw": float(out["ndtw"].item())}
+    raise AssertionError("the episode did not end")
+
+
+def TensorDictAction(action: int):
+    from tensordict import TensorDict
+
+    return TensorDict({"action": torch.tensor(action)}, batch_size=[])
+
+
+def test_a_route_that_passes_its_end_counts_arrival_only_after_its_excursion(unobstructed_route):
+    from envs.expert import FORWARD, TURN_LEFT
+    from envs.follow import route_excursions
+
+    # it passes its end after 3 steps, drives on 7, turns round and comes back to it
+    house, demo = unobstructed_route([FORWARD] * 10 + [TURN_LEFT] * 9 + [FORWARD] * 7)
+    radius = max(0.6, 0.1 * demo.shortest_length_m)
+    assert route_excursions(demo.end_field.at_many(demo.poses[:, :2]), radius).tolist() == [10]  # out to the turn
+    replay = play(house, demo, demo.actions.tolist() + [0] * 100)
+    assert replay["success"] and replay["steps"] >= demo.length - 2  # not at step 3, where it first passed the end
+    shortcut = play(house, demo, [0, 0, 0] + [1] * 100)  # to the end, then spin there
+    assert not shortcut["success"] and shortcut["steps"] == default_max_steps(demo.length)
+
+
+def test_the_planners_routes_have_no_excursions():
+    from envs.follow import route_excursions
+    from envs.route_styles import planner_route
+    from envs.scenes import build_house, split_seeds
+
+    for i, seed in enumerate(split_seeds("train", 20)):
+        house = build_house(seed)
+        for length in (10, 30):
+            demo = planner_route(house, np.random.default_rng(i), length)
+            radius = max(0.6, 0.1 * demo.shortest_length_m)
+            assert len(route_excursions(demo.end_field.at_many(demo.poses[:, :2]), radius)) == 0

@@ -229,9 +229,9 @@ def test_path_fidelity_of_a_replay_a_shortcut_and_a_wall():
         assert replay[key].item() == pytest.approx(value, rel=1e-5), key
     assert replay["ndtw"].item() > 0.9 and replay["path_length_ratio"].item() <= 1.0
 
-    expert_env = PathFollowEnv(demonstrations=[demo], demo_length=demo.length, render=False, with_expert=True)
+    expert_env = PathFollowEnv(demonstrations=[demo], demo_length=demo.length, render=False, with_expert=True, expert="goal")
     td, final = expert_env.reset(), None
-    while final is None or not final["done"].item():  # the expert heads for the end: it cuts the corner
+    while final is None or not final["done"].item():  # the goal expert heads for the end: it cuts the corner
         td["action"] = td["expert_action"]
         final = td = expert_env.step(td)["next"]
     assert final["success"].item() and final["path_length_ratio"].item() < 0.9 * replay["path_length_ratio"].item()

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from torchrl.envs import TransformedEnv
 
-from envs.demos import demonstration_from_route, move_agents, nominal_motion
+from envs.demos import move_agents, nominal_motion
 from envs.episodes import run_episodes
 from envs.expert import FORWARD, TURN_LEFT, GeodesicExpert
 from envs.house_grid import default_grid_size_cells
@@ -48,25 +48,9 @@ def test_noise_free_it_replays_the_demonstration(style, length):
         assert demo.end_field.at(poses[-1, :2]) <= SUCCESS_RADIUS_M
 
 
-def out_and_back() -> tuple[object, object]:
-    """A house and a route in it that drives 5 steps out, turns round on the spot and drives 4 back."""
-    actions = np.array([FORWARD] * 5 + [TURN_LEFT] * 9 + [FORWARD] * 4)
-    for seed in split_seeds("train", 8):
-        house = build_house(seed)
-        for heading in np.deg2rad(np.arange(0, 360, 20)):  # a heading with room for it
-            pose = np.array([[*house.spawn_xy, heading]])
-            poses = [pose[0].copy()]
-            for action in actions:
-                move_agents([house], pose, nominal_motion(np.array([action])))
-                poses.append(pose[0].copy())
-            poses = np.array(poses)
-            if np.allclose(np.hypot(*np.diff(poses[:, :2], axis=0)[actions == FORWARD].T), 0.3):
-                return house, demonstration_from_route(house, poses, actions)
-    raise AssertionError("no train house has 1.5 m of free straight line at its spawn point")
-
-
-def test_a_route_over_the_same_place_twice_is_followed_in_its_order():
-    house, demo = out_and_back()  # its end lies 0.3 m out, on the way out
+def test_a_route_over_the_same_place_twice_is_followed_in_its_order(unobstructed_route):
+    # 5 steps out, round on the spot, 4 back: its end lies 0.3 m out, on the way out
+    house, demo = unobstructed_route([FORWARD] * 5 + [TURN_LEFT] * 9 + [FORWARD] * 4)
     route_poses, route_actions = drive(house, RouteExpert(house, demo), demo.start_pose, demo.length)
     goal_poses, _ = drive(house, GeodesicExpert(house.occupancy, demo.end_field), demo.start_pose, demo.length)
     assert route_actions[:14] == demo.actions[:14].tolist()  # out past the end, and round

@@ -341,11 +341,15 @@ def cell_config(options: BenchOptions, set_name: str, style: str, bucket: Sequen
 
 
 def cell_identity(config) -> dict:
-    """What fixes a cell's episodes: the config's :func:`~spf_rl.train.evaluation.episode_identity` and the env version."""
+    """What fixes a cell's episodes and their scoring: the config's
+    :func:`~spf_rl.train.evaluation.episode_identity`, the env version and the arrival rule
+    (:data:`~envs.follow.ARRIVAL_RULE`)."""
+    from envs.follow import ARRIVAL_RULE
     from envs.version import ENV_VERSION
     from spf_rl.train.evaluation import episode_identity
 
-    return {**episode_identity(config), "route_lengths": list(config.route_lengths), "env_version": ENV_VERSION}
+    return {**episode_identity(config), "route_lengths": list(config.route_lengths), "env_version": ENV_VERSION,
+            "arrival": ARRIVAL_RULE}
 
 
 @dataclass
