@@ -459,7 +459,7 @@ def demonstration_from_waypoints(
     for offset, goal in enumerate(points):
         number = first + offset
         if length is not None and steps >= length:
-            logger.info("route cropped to %d steps before waypoint %d", length, number)
+            logger.debug("route cropped to %d steps before waypoint %d", length, number)
             break
         field = house.graph.distance_field(goal)
         distance = field.at(pose[:2])

@@ -43,7 +43,10 @@ def main(argv: list[str] | None = None) -> dict:
     for path in split_paths(args.a) + split_paths(args.b):
         if not path.is_file():
             parser.error(f"no evaluation JSON at {path}")
-    result = compare(args.a, args.b, args.resamples, args.seed)
+    try:
+        result = compare(args.a, args.b, args.resamples, args.seed)
+    except ValueError as err:  # files without records, or of different episodes
+        parser.error(str(err))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_json(args.out, result, default=str)
     for name, metric in result["metrics"].items():

@@ -62,7 +62,6 @@ def main(argv: list[str] | None = None) -> dict:
     except ValueError as err:
         parser.error(str(err))
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
-    logging.getLogger("envs.user_demos").setLevel(logging.WARNING)  # a line per cropped tour route
     from spf_rl.eval.route_bench import run_bench
 
     content = run_bench(options)

@@ -70,3 +70,32 @@ def test_seeds_are_pooled_when_a_side_names_several_files(tmp_path):
     assert result["metrics"]["success"]["a"] == pytest.approx(0.7)
     assert result["metrics"]["success"]["difference"] == pytest.approx(0.2)
     assert result["a"] == [str(a0), str(a1)]
+
+
+def test_a_training_runs_test_records_compare_with_path_fidelity(tmp_path):
+    """recipes/bc.py's test_episodes.json ({"episodes": [...]}, with nDTW and SDTW) pairs as evaluate.py's JSONs do."""
+    def run_records(path: Path, successes: list[bool]) -> Path:
+        records = [
+            {"episode_seed": seed, "house_seed": seed % 4, "success": ok, "spl": 0.8 * ok, "success_lab": ok,
+             "ndtw": 0.3 + 0.5 * ok, "sdtw": 0.8 * ok}
+            for seed, ok in enumerate(successes)
+        ]
+        path.write_text(json.dumps({"episodes": records}))
+        return path
+
+    a = run_records(tmp_path / "a.json", [True] * 70 + [False] * 30)
+    b = run_records(tmp_path / "b.json", [True] * 40 + [False] * 60)
+    result = _module().compare(a, b, num_resamples=300, seed=0)
+    assert set(result["metrics"]) == {"success", "spl", "success_lab", "ndtw", "sdtw"}
+    assert result["metrics"]["ndtw"]["difference"] == pytest.approx(0.5 * 0.3)
+    assert result["metrics"]["sdtw"]["ci95"][0] > 0
+
+
+def test_the_cli_refuses_files_without_records_with_status_2(tmp_path, capsys):
+    empty = tmp_path / "empty.json"
+    empty.write_text(json.dumps({"episodes": []}))
+    with pytest.raises(SystemExit) as exit_info:
+        _module().main([str(empty), str(empty), "--out", str(tmp_path / "out.json")])
+    assert exit_info.value.code == 2
+    assert "no per-episode records" in capsys.readouterr().err
+    assert not (tmp_path / "out.json").exists()

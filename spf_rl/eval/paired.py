@@ -1,4 +1,5 @@
-"""Paired comparison of two evaluations of the same episodes (``recipes/evaluate.py`` JSONs).
+"""Paired comparison of two evaluations of the same episodes (``recipes/evaluate.py`` JSONs,
+or the ``test_episodes.json`` that ``recipes/bc.py`` writes beside a run's results).
 
 Each side is one JSON, or several (one per training seed: the statistic is then
 pooled over seeds). Every file must hold per-episode records of the same episodes in
@@ -16,16 +17,21 @@ from pathlib import Path
 
 from spf_rl.stats import paired_bootstrap
 
-#: Per-episode fields compared.
-METRICS = ("success", "spl", "success_lab")
+#: Per-episode fields compared (each where every record has it; the path-fidelity ones
+#: where the episodes followed a demonstrated path).
+METRICS = ("success", "spl", "success_lab", "ndtw", "sdtw")
+#: Where the per-episode records lie: ``recipes/evaluate.py``'s key, then ``recipes/bc.py``'s test records.
+RECORD_KEYS = ("episodes_records", "episodes")
 
 
 def load_records(path: Path) -> tuple[dict, list[dict]]:
     """``(evaluation JSON, its per-episode records)``; a clear error for a file without records."""
     payload = json.loads(Path(path).read_text())
-    records = payload.get("episodes_records")
+    records = next((payload[key] for key in RECORD_KEYS if isinstance(payload.get(key), list) and payload[key]), None)
     if not records:
-        raise ValueError(f"{path} has no per-episode records ('episodes_records'): write it with recipes/evaluate.py.")
+        raise ValueError(
+            f"{path} has no per-episode records (a list under one of {RECORD_KEYS}): write it with recipes/evaluate.py."
+        )
     return payload, records
 
 
