@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 from spf_rl.eval.scripted import run_one, score
 
@@ -15,7 +16,13 @@ ENV = {"num_agents": 2, "num_houses": 2, "render": False, "emit_demo_frames": Fa
 
 
 def test_a_run_scores_the_same_episodes_for_every_policy_and_repeats():
-    expert = run_one("train", "expert", "none", 4, ENV, seed=0, resamples=200, progress=False)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        expert = run_one("train", "expert", "none", 4, ENV, seed=0, resamples=200, progress=False)
+        assert torch.get_num_threads() == 2  # a run in-process leaves the caller's thread count as it was
+    finally:
+        torch.set_num_threads(threads)
     again = run_one("train", "expert", "none", 4, ENV, seed=0, resamples=200, progress=False)
     replay = run_one("train", "open_loop", "paper", 4, ENV, seed=0, resamples=200, progress=False)
     assert expert["episodes"] == replay["episodes"] == 4

@@ -97,14 +97,18 @@ def run_one(split: str, policy_name: str, noise: str, episodes: int, env_kwargs:
     """
     if policy_name not in POLICIES:
         raise ValueError(f"policy_name must be one of {POLICIES}, got {policy_name!r}.")
-    torch.set_num_threads(1)
-    env = make_path_follow_env(noise, split=split, **env_kwargs)
-    env.set_seed(seed)
-    policy = ExpertPolicy() if policy_name == "expert" else OpenLoopReplay()
-    start = time.perf_counter()
-    records = run_episodes(env, policy, episodes, progress=progress)
-    elapsed = time.perf_counter() - start
-    env.close(raise_if_closed=False)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # one core per run: the runs share the machine's cores
+    try:
+        env = make_path_follow_env(noise, split=split, **env_kwargs)
+        env.set_seed(seed)
+        policy = ExpertPolicy() if policy_name == "expert" else OpenLoopReplay()
+        start = time.perf_counter()
+        records = run_episodes(env, policy, episodes, progress=progress)
+        elapsed = time.perf_counter() - start
+        env.close(raise_if_closed=False)
+    finally:  # the caller's thread count back, e.g. when run in-process
+        torch.set_num_threads(threads)
     row = {"split": split, "policy": policy_name, "noise": noise, **score(records, seed, resamples)}
     row["seconds"] = elapsed
     row["episode_seeds_checksum"] = int(sum(r["episode_seed"] % 1_000_003 for r in records))
