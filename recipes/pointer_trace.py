@@ -11,7 +11,7 @@ The work is :mod:`spf_rl.eval.pointer_trace`'s.
 Usage::
 
     python recipes/pointer_trace.py --checkpoint checkpoints/routes/spf_random-seed0.pt
-    python recipes/pointer_trace.py --checkpoint routes-spf --styles driven --route-lengths 61 100 --episodes 64
+    python recipes/pointer_trace.py --checkpoint checkpoints/routes/spf_random-seed0.pt --styles driven --route-lengths 61 100 --episodes 64
 """
 from __future__ import annotations
 
