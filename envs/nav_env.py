@@ -31,7 +31,7 @@ emits it *instead of* ``demo_frames`` (30 frames less per step), for policies th
 look the frames up in the store (:meth:`~envs.demo_store.DemoStore.lookup_module`).
 
 Frames are HWC uint8, as TorchRL's pixel envs emit them (see :mod:`envs.specs`).
-``pose``, ``goal_distance``, ``house_seed``, ``expert_action`` and the episode metrics are
+``pose``, ``goal_distance``, ``house_seed``, ``expert_action``, ``route_step`` and the episode metrics are
 privileged keys (:data:`~envs.specs.PRIVILEGED_KEYS`) for metrics, plotting and
 labelling; append :class:`~envs.specs.HidePrivileged` to hide them from a policy.
 
@@ -108,7 +108,9 @@ class PathFollowEnv(EnvBase):
             :func:`~envs.house_grid.default_grid_size_cells`); not with ``house_seeds``.
         image_size: side of the square first-person frames, pixels.
         stop_action: add a STOP action (index 3) that ends the episode.
-        with_expert: also emit ``expert_action``, the action of ``expert`` at every step.
+        with_expert: also emit ``expert_action``, the action of ``expert`` at every step, and with
+            the route expert ``route_step``, the demonstration step the agent has come to
+            (:meth:`~envs.route_expert.RouteExpert.route_step`: a label for a policy's pointer).
         expert: ``"goal"``: the shortest way to the route's end (:class:`~envs.expert.GeodesicExpert`);
             ``"route"``: along the route's path (:class:`~envs.route_expert.RouteExpert`). ``None``
             (default): ``"route"`` with ``route_style`` or ``demonstrations``, ``"goal"`` for the
@@ -251,6 +253,7 @@ class PathFollowEnv(EnvBase):
             with_demo_id=self.demo_store is not None,
             with_expert=self.with_expert,
             device=self.device,
+            with_route_step=self.with_route_step,
         )
         self.observation_spec = specs["observation"]
         self.action_spec = specs["action"]
@@ -498,6 +501,9 @@ class PathFollowEnv(EnvBase):
         if self.with_expert:
             expert = torch.from_numpy(self.expert_actions())
             out["expert_action"] = expert if self.num_agents is not None else expert[0]
+        if self.with_route_step:  # after the actions: the expert's progress is then at this pose
+            route_step = torch.from_numpy(self.route_steps()).unsqueeze(-1)
+            out["route_step"] = route_step if self.num_agents is not None else route_step[0]
         if self._cpu:
             # every value is already a CPU tensor of the right shape: skip TensorDict's checks
             return TensorDict._new_unsafe(out, batch_size=self.batch_size, device=self.device)
@@ -510,6 +516,18 @@ class PathFollowEnv(EnvBase):
             [expert.action(self._pose[i]) if expert is not None else 0 for i, expert in enumerate(self._experts)],
             dtype=np.int64,
         )
+
+    def route_steps(self) -> np.ndarray:
+        """The demonstration step every agent has come to along its route, ``(N,)`` (route expert only)."""
+        return np.array(
+            [expert.route_step(self._pose[i]) if expert is not None else 0 for i, expert in enumerate(self._experts)],
+            dtype=np.int64,
+        )
+
+    @property
+    def with_route_step(self) -> bool:
+        """Whether the env emits ``route_step``: with the expert's labels, when the expert is the route expert."""
+        return self.with_expert and self.expert == "route"
 
     @property
     def demonstrations(self) -> list[Demonstration | None]:

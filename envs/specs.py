@@ -7,7 +7,7 @@ Frames follow TorchRL's pixel envs (``GymEnv``/``DMControlEnv`` with
 (:class:`~spf_rl.modules.ImageEncoder` reads HWC).
 
 Privileged keys (:data:`PRIVILEGED_KEYS`: the agent's pose, the geodesic distance
-to the goal, the house's seed, the expert's action and the episode's metrics) are there for
+to the goal, the house's seed, the expert's action, the route step and the episode's metrics) are there for
 metrics, plotting and labelling. A policy must not read them: append
 :class:`HidePrivileged` to the env, and a policy input built from the
 observation spec no longer contains them.
@@ -32,6 +32,7 @@ PRIVILEGED_KEYS: tuple[str, ...] = (
     "path_length",
     "shortest_path_length",
     "expert_action",
+    "route_step",
     "success",
     "success_lab",
     "spl",
@@ -54,8 +55,13 @@ def path_follow_specs(
     with_demo_id: bool,
     with_expert: bool,
     device: torch.device | str | None,
+    with_route_step: bool = False,
 ) -> dict[str, Composite | Categorical | Unbounded]:
     """The specs of a :class:`~envs.nav_env.PathFollowEnv`: ``observation``, ``action``, ``state``, ``reward``, ``done``.
+
+    ``with_route_step`` adds ``route_step`` (``[*, 1]``, 0 to ``demo_length``): the
+    demonstration step the agent has come to along its route, by the route expert
+    (:meth:`~envs.route_expert.RouteExpert.route_step`), a label for the policy's pointer.
 
     Examples:
         >>> specs = path_follow_specs(torch.Size([]), image_size=32, demo_length=5, num_actions=3,
@@ -107,6 +113,8 @@ def path_follow_specs(
         observation["demo_id"] = unbounded(1, dtype=torch.int64)
     if with_expert:
         observation["expert_action"] = Categorical(num_actions, shape=shape, dtype=torch.int64, device=device)
+    if with_route_step:
+        observation["route_step"] = Bounded(0, n, shape=(*shape, 1), dtype=torch.int64, device=device)
     return {
         "observation": Composite(observation, shape=shape, device=device),
         "action": Categorical(num_actions, shape=shape, dtype=torch.int64, device=device),

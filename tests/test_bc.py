@@ -163,3 +163,57 @@ def test_valid_steps_must_be_a_prefix_along_time():
         policy.encode_pixels(td, valid=torch.tensor([[True, False, True]]))
     with pytest.raises(ValueError, match="valid must have the batch shape"):
         policy.encode_pixels(td, valid=torch.ones(3, dtype=torch.bool))
+
+
+ROUTES = DatasetConfig(
+    num_episodes=8, num_houses=1, demo_length=12, max_steps=None, image_size=16, chunk_size=8,
+    route_style="driven", route_lengths=(10, 12),
+)
+
+
+def _pointer_error(policy, batch) -> float:
+    from torchrl.modules import set_recurrent_mode
+
+    from spf_rl.train.bc import episodes_to_sequence, pointer_loss
+
+    sequence = episodes_to_sequence(batch)
+    with torch.no_grad(), set_recurrent_mode(True):
+        return float(pointer_loss(policy(sequence, valid=sequence.get("mask"))))
+
+
+def test_the_pointer_loss_is_added_to_the_cross_entropy_and_holds_the_pointer_to_the_route(tmp_path):
+    batch = EpisodeDataset.build(tmp_path / "data", ROUTES, num_workers=1, progress=False)[list(range(8))]
+    model = ModelConfig(name="spf_random", pointer_update="rpf", feature_dim=16, hidden_size=16)
+    torch.manual_seed(0)
+    policy = build_policy("spf_random", spf_config(model, 12, 16))
+    torch.manual_seed(1)  # the same memory masks for every pass
+    plain, _ = bc_loss(policy, batch)
+    torch.manual_seed(1)
+    with_pointer, _ = bc_loss(policy, batch, pointer_coef=0.5)
+    torch.manual_seed(1)
+    assert with_pointer.item() == pytest.approx(plain.item() + 0.5 * _pointer_error(policy, batch), rel=1e-5)
+
+    errors = {}
+    for coef in (0.0, 1.0):  # the same start, the same batches: only the pointer loss differs
+        torch.manual_seed(0)
+        policy = build_policy("spf_random", spf_config(model, 12, 16))
+        optimizer = torch.optim.Adam(policy.parameters(), lr=3e-3)
+        for _ in range(20):
+            loss, _ = bc_loss(policy, batch, pointer_coef=coef)
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+        torch.manual_seed(1)
+        errors[coef] = _pointer_error(policy, batch)
+    assert errors[1.0] < errors[0.0]
+
+
+def test_the_pointer_loss_needs_route_step_labels(tmp_path):
+    with pytest.raises(ValueError, match=r"optim.pointer_coef > 0 needs episodes of a route style .* set data.route_style"):
+        BCConfig(optim=OptimConfig(pointer_coef=0.1))
+    with pytest.raises(ValueError, match=r"optim.pointer_coef must be a finite number >= 0, got -1"):
+        OptimConfig(pointer_coef=-1)
+    batch = EpisodeDataset.build(tmp_path / "data", DATA, num_workers=1, progress=False)[:2]  # the planner's: no labels
+    policy = build_policy("spf", spf_config(ModelConfig(sparsity=0.4, feature_dim=16, hidden_size=16), 5, 32))
+    with pytest.raises(ValueError, match="pointer_coef > 0 needs 'route_step' in the episodes' steps"):
+        bc_loss(policy, batch, pointer_coef=0.1)

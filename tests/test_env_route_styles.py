@@ -64,6 +64,28 @@ def test_a_demo_store_of_a_route_style_pads_its_routes(tmp_path):
         PathFollowEnv("train", num_houses=2, demo_length=20, image_size=16, demo_store=store)
 
 
+def test_the_route_expert_labels_the_agents_place_on_its_route():
+    env = PathFollowEnv(route_style="driven=1,tour=1", route_lengths=(10, 20), demo_length=20, num_agents=3,
+                        with_expert=True, **SMALL)
+    assert "route_step" in env.observation_spec.keys() and env.observation_spec["route_step"].shape == (3, 1)
+    env.set_seed(1)
+    td = env.reset()
+    lengths = td["demo_steps"].squeeze(-1).clone()
+    places = [[int(td["route_step"][agent])] for agent in range(3)]
+    ended = torch.zeros(3, dtype=torch.bool)
+    while not ended.all():  # noise-free, the expert replays each route: its place is step t at step t
+        td["action"] = td["expert_action"]
+        td = env.step(td)["next"]
+        for agent in np.flatnonzero((~ended).numpy()):
+            if td["done"][agent]:
+                ended[agent] = True
+            else:
+                places[agent].append(int(td["route_step"][agent]))
+    for agent, n in enumerate(lengths.tolist()):
+        assert places[agent] == list(range(len(places[agent]))) and len(places[agent]) <= n
+    assert "route_step" not in PathFollowEnv(demo_length=20, with_expert=True, **SMALL).observation_spec.keys()  # goal expert
+
+
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [
@@ -97,6 +119,11 @@ def test_a_dataset_and_an_evaluation_of_a_route_style(tmp_path):
     assert (lengths <= torch.tensor([default_max_steps(int(n)) for n in steps])).all()  # each route's own limit
     sequence = episodes_to_sequence(batch)
     assert torch.equal(sequence["demo_steps"][:, 0], batch["demo_steps"])  # carried to the policy at every step
+    # the pointer's label: the agent's place on the route, from 0, never back, at most the route's end
+    route_step, mask = batch["steps", "route_step"].squeeze(-1), batch["steps", "mask"]
+    assert (route_step[:, 0] == 0).all() and (route_step <= steps[:, None]).all()
+    assert all((r[m].diff() >= 0).all() for r, m in zip(route_step, mask)) and route_step.max() > 0
+    assert torch.equal(sequence["route_step"], batch["steps", "route_step"][:, : sequence.shape[1]])
 
     config = EvalConfig(split="val", num_episodes=4, num_agents=2, num_houses=2, demo_length=16, max_steps=None,
                         image_size=16, render=False, route_style="tour", route_lengths=(10, 16), seed=3)
@@ -114,6 +141,7 @@ def test_dagger_rounds_of_a_route_style(tmp_path):
     from spf_rl.train.dagger import DAggerConfig, train_dagger
     from spf_rl.train.dagger_rounds import RoundStore
     from spf_rl.train.evaluation import EvalConfig
+    from spf_rl.train.run import OptimConfig
 
     torch.manual_seed(0)
     config = SPFConfig(demo_length=12, sparsity_range=(0.2, 1.0), feature_dim=8, hidden_size=8, image_size=(16, 16))
@@ -124,6 +152,7 @@ def test_dagger_rounds_of_a_route_style(tmp_path):
         checkpoint=str(tmp_path / "bc.pt"), output_dir=str(tmp_path / "dagger"), device="cpu", rounds=1, episodes_per_round=4,
         beta0=0.5, steps_per_round=None, window_rounds=None, aggregate_bc_data=False, logger="", progress=False,
         env=CollectionEnvConfig(**routes), collector=CollectorConfig(num_agents=2),
+        optim=OptimConfig(lr=3e-4, cosine_schedule=False, pointer_coef=0.1),  # the rounds carry the pointer's labels
         val=EvalConfig(split="val", seed=1, **evaluation), test=EvalConfig(split="test", seed=2, **evaluation),
     ))
     assert [r["round"] for r in results["history"]] == [0, 1]
@@ -133,6 +162,7 @@ def test_dagger_rounds_of_a_route_style(tmp_path):
     steps = rows["demo_steps"].squeeze(-1)
     assert ((steps >= 10) & (steps <= 12)).all()  # the round's routes, each with its own length
     assert (rows["length"] <= torch.tensor([default_max_steps(int(n)) for n in steps])).all()
+    assert (rows["steps", "route_step"].squeeze(-1) <= steps[:, None]).all() and rows["steps", "route_step"].max() > 0
 
 
 def play(house, demo, actions) -> dict:

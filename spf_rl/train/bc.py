@@ -13,7 +13,9 @@ continues after the last finished epoch.
 The policy and its optimiser run on ``BCConfig.device`` (``"auto"``: CUDA if
 available, see :mod:`spf_rl.device`); each batch moves there
 (:func:`episodes_to_sequence`), the rollouts' envs stay on the CPU. With
-``optim.amp`` the loss is computed under bf16 autocast.
+``optim.amp`` the loss is computed under bf16 autocast. With ``optim.pointer_coef`` the
+loss also holds the policy's pointer to the agent's place on the route
+(:func:`pointer_loss`; episodes of a route style carry that label, ``route_step``).
 """
 from __future__ import annotations
 
@@ -31,7 +33,7 @@ from torchrl.record.loggers import get_logger
 from envs.atomic_io import atomic_write_json
 from envs.checks import check_positive_ints
 from envs.homing import FOLLOW
-from spf_rl.data import DatasetConfig, EpisodeDataset, format_tag
+from spf_rl.data import ROUTE_STEP_KEY, DatasetConfig, EpisodeDataset, format_tag
 from spf_rl.device import DEFAULT_DEVICE, autocast, check_device, module_device, to_device
 from spf_rl.modules.memory import memory_bytes
 from spf_rl.modules.policy import SPFPolicy
@@ -101,6 +103,7 @@ class BCConfig:
     def __post_init__(self) -> None:
         check_device(self.device)
         check_positive_ints(self, ("val_every",))
+        check_pointer_labels(self.optim, self.data.route_style, "data.route_style")
 
     def validates_after(self, epoch: int) -> bool:
         """Whether epoch ``epoch`` (from 1) is validated: every ``val_every``-th one and the last."""
@@ -114,6 +117,23 @@ class BCConfig:
         routes = "" if d.route_style is None else f"-{d.route_style.replace('=', '').replace(',', '+')}-{d.route_lengths[0]}to{d.route_lengths[1]}-routeexpert"
         name = f"{d.split}-{d.num_episodes}ep-{d.noise}-rand{d.random_action_prob}-n{d.demo_length}{routes}-{d.image_size}px-s{d.seed}"
         return Path("data") / f"{name}-{format_tag()}{task}"
+
+
+def check_pointer_labels(optim: OptimConfig, route_style: str | None, name: str) -> None:
+    """Raise ``ValueError`` if ``optim.pointer_coef`` > 0 on episodes without pointer labels
+    (only episodes of a route style, labelled by the route expert, carry ``route_step``).
+
+    Examples:
+        >>> check_pointer_labels(OptimConfig(pointer_coef=0.1), None, "data.route_style")
+        Traceback (most recent call last):
+        ...
+        ValueError: optim.pointer_coef > 0 needs episodes of a route style (their route_step labels the pointer): set data.route_style (e.g. 'planner=1,tour=1,driven=1'), or optim.pointer_coef=0.
+    """
+    if optim.pointer_coef > 0 and route_style is None:
+        raise ValueError(
+            f"optim.pointer_coef > 0 needs episodes of a route style (their {ROUTE_STEP_KEY} labels the pointer): "
+            f"set {name} (e.g. 'planner=1,tour=1,driven=1'), or optim.pointer_coef=0."
+        )
 
 
 def episodes_to_sequence(batch: TensorDict, device: torch.device | str | None = None) -> TensorDict:
@@ -158,25 +178,36 @@ def episodes_to_sequence(batch: TensorDict, device: torch.device | str | None = 
             **sequence,
             "expert_action": steps.get("expert_action"),
             "mask": steps.get("mask"),
+            **({ROUTE_STEP_KEY: steps.get(ROUTE_STEP_KEY)} if ROUTE_STEP_KEY in steps.keys() else {}),
         },
         batch_size=[b, t],
         device=device,
     )
 
 
-def bc_loss(policy: SPFPolicy, batch: TensorDict, amp: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
-    """Cross-entropy between the policy's logits and the expert's actions on valid steps.
+def bc_loss(
+    policy: SPFPolicy, batch: TensorDict, amp: bool = False, pointer_coef: float = 0.0
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Cross-entropy between the policy's logits and the expert's actions on valid steps,
+    plus ``pointer_coef`` times the :func:`pointer_loss`.
 
     The batch moves to the device of the policy's weights first.
 
     Args:
         policy: the policy (sequence mode is switched on here).
-        batch: stored episodes (:mod:`spf_rl.data` layout), on any device.
+        batch: stored episodes (:mod:`spf_rl.data` layout), on any device; with
+            ``pointer_coef`` > 0 their steps must hold ``route_step``.
         amp: run the forward pass under bf16 autocast (the cross-entropy is float32).
+        pointer_coef: weight of the pointer loss (0: the cross-entropy alone).
 
     Returns:
         (loss, accuracy of the arg-max action).
     """
+    if pointer_coef > 0 and ROUTE_STEP_KEY not in batch.get("steps").keys():
+        raise ValueError(
+            f"pointer_coef > 0 needs {ROUTE_STEP_KEY!r} in the episodes' steps (datasets and DAgger rounds of a "
+            "route style store it); these episodes have none."
+        )
     device = module_device(policy)
     sequence = episodes_to_sequence(batch, device)
     with set_recurrent_mode(True), autocast(device, amp):
@@ -187,7 +218,39 @@ def bc_loss(policy: SPFPolicy, batch: TensorDict, amp: bool = False) -> tuple[to
     labels = sequence.get("expert_action")[mask]
     loss = F.cross_entropy(logits, labels)
     accuracy = (logits.argmax(-1) == labels).float().mean()
+    if pointer_coef > 0:
+        loss = loss + pointer_coef * pointer_loss(sequence)
     return loss, accuracy
+
+
+def pointer_loss(sequence: TensorDict) -> torch.Tensor:
+    """Huber loss (threshold 1 step) between the pointer each valid step used (``eta_used``) and
+    the agent's place on the route then (``route_step``, at most each demonstration's last step).
+
+    The pointer counts demonstration steps (RPF's rule, or the paper's), so it should stand
+    where the agent is: the pointer trace (:mod:`spf_rl.eval.pointer_trace`) shows the
+    routes model failing once its pointer runs ahead of the agent, out of the attention
+    window. The label is the route expert's (:meth:`~envs.route_expert.RouteExpert.route_step`).
+
+    Args:
+        sequence: the policy's output on a ``[B, T]`` sequence with ``mask``, ``eta_used``,
+            ``route_step`` and, for demonstrations of several lengths, ``demo_steps``.
+
+    Examples:
+        >>> sequence = TensorDict({"eta_used": torch.tensor([[[0.0], [3.0], [9.0]]]),
+        ...     "route_step": torch.tensor([[[0], [1], [5]]]), "mask": torch.tensor([[True, True, False]]),
+        ...     "demo_steps": torch.tensor([[[4], [4], [4]]])}, [1, 3])
+        >>> pointer_loss(sequence)  # errors 0 and 2 steps: (0 + 1.5) / 2
+        tensor(0.7500)
+    """
+    if "eta_used" not in sequence.keys():
+        raise ValueError("the pointer loss needs a policy with a pointer (it writes eta_used); this one has none.")
+    mask = sequence.get("mask")
+    eta = sequence.get("eta_used")[mask].float().reshape(-1)
+    target = sequence.get(ROUTE_STEP_KEY)[mask].reshape(-1)
+    if "demo_steps" in sequence.keys():  # the route's end pose counts as its last step
+        target = torch.minimum(target, sequence.get("demo_steps")[mask].reshape(-1) - 1)
+    return F.smooth_l1_loss(eta, target.to(eta.dtype))
 
 
 def model_memory_bytes(model_type: str, demo_length: int, sparsity: float, image_size: int) -> int:

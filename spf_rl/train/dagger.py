@@ -51,11 +51,11 @@ from envs.demo_store import DemoStore
 from envs.episodes import STEPS_PER_BATCH, gather_episode_steps
 from envs.scripted import behaviour_coins
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
-from spf_rl.data import STEP_KEYS, DatasetConfig, EpisodeDataset, demos_root
+from spf_rl.data import DatasetConfig, EpisodeDataset, demos_root, step_keys
 from spf_rl.device import DEFAULT_DEVICE, check_device, exact_float32, module_device
 from spf_rl.hub import DEFAULT_START_CHECKPOINT, checked_checkpoint
 from spf_rl.modules.registry import build_policy
-from spf_rl.train.bc import BCConfig, bc_loss, default_test_config, default_val_config
+from spf_rl.train.bc import BCConfig, bc_loss, check_pointer_labels, default_test_config, default_val_config
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig, collection_device, make_collector
 from spf_rl.train.dagger_rounds import (
     RoundConfig,
@@ -210,6 +210,9 @@ class DAggerConfig:
         for name in ("beta0", "beta_decay"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)!r}.")
+        check_pointer_labels(self.optim, self.env.route_style, "env.route_style")
+        if self.aggregate_bc_data:
+            check_pointer_labels(self.optim, self.bc_data.route_style, "bc_data.route_style")
 
     def beta(self, round_index: int) -> float:
         """Expert probability of round ``round_index`` (1-based)."""
@@ -404,7 +407,7 @@ def _collect_round(policy: TensorDictModuleBase, config: DAggerConfig, round_con
     try:
         with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
             return gather_episode_steps(
-                collector, 0, round_config.num_episodes, STEP_KEYS, env.step_limit,
+                collector, 0, round_config.num_episodes, step_keys(round_config.route_style), env.step_limit,
                 episode_keys=("demo_id", "episode_seed"), progress=config.progress,
             )
     finally:
@@ -448,7 +451,7 @@ def _train_round(
             for k in source_of_row.unique().tolist()
         ]
         batch = torch.cat(parts, 0)
-        loss, accuracy = bc_loss(policy, batch, amp=config.optim.amp)
+        loss, accuracy = bc_loss(policy, batch, amp=config.optim.amp, pointer_coef=config.optim.pointer_coef)
         optimizer.zero_grad(set_to_none=True)
         loss_value, _ = backward_on_shard(loss, accuracy, batch, ranks, device)
         torch.nn.utils.clip_grad_norm_(policy.parameters(), config.optim.max_grad_norm)

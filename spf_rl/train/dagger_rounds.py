@@ -126,11 +126,11 @@ class RoundStore(TensorStore):
     """
 
     KIND = "dagger_round"
-    FORMAT_VERSION = 2
+    FORMAT_VERSION = 3
     ERROR = RoundError
     FORMAT_HISTORY = (
-        "(version 1 stored every episode's demonstration frames; rounds before version 1 were plain "
-        "memory-mapped TensorDicts)"
+        "(version 2 had no route_step in rounds of route styles; version 1 stored every episode's "
+        "demonstration frames; rounds before version 1 were plain memory-mapped TensorDicts)"
     )
 
     @staticmethod

@@ -43,6 +43,9 @@ class OptimConfig:
             steadies the final checkpoints.
         amp: compute the loss under bf16 autocast (mixed precision; see
             :mod:`spf_rl.device`). Off by default; on the CPU faster only with native bf16 (docs/performance.md).
+        pointer_coef: weight of the pointer loss beside the cross-entropy
+            (:func:`~spf_rl.train.bc.bc_loss`): holds the pointer (RPF's rule, in demonstration
+            steps) to the agent's place on the route, the episodes' ``route_step``. 0: off.
     """
 
     lr: float = 1e-3
@@ -52,6 +55,11 @@ class OptimConfig:
     max_grad_norm: float = 1.0
     cosine_schedule: bool = True
     amp: bool = False
+    pointer_coef: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not self.pointer_coef >= 0.0 or self.pointer_coef == float("inf"):
+            raise ValueError(f"optim.pointer_coef must be a finite number >= 0, got {self.pointer_coef!r}.")
 
 
 class TrainingRun:
@@ -69,7 +77,7 @@ class TrainingRun:
         optim: the optimiser settings.
         total_steps: gradient steps of the whole run (the cosine schedule's length).
         keep_epochs: also write every epoch's weights to ``epochs/epoch-NNN.pt``.
-        loss_fn: ``loss_fn(policy, batch, amp=...) -> (loss, accuracy)`` of a batch
+        loss_fn: ``loss_fn(policy, batch, amp=..., pointer_coef=...) -> (loss, accuracy)`` of a batch
             (:func:`spf_rl.train.bc.bc_loss` for behaviour cloning).
         ranks: this process's place in a data-parallel run (:mod:`spf_rl.train.distributed`):
             with more than one rank the policy is wrapped in DistributedDataParallel, each
@@ -139,7 +147,7 @@ class TrainingRun:
         device = next(self.policy.parameters()).device
         for batch in bar:
             policy = self.module if policy_of is None else policy_of(batch).train()
-            loss, accuracy = self.loss_fn(policy, batch, amp=self.optim.amp)
+            loss, accuracy = self.loss_fn(policy, batch, amp=self.optim.amp, pointer_coef=self.optim.pointer_coef)
             self.optimizer.zero_grad(set_to_none=True)
             loss_value, accuracy_value = backward_on_shard(loss, accuracy, batch, self.ranks, device)
             torch.nn.utils.clip_grad_norm_(self.policy.parameters(), self.optim.max_grad_norm)
