@@ -166,6 +166,9 @@ def test_rounds_aggregate_retrain_and_report(two_rounds, shared_checkpoint):
     assert all("test_success" in r and 0.0 <= r["val_spl"] <= r["val_success"] + 1e-6 for r in history)
     written = json.loads((output / "results.json").read_text())
     assert written["best_round_by_val"] == results["best_round_by_val"] == results["best"]["round"]
+    shipped = json.loads((output / "test_episodes.json").read_text())  # the best round's own test records
+    successes = [float(r["success"]) for r in shipped["episodes"]]
+    assert shipped["round"] == results["best"]["round"] and sum(successes) / len(successes) == pytest.approx(results["best"]["test_success"])
     best_record = history[results["best"]["round"]]
     assert results["best"]["val_success"] == best_record["val_success"] and "test_success" in results["best"]
     assert (output / "dagger.png").stat().st_size > 0
@@ -339,5 +342,7 @@ def test_the_best_round_is_tested_from_best_pt(three_learner_driven_rounds):
     assert best["round"] == results["best"]["round"]
     policy = build_policy("spf", best["model_config"])
     policy.load_state_dict(best["model"])
-    summary, _ = evaluate_policy(policy, config.test)
+    summary, records = evaluate_policy(policy, config.test)
     assert results["best"]["test_success"] == summary["success"] and results["best"]["test_spl"] == summary["spl"]
+    shipped = json.loads((Path(config.output_dir) / "test_episodes.json").read_text())  # for recipes/paired.py
+    assert shipped["round"] == best["round"] and shipped["episodes"] == json.loads(json.dumps(records, default=str))

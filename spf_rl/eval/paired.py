@@ -1,5 +1,5 @@
 """Paired comparison of two evaluations of the same episodes (``recipes/evaluate.py`` JSONs,
-or the ``test_episodes.json`` that ``recipes/bc.py`` writes beside a run's results).
+or the ``test_episodes.json`` that ``recipes/bc.py`` and ``recipes/dagger.py`` write beside a run's results).
 
 Each side is one JSON, or several (one per training seed: the statistic is then
 pooled over seeds). Every file must hold per-episode records of the same episodes in

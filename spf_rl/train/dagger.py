@@ -32,6 +32,7 @@ computes the retraining loss under bf16 autocast; collection and scoring stay fl
 """
 from __future__ import annotations
 
+import json
 import logging
 import time
 from dataclasses import asdict, dataclass, field, replace
@@ -294,11 +295,20 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
         else None
     )
 
+    tested: dict[int, list[dict]] = {}  # the per-episode test records of rounds tested in this process
+
+    def keep_test_records(round_index: int) -> None:
+        """The new best round's test records, if it was tested, as ``test_episodes.json``."""
+        if round_index in tested:
+            _write_test_episodes(output, round_index, tested[round_index])
+
     def score(round_index: int, extra: dict) -> dict:
         val, _ = evaluate_policy(policy, val_config)
         record = {"round": round_index, **extra, "val_success": val["success"], "val_spl": val["spl"]}
         if config.test_every_round or round_index in (0, config.rounds):
-            record.update(_test_fields(evaluate_policy(policy, test_config, progress=config.progress)[0]))
+            summary, records = evaluate_policy(policy, test_config, progress=config.progress)
+            record.update(_test_fields(summary))
+            tested[round_index] = records
         logger.info("round %d: %s", round_index, record)
         if run_logger is not None:
             for key, value in record.items():
@@ -318,6 +328,7 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
         bc_count = len(bc_data) if bc_data is not None else 0
         history.append(score(0, {"beta": None, "training_episodes": bc_count}))
         save_checkpoint(best_path, model_type, policy_config, {"model": policy.state_dict(), "round": 0})
+        keep_test_records(0)
         save(0)
     barrier(ranks)
 
@@ -346,6 +357,7 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
             best = max(history, key=lambda r: (r["val_success"], r["val_spl"]))
             if best["round"] == round_index:
                 save_checkpoint(best_path, model_type, policy_config, {"model": policy.state_dict(), "round": round_index})
+                keep_test_records(round_index)
             save(round_index)
         else:
             history.append({"round": round_index, **collected})
@@ -355,7 +367,7 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
         return {"rank": ranks.rank, "history": history}
 
     best = max(history, key=lambda r: (r["val_success"], r["val_spl"]))
-    if "test_success" not in best:  # the shipped checkpoint (best.pt) gets its own test
+    if "test_success" not in best or _test_episodes_round(output) != best["round"]:  # the shipped checkpoint's own test
         shipped = load_checkpoint(best_path, expected_model_type=model_type)
         if shipped["round"] != best["round"]:
             raise RuntimeError(
@@ -363,7 +375,9 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
                 "(a run interrupted between its checkpoints); rerun that round or delete the run."
             )
         policy.load_state_dict(shipped["model"])
-        best = {**best, **_test_fields(evaluate_policy(policy, test_config, progress=config.progress)[0])}
+        summary, records = evaluate_policy(policy, test_config, progress=config.progress)
+        _write_test_episodes(output, best["round"], records)
+        best = {**best, **_test_fields(summary)}
         logger.info("best round %d (best.pt): %s", best["round"], best)
     results = {
         "model": model_type,
@@ -379,6 +393,18 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
     atomic_write_json(output / "results.json", results, default=str)
     plot_if_available(plot_rounds, history, output / "dagger.png", title=f"DAgger from {Path(config.checkpoint).name}")
     return results
+
+
+def _write_test_episodes(output: Path, round_index: int, records: list[dict]) -> None:
+    """``test_episodes.json``: the best round's per-episode test records, as ``recipes/bc.py``
+    writes a run's (``recipes/paired.py`` compares runs on them)."""
+    atomic_write_json(output / "test_episodes.json", {"round": round_index, "episodes": records}, default=str)
+
+
+def _test_episodes_round(output: Path) -> int | None:
+    """The round whose test records ``test_episodes.json`` holds (``None``: there is none)."""
+    path = output / "test_episodes.json"
+    return json.loads(path.read_text()).get("round") if path.exists() else None
 
 
 def _test_fields(summary: dict) -> dict:
