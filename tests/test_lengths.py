@@ -77,6 +77,7 @@ def test_policy_for_length_refuses_a_custom_encoder():
         (dict(lengths=[30, 0], episodes=[1, 1]), r"lengths\[i\] must be an int in \[1, 198\]"),
         (dict(lengths=[30], episodes=[0]), r"episodes\[i\] must be a positive int"),
         (dict(device="gpu"), "device must be one of"),
+        (dict(optim=OptimConfig(pointer_coef=0.1)), "optim.pointer_coef > 0 needs episodes of a route style"),
     ],
 )
 def test_mixed_length_config_is_validated(kwargs, message):

@@ -35,7 +35,7 @@ from spf_rl.data import DatasetConfig, EpisodeDataset, format_tag
 from spf_rl.device import DEFAULT_DEVICE, check_device
 from spf_rl.modules.policy import SPFPolicy
 from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
-from spf_rl.train.bc import bc_loss, default_test_config, default_val_config, model_memory_bytes
+from spf_rl.train.bc import bc_loss, check_pointer_labels, default_test_config, default_val_config, model_memory_bytes
 from spf_rl.train.evaluation import EvalConfig, evaluate_policy
 from spf_rl.train.run import OptimConfig, TrainingRun, run_on_device, start_run
 
@@ -189,6 +189,7 @@ class MixedLengthConfig:
             )
         for count in self.episodes:
             check_positive_int("episodes[i]", count)
+        check_pointer_labels(self.optim, self.data.route_style, "data.route_style")
 
     def dataset_config(self, index: int) -> DatasetConfig:
         """The dataset of ``lengths[index]``."""
