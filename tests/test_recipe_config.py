@@ -149,12 +149,16 @@ def test_main_job_benchmark_compares_the_previous_and_current_budgets(tmp_path):
 
 @pytest.mark.parametrize("recipe", ["bc", "dagger"])
 def test_every_documented_preset_is_accepted(recipe):
-    """Each ``recipes/<recipe>.py --preset X`` in the README, docs/ or recipes/ is in the recipe's PRESETS and has a YAML."""
+    """Each ``recipes/<recipe>.py --preset X`` in the README, docs/, recipes/ or a preset's own YAML is in the
+    recipe's PRESETS and has a YAML."""
     import importlib
     import re
 
     root = Path(__file__).resolve().parents[1]
-    texts = [root / "README.md", *sorted((root / "docs").glob("*.md")), *sorted((root / "recipes").glob("*.py"))]
+    texts = [
+        root / "README.md", *sorted((root / "docs").glob("*.md")), *sorted((root / "recipes").glob("*.py")),
+        *sorted((root / "recipes" / "configs").glob("*.yaml")),
+    ]
     documented = {
         name
         for path in texts
