@@ -501,7 +501,7 @@ class PathFollowEnv(EnvBase):
         if self.with_expert:
             expert = torch.from_numpy(self.expert_actions())
             out["expert_action"] = expert if self.num_agents is not None else expert[0]
-        if self.with_route_step:  # after the actions: the expert's progress is then at this pose
+        if self.with_route_step:  # after the actions, and leaving the experts as they are
             route_step = torch.from_numpy(self.route_steps()).unsqueeze(-1)
             out["route_step"] = route_step if self.num_agents is not None else route_step[0]
         if self._cpu:
@@ -520,7 +520,7 @@ class PathFollowEnv(EnvBase):
     def route_steps(self) -> np.ndarray:
         """The demonstration step every agent has come to along its route, ``(N,)`` (route expert only)."""
         return np.array(
-            [expert.route_step(self._pose[i]) if expert is not None else 0 for i, expert in enumerate(self._experts)],
+            [expert.peek_route_step(self._pose[i]) if expert is not None else 0 for i, expert in enumerate(self._experts)],
             dtype=np.int64,
         )
 

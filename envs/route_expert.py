@@ -141,6 +141,16 @@ class RouteExpert:
         matched = self.match(pose)
         return max(self.matched, int(self._waypoint_pose[self.progress])) if matched is None else matched
 
+    def peek_route_step(self, pose: np.ndarray) -> int:
+        """:meth:`route_step` that leaves the expert as it was: for a label beside :meth:`action`
+        at the same pose. (:meth:`target` and :meth:`match` may move on a second call at a pose,
+        to a nearer point past the first call's window, which would change later actions.)"""
+        saved = (self.progress, self.matched)
+        try:
+            return self.route_step(pose)
+        finally:
+            self.progress, self.matched = saved
+
     def match(self, pose: np.ndarray) -> int | None:
         """The index of the demonstrated pose that ``pose`` matches (``None``: off the route).
 

@@ -86,6 +86,26 @@ def test_the_route_expert_labels_the_agents_place_on_its_route():
     assert "route_step" not in PathFollowEnv(demo_length=20, with_expert=True, **SMALL).observation_spec.keys()  # goal expert
 
 
+def test_labelling_the_route_step_never_changes_the_experts_actions():
+    from torchrl.envs import TransformedEnv
+
+    from envs.route_expert import RouteExpert
+    from envs.transforms import ActuationNoise
+
+    env = TransformedEnv(PathFollowEnv(route_style="driven=1,tour=1,planner=1", route_lengths=(10, 30), demo_length=30,
+                                       num_agents=4, with_expert=True, **SMALL), ActuationNoise("paper"))
+    env.set_seed(5)
+    td = env.reset()
+    base = env.base_env
+    experts = [RouteExpert(base.houses[i], demo) for i, demo in enumerate(base.demonstrations)]  # never asked for labels
+    for _ in range(20):  # under noise, poses that match the route again and again
+        live = ~td["done"].squeeze(-1) if "done" in td.keys() else torch.ones(4, dtype=torch.bool)
+        for agent in np.flatnonzero(live.numpy()):
+            assert experts[agent].action(td["pose"][agent].numpy()) == int(td["expert_action"][agent])
+        td["action"] = td["expert_action"]
+        td = env.step(td)["next"]
+
+
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [

@@ -112,3 +112,22 @@ def test_the_env_picks_the_route_expert_for_routes_people_teach():
     assert PathFollowEnv(num_houses=1, demo_length=30, render=False, route_style="driven", route_lengths=(10, 30)).expert == "route"
     with pytest.raises(ValueError, match="expert must be one of 'goal', 'route' or None, got 'shortest'"):
         PathFollowEnv(num_houses=1, demo_length=5, render=False, expert="shortest")
+
+
+def test_peeking_at_the_route_step_never_changes_the_actions():
+    """The env labels route_step beside the action at every pose: that must not move the expert on."""
+    rng = np.random.default_rng(0)
+    seeds = split_seeds("train", 3, grid_size_cells=default_grid_size_cells(60))
+    for i in range(12):
+        house = build_house(seeds[i % 3])
+        demo = sample_route(STYLES[i % 3], house, np.random.default_rng(i), 60)
+        # poses near the route, in its order, as a noisy follower visits them (some twice)
+        poses = np.repeat(demo.poses, rng.integers(1, 3, len(demo.poses)), axis=0)
+        poses = poses + np.c_[rng.normal(0, 0.08, (len(poses), 2)), rng.normal(0, 0.1, len(poses))]
+        quiet, labelling = RouteExpert(house, demo), RouteExpert(house, demo)
+        steps = []
+        for pose in poses:
+            assert labelling.action(pose) == quiet.action(pose)
+            steps.append(labelling.peek_route_step(pose))
+            assert (labelling.progress, labelling.matched) == (quiet.progress, quiet.matched)
+        assert 0 < max(steps) <= demo.length
