@@ -8,6 +8,7 @@ Behaviour cloning (:mod:`spf_rl.train.bc`), the mixed-length run
 from __future__ import annotations
 
 import logging
+import math
 import os
 import time
 from collections.abc import Callable, Collection
@@ -58,7 +59,7 @@ class OptimConfig:
     pointer_coef: float = 0.0
 
     def __post_init__(self) -> None:
-        if not self.pointer_coef >= 0.0 or self.pointer_coef == float("inf"):
+        if not (math.isfinite(self.pointer_coef) and self.pointer_coef >= 0.0):
             raise ValueError(f"optim.pointer_coef must be a finite number >= 0, got {self.pointer_coef!r}.")
 
 
