@@ -43,13 +43,26 @@ ENV = CollectionEnvConfig(num_houses=1, demo_length=5, max_steps=6, image_size=3
 ALLOWED = r"must be one of 'auto', 'cpu', 'cuda' or 'cuda:N'"
 #: bf16 autocast: step-mode and sequence-mode logits agree within this fraction of the
 #: largest |logit| (bf16 keeps 8 mantissa bits, ~0.4% per rounding, and the error grows
-#: with the logits' scale; measured: 0.082 at max |logit| 5.5 on spf-s0.8).
+#: with the logits' scale; measured: 0.082 at max |logit| 5.5 on spf-s0.8) ...
 AMP_LOGIT_RELATIVE_TOLERANCE = 2e-2
+#: ... or, where bf16 itself moves the logits further, within this multiple of that move
+#: (its largest |bf16 - float32| gap in sequence mode). On 20 random sequences of 3 x 12
+#: steps for spf-s0.8, measured on an H200 and on CPUs, the step/sequence gap stayed within
+#: 1.3x of bf16's own move; that move reached 6.4% of the largest |logit| (seed 0 below).
+AMP_SHIFT_FACTOR = 1.5
+#: bf16 sequence-mode logits stay within this fraction of the largest |logit| of float32's
+#: (the 6.4% above is the largest move measured).
+AMP_SHIFT_RELATIVE_BOUND = 8e-2
 
 
-def amp_tolerance(reference: torch.Tensor) -> dict:
-    """``assert_close`` tolerances for bf16 logits against ``reference`` logits."""
-    return {"rtol": 0.0, "atol": AMP_LOGIT_RELATIVE_TOLERANCE * max(1.0, float(reference.abs().max()))}
+def assert_amp_agreement(step16: torch.Tensor, whole16: torch.Tensor, whole32: torch.Tensor) -> None:
+    """Under bf16 autocast: step mode agrees with sequence mode as closely as bf16 agrees with
+    float32, or within ``AMP_LOGIT_RELATIVE_TOLERANCE``, and bf16 stays near float32."""
+    scale = max(1.0, float(whole32.abs().max()))
+    shift = float((whole16 - whole32).abs().max())
+    assert shift <= AMP_SHIFT_RELATIVE_BOUND * scale, f"bf16 moved the logits by {shift:.3f} at scale {scale:.2f}"
+    atol = max(AMP_LOGIT_RELATIVE_TOLERANCE * scale, AMP_SHIFT_FACTOR * shift)
+    torch.testing.assert_close(step16, whole16, rtol=0.0, atol=atol)
 no_cuda = pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without CUDA")
 
 
@@ -337,14 +350,13 @@ def test_step_and_sequence_logits_agree_under_bf16_autocast():
     import spf_rl
 
     policy, config = spf_rl.load_policy("spf-s0.8")  # trained weights: logits of realistic size
-    torch.manual_seed(0)
-    sequence = random_sequence(config, rows=2, steps=10, restart_at=6)
+    torch.manual_seed(0)  # the sequence where bf16 moved the logits most (6.4% of the largest |logit|)
+    sequence = random_sequence(config, rows=3, steps=12, restart_at=7)
     step32, whole32 = step_and_sequence_logits(policy, sequence, amp=False)
     torch.testing.assert_close(step32, whole32, rtol=1e-5, atol=1e-5)
     step16, whole16 = step_and_sequence_logits(policy, sequence, amp=True)
-    torch.testing.assert_close(step16, whole16, **amp_tolerance(whole16))
     assert (step16 - step32).abs().max() > 0  # bf16 did change the numbers
-    torch.testing.assert_close(whole16, whole32, **amp_tolerance(whole32))  # and bf16 stays near float32
+    assert_amp_agreement(step16, whole16, whole32)
 
 
 def test_amp_bc_loss_and_ppo_collection_on_the_cpu():

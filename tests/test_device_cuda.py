@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from test_device import amp_tolerance, random_sequence, step_and_sequence_logits, tiny_ppo_config
+from test_device import assert_amp_agreement, random_sequence, step_and_sequence_logits, tiny_ppo_config
 
 import spf_rl
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
@@ -106,7 +106,7 @@ def test_step_and_sequence_logits_agree_on_cuda(no_tf32):
     step32, whole32 = step_and_sequence_logits(policy, sequence, amp=False)
     torch.testing.assert_close(step32, whole32, rtol=1e-4, atol=1e-4)
     step16, whole16 = step_and_sequence_logits(policy, sequence, amp=True)
-    torch.testing.assert_close(step16, whole16, **amp_tolerance(whole16))
+    assert_amp_agreement(step16, whole16, whole32)
     cpu_policy, _ = spf_rl.load_policy("spf-s0.8")
     _, whole_cpu = step_and_sequence_logits(cpu_policy, sequence, amp=False)
     torch.testing.assert_close(whole32.cpu(), whole_cpu, rtol=1e-4, atol=1e-4)
