@@ -189,9 +189,12 @@ def test_the_pointer_loss_is_added_to_the_cross_entropy_and_holds_the_pointer_to
     torch.manual_seed(1)  # the same memory masks for every pass
     plain, _ = bc_loss(policy, batch)
     torch.manual_seed(1)
-    with_pointer, _ = bc_loss(policy, batch, pointer_coef=0.5)
+    parts = {}
+    with_pointer, _ = bc_loss(policy, batch, pointer_coef=0.5, parts=parts)
     torch.manual_seed(1)
-    assert with_pointer.item() == pytest.approx(plain.item() + 0.5 * _pointer_error(policy, batch), rel=1e-5)
+    pointer = _pointer_error(policy, batch)
+    assert with_pointer.item() == pytest.approx(plain.item() + 0.5 * pointer, rel=1e-5)
+    assert parts == pytest.approx({"cross_entropy": plain.item(), "pointer": pointer}, rel=1e-5)
 
     errors = {}
     for coef in (0.0, 1.0):  # the same start, the same batches: only the pointer loss differs
@@ -217,3 +220,20 @@ def test_the_pointer_loss_needs_route_step_labels(tmp_path):
     policy = build_policy("spf", spf_config(ModelConfig(sparsity=0.4, feature_dim=16, hidden_size=16), 5, 32))
     with pytest.raises(ValueError, match="pointer_coef > 0 needs 'route_step' in the episodes' steps"):
         bc_loss(policy, batch, pointer_coef=0.1)
+
+
+def test_a_run_with_the_pointer_loss_logs_it_apart(tmp_path):
+    config = dataclasses.replace(
+        tiny_config(tmp_path, epochs=2, model="spf_random"),
+        data=ROUTES,
+        model=ModelConfig(name="spf_random", pointer_update="rpf", feature_dim=16, hidden_size=16),
+        optim=OptimConfig(batch_size=4, epochs=2, lr=3e-3, pointer_coef=0.1),
+    )
+    history = train_bc(config)["history"]
+    assert all(record["train_pointer_loss"] > 0 for record in history)
+    logged = tmp_path / "run" / "logs" / "bc" / "scalars"
+    rows = (logged / "train" / "pointer_loss.csv").read_text().split()
+    assert len(rows) == 4  # 8 episodes at batch 4, 2 epochs: a row per gradient step
+    assert len((logged / "epoch" / "train_pointer_loss.csv").read_text().split()) == 2
+    plain = train_bc(dataclasses.replace(config, output_dir=str(tmp_path / "plain"), optim=OptimConfig(batch_size=4, epochs=2)))
+    assert all("train_pointer_loss" not in record for record in plain["history"])

@@ -186,7 +186,11 @@ def episodes_to_sequence(batch: TensorDict, device: torch.device | str | None = 
 
 
 def bc_loss(
-    policy: SPFPolicy, batch: TensorDict, amp: bool = False, pointer_coef: float = 0.0
+    policy: SPFPolicy,
+    batch: TensorDict,
+    amp: bool = False,
+    pointer_coef: float = 0.0,
+    parts: dict[str, float] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Cross-entropy between the policy's logits and the expert's actions on valid steps,
     plus ``pointer_coef`` times the :func:`pointer_loss`.
@@ -199,6 +203,9 @@ def bc_loss(
             ``pointer_coef`` > 0 their steps must hold ``route_step``.
         amp: run the forward pass under bf16 autocast (the cross-entropy is float32).
         pointer_coef: weight of the pointer loss (0: the cross-entropy alone).
+        parts: if given, receives the loss's parts as numbers: ``"cross_entropy"`` and, with
+            ``pointer_coef`` > 0, ``"pointer"`` (the pointer loss before its weight), so that a
+            training loop can log them apart.
 
     Returns:
         (loss, accuracy of the arg-max action).
@@ -218,8 +225,13 @@ def bc_loss(
     labels = sequence.get("expert_action")[mask]
     loss = F.cross_entropy(logits, labels)
     accuracy = (logits.argmax(-1) == labels).float().mean()
+    if parts is not None:
+        parts["cross_entropy"] = loss.item()
     if pointer_coef > 0:
-        loss = loss + pointer_coef * pointer_loss(sequence)
+        pointer = pointer_loss(sequence)
+        loss = loss + pointer_coef * pointer
+        if parts is not None:
+            parts["pointer"] = pointer.item()
     return loss, accuracy
 
 

@@ -66,7 +66,7 @@ from spf_rl.train.dagger_rounds import (
     source_rows,
     training_sources,
 )
-from spf_rl.train.distributed import Ranks, backward_on_shard, barrier, init_distributed, shard_indices
+from spf_rl.train.distributed import Ranks, backward_on_shard, barrier, batch_mean, init_distributed, shard_indices
 from spf_rl.train.evaluation import EvalConfig, FramesFromStore, evaluate_policy, with_episode_sizes
 from spf_rl.train.run import OptimConfig, trim_csv_logs
 from spf_rl.train.run_config import DAGGER_RESUME_FREE, write_run_config
@@ -349,9 +349,7 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
         collected = {"beta": beta, **behaviour_statistics(episodes)}
         sources = training_sources(bc_data, output, round_index, config.window_rounds)
         collected["training_episodes"] = sum(len(source) for source in sources)
-        collected["train_loss"], collected["gradient_steps"] = _train_round(
-            trained, optimizer, sources, config, round_index, ranks
-        )
+        collected.update(_train_round(trained, optimizer, sources, config, round_index, ranks))
         if ranks.is_main:
             history.append(score(round_index, collected))
             best = max(history, key=lambda r: (r["val_success"], r["val_spl"]))
@@ -448,7 +446,7 @@ def _train_round(
     config: DAggerConfig,
     round_index: int,
     ranks: Ranks = Ranks(),
-) -> tuple[float, int]:
+) -> dict[str, float | int]:
     """Retrain on ``sources``: ``steps_per_round`` steps (or ``epochs_per_round`` passes) of
     batches drawn without replacement, pass after pass, in an order fixed by the seed and round.
 
@@ -456,7 +454,8 @@ def _train_round(
     trains on its shard of every batch (:mod:`spf_rl.train.distributed`).
 
     Returns:
-        the mean loss (over whole batches) and the number of gradient steps.
+        ``train_loss`` (the mean over whole batches), ``gradient_steps`` and, with
+        ``optim.pointer_coef`` > 0, ``train_pointer_loss`` (the pointer loss's mean, before its weight).
     """
     policy.train()
     device = next(policy.parameters()).device
@@ -467,7 +466,7 @@ def _train_round(
     generator = torch.Generator().manual_seed(config.seed * 100_003 + round_index * 101)
     passes = -(-steps * batch_size // total)
     order = torch.cat([torch.randperm(total, generator=generator) for _ in range(passes)])
-    losses = []
+    losses, pointer_losses = [], []
     bar = tqdm(range(steps), desc=f"round {round_index} retraining", disable=not config.progress)
     for step in bar:
         rows = shard_indices(order[step * batch_size : (step + 1) * batch_size], ranks)
@@ -477,14 +476,20 @@ def _train_round(
             for k in source_of_row.unique().tolist()
         ]
         batch = torch.cat(parts, 0)
-        loss, accuracy = bc_loss(policy, batch, amp=config.optim.amp, pointer_coef=config.optim.pointer_coef)
+        parts: dict[str, float] = {}
+        loss, accuracy = bc_loss(policy, batch, amp=config.optim.amp, pointer_coef=config.optim.pointer_coef, parts=parts)
         optimizer.zero_grad(set_to_none=True)
         loss_value, _ = backward_on_shard(loss, accuracy, batch, ranks, device)
         torch.nn.utils.clip_grad_norm_(policy.parameters(), config.optim.max_grad_norm)
         optimizer.step()
         losses.append(loss_value)
+        if "pointer" in parts:
+            pointer_losses.append(batch_mean(parts["pointer"], batch, ranks, device))
         bar.set_postfix(loss=f"{losses[-1]:.3f}")
-    return float(sum(losses) / len(losses)), steps
+    trained = {"train_loss": float(sum(losses) / len(losses)), "gradient_steps": steps}
+    if pointer_losses:
+        trained["train_pointer_loss"] = float(sum(pointer_losses) / len(pointer_losses))
+    return trained
 
 
 def plot_rounds(history: list[dict], path: Path, title: str = "DAgger") -> None:

@@ -191,10 +191,20 @@ def backward_on_shard(
         loss.backward()
         return loss.item(), accuracy.item()
     labelled = int(batch.get(("steps", "mask")).sum())
-    weight, total = global_mean_weight(labelled, ranks, device)
+    weight, _ = global_mean_weight(labelled, ranks, device)
     (loss * weight).backward()
-    mean_loss = all_ranks_sum(loss.item() * labelled, ranks, device) / max(total, 1)
-    return mean_loss, all_ranks_sum(accuracy.item() * labelled, ranks, device) / max(total, 1)
+    return batch_mean(loss.item(), batch, ranks, device), batch_mean(accuracy.item(), batch, ranks, device)
+
+
+def batch_mean(value: float, batch, ranks: Ranks, device: torch.device) -> float:
+    """The whole batch's mean of a per-step mean ``value`` over this rank's shard of ``batch``
+    (weighted by each shard's labelled steps, ``batch["steps", "mask"]``); ``value`` itself in
+    one process."""
+    if not ranks.distributed:
+        return value
+    labelled = int(batch.get(("steps", "mask")).sum())
+    total = all_ranks_sum(float(labelled), ranks, device)
+    return all_ranks_sum(value * labelled, ranks, device) / max(total, 1.0)
 
 
 def barrier(ranks: Ranks) -> None:
@@ -209,6 +219,7 @@ __all__ = [
     "all_ranks_sum",
     "backward_on_shard",
     "barrier",
+    "batch_mean",
     "global_mean_weight",
     "init_distributed",
     "shard_indices",

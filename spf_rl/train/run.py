@@ -23,7 +23,7 @@ from envs.atomic_io import atomic_write_text
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.device import exact_float32, resolve_device
 from spf_rl.modules.policy import SPFPolicy
-from spf_rl.train.distributed import Ranks, backward_on_shard, barrier
+from spf_rl.train.distributed import Ranks, backward_on_shard, barrier, batch_mean
 from spf_rl.train.run_config import BC_RESUME_FREE, write_run_config
 
 logger = logging.getLogger(__name__)
@@ -78,8 +78,11 @@ class TrainingRun:
         optim: the optimiser settings.
         total_steps: gradient steps of the whole run (the cosine schedule's length).
         keep_epochs: also write every epoch's weights to ``epochs/epoch-NNN.pt``.
-        loss_fn: ``loss_fn(policy, batch, amp=..., pointer_coef=...) -> (loss, accuracy)`` of a batch
-            (:func:`spf_rl.train.bc.bc_loss` for behaviour cloning).
+        loss_fn: ``loss_fn(policy, batch, amp=..., pointer_coef=..., parts=...) -> (loss, accuracy)``
+            of a batch, filling the dict ``parts`` with the loss's parts
+            (:func:`spf_rl.train.bc.bc_loss` for behaviour cloning); with ``optim.pointer_coef`` > 0,
+            its ``"pointer"`` part is logged as ``train/pointer_loss`` and the epoch's mean is
+            ``train_pointer_loss`` in the epoch's record.
         ranks: this process's place in a data-parallel run (:mod:`spf_rl.train.distributed`):
             with more than one rank the policy is wrapped in DistributedDataParallel, each
             batch is this rank's shard, the logged loss and accuracy are the whole batch's,
@@ -116,6 +119,7 @@ class TrainingRun:
         self.history: list[dict] = []
         self.best = {"success": -1.0, "spl": -1.0, "epoch": -1}
         self.step = 0
+        self.pointer_losses: list[float] = []  # the pointer loss of each step of the current epoch
 
     def resume(self) -> int:
         """Load ``last.pt`` if it exists; returns the number of finished epochs."""
@@ -144,13 +148,19 @@ class TrainingRun:
             raise ValueError("policy_of (a view of the policy per batch) does not run data-parallel; start one process.")
         self.policy.train()
         losses, accuracies, start = [], [], time.time()
+        self.pointer_losses = []
         bar = tqdm(batches, total=num_batches, desc=desc, disable=not progress)
         device = next(self.policy.parameters()).device
         for batch in bar:
             policy = self.module if policy_of is None else policy_of(batch).train()
-            loss, accuracy = self.loss_fn(policy, batch, amp=self.optim.amp, pointer_coef=self.optim.pointer_coef)
+            parts: dict[str, float] = {}
+            loss, accuracy = self.loss_fn(
+                policy, batch, amp=self.optim.amp, pointer_coef=self.optim.pointer_coef, parts=parts
+            )
             self.optimizer.zero_grad(set_to_none=True)
             loss_value, accuracy_value = backward_on_shard(loss, accuracy, batch, self.ranks, device)
+            if "pointer" in parts:
+                self.pointer_losses.append(batch_mean(parts["pointer"], batch, self.ranks, device))
             torch.nn.utils.clip_grad_norm_(self.policy.parameters(), self.optim.max_grad_norm)
             self.optimizer.step()
             self.scheduler.step()
@@ -160,6 +170,8 @@ class TrainingRun:
             bar.set_postfix(loss=f"{losses[-1]:.3f}", acc=f"{accuracies[-1]:.2f}")
             if run_logger is not None:
                 run_logger.log_scalar("train/loss", losses[-1], step=self.step)
+                if "pointer" in parts:
+                    run_logger.log_scalar("train/pointer_loss", self.pointer_losses[-1], step=self.step)
         return losses, accuracies, time.time() - start
 
     def end_epoch(
@@ -179,10 +191,12 @@ class TrainingRun:
             "val_spl": None if val is None else val["spl"],
             "train_seconds": train_seconds,
         }
+        if self.pointer_losses:
+            record["train_pointer_loss"] = sum(self.pointer_losses) / len(self.pointer_losses)
         self.history.append(record)
         if run_logger is not None:
-            for key in ("train_accuracy", "val_success", "val_spl"):
-                if record[key] is not None:
+            for key in ("train_accuracy", "train_pointer_loss", "val_success", "val_spl"):
+                if record.get(key) is not None:
                     run_logger.log_scalar(f"epoch/{key}", record[key], step=self.step)
         if not self.ranks.is_main:
             return record
