@@ -243,6 +243,32 @@ def test_interrupted_run_resumes_to_the_same_result(tmp_path, two_rounds, one_ro
     assert straight["history"][2]["val_success"] == resumed["history"][2]["val_success"]
 
 
+def test_a_run_moved_without_its_round_data_collects_its_rounds_again(tmp_path, two_rounds, one_round, shared_checkpoint):
+    """On another machine with last.pt and learners/ but not the rounds' episodes, resuming collects
+    the window's rounds again with the learners that collected them and ends where the
+    uninterrupted run ends."""
+    straight_run, straight = two_rounds
+    copy_run(one_round, tmp_path / "b")
+    run = tmp_path / "b" / "dagger"
+    assert sorted(p.name for p in (run / "learners").iterdir()) == ["learner-00.pt", "learner-01.pt"]
+    shutil.rmtree(run / "rounds")
+    resumed = train_dagger(tiny_config(tmp_path / "b", shared_checkpoint))
+    for name in ("round-01", "round-02"):
+        again = RoundStore(run / "rounds" / name).episodes
+        original = RoundStore(straight_run / "dagger" / "rounds" / name).episodes
+        assert again.batch_size == original.batch_size and (again == original).all()
+    a = load_checkpoint(straight_run / "dagger" / "last.pt")["model"]
+    b = load_checkpoint(run / "last.pt")["model"]
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert [r["val_success"] for r in resumed["history"]] == [r["val_success"] for r in straight["history"]]
+
+
+def test_learners_are_kept_for_the_window_only(three_learner_driven_rounds):
+    config, _ = three_learner_driven_rounds  # window of 2 rounds, after round 3: rounds 2 and 3 need learners 1 and 2
+    learners = sorted(p.name for p in (Path(config.output_dir) / "learners").iterdir())
+    assert learners == ["learner-01.pt", "learner-02.pt", "learner-03.pt"]
+
+
 def test_a_stored_round_of_another_run_or_corrupt_is_refused(tmp_path, one_round, shared_checkpoint):
     """Resuming never trains on a round collected by another config, or on damaged bytes."""
     copy_run(one_round, tmp_path / "a")

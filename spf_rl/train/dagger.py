@@ -23,6 +23,11 @@ interrupted run started again with the same config reads the stored rounds
 and continues with the next round. Collection is deterministic and does not depend
 on the collector layout: the round's numbered episodes, the mixing coin (a Philox
 draw of the episode seed and step) and the greedy learner fix every visited state.
+So the run also keeps the learners that collected its window of rounds
+(``learners/learner-XX.pt``, :func:`~spf_rl.train.dagger_rounds.learner_path`, about the size
+of the policy each); where a window round's episodes are missing (the run moved to another
+machine with ``last.pt`` and ``learners/`` but not the gigabytes of ``rounds/``), resuming
+collects them again.
 
 The learner and its optimiser run on ``DAggerConfig.device`` (see
 :mod:`spf_rl.device`): the collector gets it as ``policy_device`` with the envs on
@@ -34,6 +39,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -61,6 +67,7 @@ from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig, collec
 from spf_rl.train.dagger_rounds import (
     RoundConfig,
     RoundStore,
+    learner_path,
     round_demo_config,
     round_directory,
     source_rows,
@@ -317,13 +324,42 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
         return record
 
     def save(round_index: int) -> None:
+        save_checkpoint(learner_path(output, round_index), model_type, policy_config, {"model": policy.state_dict()})
         save_checkpoint(
             last_path,
             model_type,
             policy_config,
             {"model": policy.state_dict(), "optimizer": optimizer.state_dict(), "round": round_index, "history": history},
         )
+        if config.window_rounds is not None:  # a resume after this round collects at most its window again
+            for old in range(round_index - config.window_rounds):
+                learner_path(output, old).unlink(missing_ok=True)
 
+    def round_config_of(round_index: int) -> RoundConfig:
+        round_seed = int(np.random.SeedSequence([config.seed, round_index]).generate_state(1)[0] % (2**31))
+        return RoundConfig(
+            round_index=round_index, seed=round_seed, beta=config.beta(round_index), num_episodes=config.episodes_per_round,
+            demo_length=env.demo_length, max_steps=env.max_steps, image_size=env.image_size, split=env.split,
+            num_houses=env.num_houses, noise=env.noise, route_style=env.route_style, route_lengths=env.route_lengths,
+        )
+
+    def collect_missing_window(done: int) -> None:
+        """Collect again the window's rounds whose episodes are missing, each with its own learner."""
+        first = 1 if config.window_rounds is None else max(1, done - config.window_rounds + 1)
+        for round_index in range(first, done + 1):
+            round_dir, learner = round_directory(output, round_index), learner_path(output, round_index - 1)
+            if (round_dir / "meta.json").exists() or not learner.exists():
+                continue  # stored; or not recoverable (training_sources says so)
+            logger.info("collecting round %d again with %s (its stored episodes are missing)", round_index, learner)
+            collector_policy = build_policy(model_type, policy_config).to(device)
+            collector_policy.load_state_dict(load_checkpoint(learner, expected_model_type=model_type)["model"])
+            shutil.rmtree(round_dir, ignore_errors=True)  # an incomplete store
+            shutil.rmtree(demos_root(round_dir), ignore_errors=True)
+            round_config = round_config_of(round_index)
+            RoundStore.write(round_dir, round_config, _collect_round(collector_policy, config, round_config, round_dir))
+
+    if done_rounds > 0 and ranks.is_main:
+        collect_missing_window(done_rounds)
     if done_rounds == 0 and not history and ranks.is_main:
         bc_count = len(bc_data) if bc_data is not None else 0
         history.append(score(0, {"beta": None, "training_episodes": bc_count}))
@@ -333,14 +369,9 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
     barrier(ranks)
 
     for round_index in range(done_rounds + 1, config.rounds + 1):
-        round_seed = int(np.random.SeedSequence([config.seed, round_index]).generate_state(1)[0] % (2**31))
         beta = config.beta(round_index)
         round_dir = round_directory(output, round_index)
-        round_config = RoundConfig(
-            round_index=round_index, seed=round_seed, beta=beta, num_episodes=config.episodes_per_round,
-            demo_length=env.demo_length, max_steps=env.max_steps, image_size=env.image_size, split=env.split,
-            num_houses=env.num_houses, noise=env.noise, route_style=env.route_style, route_lengths=env.route_lengths,
-        )
+        round_config = round_config_of(round_index)
         if ranks.is_main and not (round_dir / "meta.json").exists():  # rank 0 collects, the others read its store
             RoundStore.write(round_dir, round_config, _collect_round(policy, config, round_config, round_dir))
         barrier(ranks)

@@ -197,6 +197,14 @@ def round_directory(output: Path, round_index: int) -> Path:
     return output / "rounds" / f"round-{round_index:02d}"
 
 
+def learner_path(output: Path, round_index: int) -> Path:
+    """``<output>/learners/learner-XX.pt``: the learner's weights after round ``XX`` (``00``: the
+    starting checkpoint), the policy that collects round ``XX + 1``. With them a run can
+    collect its window of rounds again where their stored episodes are missing (another
+    machine): collection is a function of the learner, the round's seed and the config."""
+    return output / "learners" / f"learner-{round_index:02d}.pt"
+
+
 def training_sources(
     bc_data: EpisodeDataset | None, output: Path, round_index: int, window: int | None
 ) -> list[EpisodeDataset | RoundStore]:
@@ -206,7 +214,8 @@ def training_sources(
     paths = [round_directory(output, r) for r in range(first, round_index + 1)]
     if missing := [path for path in paths if not (path / "meta.json").exists()]:  # e.g. last.pt copied without the rounds
         raise FileNotFoundError(
-            f"DAgger round data {missing[0]} is missing or incomplete, so {output} cannot resume; delete it to start over."
+            f"DAgger round data {missing[0]} is missing or incomplete, and so is the learner that collected it "
+            f"({output / 'learners'}), so {output} cannot resume; delete it to start over."
         )
     return ([bc_data] if bc_data is not None else []) + [RoundStore(path) for path in paths]
 
@@ -217,4 +226,13 @@ def source_rows(source: EpisodeDataset | RoundStore, rows: torch.Tensor) -> Tens
     return source[rows].exclude("demo_id")
 
 
-__all__ = ["RoundConfig", "RoundError", "RoundStore", "round_demo_config", "round_directory", "source_rows", "training_sources"]
+__all__ = [
+    "RoundConfig",
+    "RoundError",
+    "RoundStore",
+    "learner_path",
+    "round_demo_config",
+    "round_directory",
+    "source_rows",
+    "training_sources",
+]
