@@ -252,7 +252,11 @@ def test_a_run_moved_without_its_round_data_collects_its_rounds_again(tmp_path, 
     run = tmp_path / "b" / "dagger"
     assert sorted(p.name for p in (run / "learners").iterdir()) == ["learner-00.pt", "learner-01.pt"]
     shutil.rmtree(run / "rounds")
+    (run / "learners" / "learner-01.pt").unlink()  # as in a run begun before learners/: last.pt holds it
     resumed = train_dagger(tiny_config(tmp_path / "b", shared_checkpoint))
+    kept = load_checkpoint(run / "learners" / "learner-01.pt")["model"]
+    after_one = load_checkpoint(one_round / "dagger" / "last.pt")["model"]
+    assert all(torch.equal(kept[k], after_one[k]) for k in after_one)
     for name in ("round-01", "round-02"):
         again = RoundStore(run / "rounds" / name).episodes
         original = RoundStore(straight_run / "dagger" / "rounds" / name).episodes

@@ -359,6 +359,8 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
             RoundStore.write(round_dir, round_config, _collect_round(collector_policy, config, round_config, round_dir))
 
     if done_rounds > 0 and ranks.is_main:
+        if not learner_path(output, done_rounds).exists():  # last.pt's learner (a run begun before learners/)
+            save_checkpoint(learner_path(output, done_rounds), model_type, policy_config, {"model": policy.state_dict()})
         collect_missing_window(done_rounds)
     if done_rounds == 0 and not history and ranks.is_main:
         bc_count = len(bc_data) if bc_data is not None else 0
