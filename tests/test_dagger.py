@@ -267,6 +267,19 @@ def test_a_run_moved_without_its_round_data_collects_its_rounds_again(tmp_path, 
     assert [r["val_success"] for r in resumed["history"]] == [r["val_success"] for r in straight["history"]]
 
 
+def test_a_resumed_run_needs_only_its_own_state(tmp_path):
+    """last.pt and learners/ are the whole resume state: the starting checkpoint and the rounds'
+    episodes may be gone (a run moved to another machine without them)."""
+    start = save_bc_checkpoint(tmp_path)
+    train_dagger(tiny_config(tmp_path, start, rounds=1))
+    start.unlink()
+    shutil.rmtree(tmp_path / "dagger" / "rounds")
+    resumed = train_dagger(tiny_config(tmp_path, start))
+    assert [r["round"] for r in resumed["history"]] == [0, 1, 2]
+    with pytest.raises(FileNotFoundError):  # a new run does need it
+        train_dagger(tiny_config(tmp_path / "new", start))
+
+
 def test_learners_are_kept_for_the_window_only(three_learner_driven_rounds):
     config, _ = three_learner_driven_rounds  # window of 2 rounds, after round 3: rounds 2 and 3 need learners 1 and 2
     learners = sorted(p.name for p in (Path(config.output_dir) / "learners").iterdir())

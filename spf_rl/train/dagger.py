@@ -27,7 +27,8 @@ So the run also keeps the learners that collected its window of rounds
 (``learners/learner-XX.pt``, :func:`~spf_rl.train.dagger_rounds.learner_path`, about the size
 of the policy each); where a window round's episodes are missing (the run moved to another
 machine with ``last.pt`` and ``learners/`` but not the gigabytes of ``rounds/``), resuming
-collects them again.
+collects them again. Those two are the whole resume state: a resumed run does not read the
+starting checkpoint.
 
 The learner and its optimiser run on ``DAggerConfig.device`` (see
 :mod:`spf_rl.device`): the collector gets it as ``policy_device`` with the envs on
@@ -264,7 +265,9 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
         write_run_config(output, config, free=DAGGER_RESUME_FREE)
         (output / "rounds").mkdir(parents=True, exist_ok=True)
     barrier(ranks)
-    payload = load_checkpoint(checked_checkpoint(config.checkpoint))
+    last_path, best_path = output / "last.pt", output / "best.pt"
+    # a resumed run needs only its own state (last.pt, learners/), not the starting checkpoint
+    payload = load_checkpoint(last_path if last_path.exists() else checked_checkpoint(config.checkpoint))
     model_type, policy_config = payload["model_type"], payload["model_config"]
     env = config.env
     if (policy_config.demo_length, policy_config.image_size) != (env.demo_length, (env.image_size, env.image_size)):
@@ -279,7 +282,6 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
     trained = DistributedDataParallel(policy, device_ids=[device] if device.type == "cuda" else None) if ranks.distributed else policy
     val_config, test_config = with_episode_sizes(config.val, env), with_episode_sizes(config.test, env)
 
-    last_path, best_path = output / "last.pt", output / "best.pt"
     history: list[dict] = []
     done_rounds = 0
     if last_path.exists():
