@@ -46,7 +46,7 @@ def main(argv: list[str] | None = None) -> dict:
         help="dagger_quick (smoke run), dagger_control (the expert drives every step: the control at equal steps), "
         "the DAgger runs after Table 1's rows: dagger_long, dagger_rpf, dagger_rpf_original, dagger_spf_rpf_pointer, dagger_pointer_long, "
         "dagger_routes (after bc.py --preset bc_routes: rounds on the same route mixture) "
-        "or dagger_routes_pointer (after bc.py --preset bc_routes_pointer, with its pointer loss)",
+        "or dagger_routes_pointer (dagger_routes with a pointer loss, optim.pointer_coef 0.1)",
     )
     parser.add_argument("overrides", nargs="*", help="key=value config overrides")
     args = parser.parse_args(argv)

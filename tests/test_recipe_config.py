@@ -1,6 +1,7 @@
 """Tests for the recipes' configuration loading (YAML + preset + key=value overrides)."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import runpy
@@ -197,18 +198,19 @@ def test_a_config_typo_prints_the_message_alone_and_exits_2(recipe, schema, tmp_
     assert list(tmp_path.iterdir()) == []
 
 
-def test_pointer_routes_dagger_continues_the_pointer_bc_run_with_its_loss():
-    """dagger_routes_pointer is dagger_routes from bc_routes_pointer's best.pt, on the same
-    dataset, with the same pointer loss; its output does not overwrite dagger_routes'."""
+def test_pointer_routes_dagger_differs_from_routes_dagger_in_its_pointer_loss_alone():
+    """dagger_routes_pointer is dagger_routes (the same start, data, rounds and episodes)
+    with bc_routes_pointer's pointer loss; its output does not overwrite dagger_routes'."""
     from spf_rl.train.dagger import DAggerConfig
 
     bc = load_config(BCConfig, "bc", ["seed=1"], preset="bc_routes_pointer")
     plain = load_config(DAggerConfig, "dagger", ["seed=1"], preset="dagger_routes")
     dagger = load_config(DAggerConfig, "dagger", ["seed=1"], preset="dagger_routes_pointer")
-    assert dagger.checkpoint == f"{bc.output_dir}/best.pt" and dagger.bc_data == bc.data
+    assert dagger.checkpoint == plain.checkpoint and dagger.bc_data == plain.bc_data == bc.data
     assert dagger.optim.pointer_coef == bc.optim.pointer_coef > 0 and plain.optim.pointer_coef == 0
     assert dagger.output_dir != plain.output_dir
     assert (dagger.env, dagger.val, dagger.test, dagger.rounds) == (plain.env, plain.val, plain.test, plain.rounds)
+    assert dataclasses.replace(dagger.optim, pointer_coef=0.0) == plain.optim
 
 
 def test_routes_dagger_starts_from_the_routes_bc_run_on_its_data_and_routes():
