@@ -6,6 +6,8 @@ and Adam step) of SPF 0.8 in sequence mode, for:
 * ``eager_b16``: the training loops as they run (eager, 16 episodes a batch), the reference;
 * ``compile_encoder_b16``: the image encoder (the convolutions, most of a step)
   under ``torch.compile(dynamic=True)``; compilation is warmed up outside the timing;
+* ``compile_unroll_b16``: the recurrent unroll (attention and GRU cell over the steps,
+  ``SPFPolicy._unroll``) under ``torch.compile``, forward and backward; warmed up likewise;
 * ``eager_b32``: 32 episodes a batch (each batch the union of two of the reference's);
 * ``bf16_b16``: bf16 autocast (``optim.amp=true``); ``bf16_compile_encoder_b16``: both.
 
@@ -34,13 +36,14 @@ from envs.atomic_io import atomic_write_json
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "bc_levers.json"
-#: variant -> (episodes a batch, compile the encoder, bf16 autocast)
+#: variant -> (episodes a batch, what is compiled: None, "encoder" or "unroll", bf16 autocast)
 VARIANTS = {
-    "eager_b16": (16, False, False),
-    "compile_encoder_b16": (16, True, False),
-    "eager_b32": (32, False, False),
-    "bf16_b16": (16, False, True),
-    "bf16_compile_encoder_b16": (16, True, True),
+    "eager_b16": (16, None, False),
+    "compile_encoder_b16": (16, "encoder", False),
+    "compile_unroll_b16": (16, "unroll", False),
+    "eager_b32": (32, None, False),
+    "bf16_b16": (16, None, True),
+    "bf16_compile_encoder_b16": (16, "encoder", True),
 }
 REFERENCE = "eager_b16"
 
@@ -90,10 +93,12 @@ def main(argv: list[str] | None = None) -> dict:
     learners, compile_seconds = {}, {}
     for name, (batch_size, compiled, amp) in variants.items():
         policy = copy.deepcopy(initial)
-        if compiled:
+        if compiled == "encoder":
             for module in policy.modules():
                 if isinstance(module, ImageEncoder):
                     module.compile(dynamic=True)
+        elif compiled == "unroll":  # the attention and the cell over all steps (SPFPolicy._unroll)
+            policy._unroll = torch.compile(policy._unroll)
         learners[name] = (policy, torch.optim.Adam(policy.parameters(), lr=1e-3), batches[batch_size], amp)
 
     def run(name: str, warm_up: bool = False) -> float:

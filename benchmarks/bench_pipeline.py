@@ -9,7 +9,10 @@ carries from one machine of a kind to another:
   (pose update, render, uint8 tensor; ``bench_env_paths.bench_raw``);
 * **training**: the achieved FLOP/s of the BC training step (the FLOPs of the timed
   steps counted from the model, forward and backward), divided by the FLOP/s of a dense
-  fp32 matmul of size 2048 at the training's thread count (``fraction_of_matmul``).
+  fp32 matmul of size 2048 at the training's thread count (``fraction_of_matmul``); and
+  its ceiling, the same FLOPs over the seconds of the step's matmuls and convolutions
+  replayed alone (``kernel_fraction_of_matmul``; ``kernel_share_of_step``: those seconds
+  over the step's, :mod:`kernel_ceiling`).
 
 ``baseline`` is the training speed of :data:`BASELINE_COMMIT` (``--baseline``: main
 when issue #30 was filed), run from a ``git worktree`` of it in the same invocation,
@@ -23,7 +26,8 @@ Writes ``benchmarks/results/pipeline.json`` (or ``--output``), atomically::
 
     {"raw_fps": x, "matmul_flops": x, "workers": n, "quick": bool,
      "ratios_to_raw": {"dataset_generation": x, "dagger_collection": x, "evaluation": x},
-     "training": {"labelled_steps_per_s": x, "flops_per_s": x, "fraction_of_matmul": x},
+     "training": {"labelled_steps_per_s": x, "flops_per_s": x, "fraction_of_matmul": x,
+                  "kernel_fraction_of_matmul": x, "kernel_share_of_step": x},
      "baseline": {"commit": sha, "labelled_steps_per_s": x},
      "training_speedup": x, "targets": {...}, "measures": {...}, "setup": {...}, "runs": {...}}
 
@@ -183,12 +187,20 @@ def summarise(new: list[dict], baseline: list[dict]) -> dict:
     labelled, base = _median(values(new, "training")), _median(values(baseline, "training"))
     speedup = _median([v / b for v, b in zip(values(new, "training"), values(baseline, "training"))])
     fraction = _median([f / m for f, m in zip(flops, matmul)])
+    training_runs = [run["measures"]["training"] for run in new]
+    kernel_fraction = _median(
+        [run["kernel_flops"] / run["kernel_seconds"] / m for run, m in zip(training_runs, matmul) if run.get("kernel_seconds")]
+    )
+    kernel_share = _median([run["kernel_seconds"] / run["seconds"] for run in training_runs if run.get("kernel_seconds")])
     measured = {**ratios, "training_speedup": speedup, "fraction_of_matmul": fraction}
     return {
         "raw_fps": _median(raw),
         "matmul_flops": _median(matmul),
         "ratios_to_raw": ratios,
-        "training": {"labelled_steps_per_s": labelled, "flops_per_s": _median(flops), "fraction_of_matmul": fraction},
+        "training": {
+            "labelled_steps_per_s": labelled, "flops_per_s": _median(flops), "fraction_of_matmul": fraction,
+            "kernel_fraction_of_matmul": kernel_fraction, "kernel_share_of_step": kernel_share,
+        },
         "training_speedup": speedup,
         "targets": {
             name: {"target": minimum, "measured": measured[name], "holds": measured[name] >= minimum}

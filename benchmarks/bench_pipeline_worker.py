@@ -16,7 +16,9 @@ Measures (each returns ``{"value": x, "unit": ..., ...}``):
   second by the pipeline, counted from what it returns (:func:`frames_rendered`);
 * ``training``: expert-labelled (``mask``-ed) steps/s through the tree's training step,
   and the FLOPs of the timed steps counted from the model
-  (``torch.utils.flop_counter.FlopCounterMode`` over forward and backward, untimed).
+  (``torch.utils.flop_counter.FlopCounterMode`` over forward and backward, untimed); and
+  the seconds of those steps' FLOP-carrying kernels replayed alone
+  (:mod:`kernel_ceiling`: the ceiling of the step's FLOP/s with the same kernels).
 
 Usage (the driver does this)::
 
@@ -177,6 +179,7 @@ def measure_training(sizes: Sizes, scratch: Path) -> dict:
     ``bc_loss``: loss, backward, clip, Adam, schedule) at the default batch (``OptimConfig()``), on a
     dataset built (untimed, once per scratch directory) from ``sizes``; and the FLOPs of those steps."""
     import torch
+    from kernel_ceiling import KernelRecorder, replay_kernels
     from torch.utils.flop_counter import FlopCounterMode
 
     from spf_rl.data import EpisodeDataset
@@ -202,13 +205,14 @@ def measure_training(sizes: Sizes, scratch: Path) -> dict:
     seconds = time.perf_counter() - start
     shutil.rmtree(output)
     labelled = sum(int(batch["steps", "mask"].sum()) for batch in timed)
-    counter = FlopCounterMode(display=False)
-    with counter:  # the same batches' forward and backward, counted (not timed)
+    counter, recorder = FlopCounterMode(display=False), KernelRecorder()
+    with counter, recorder:  # the same batches' forward and backward, counted and recorded (not timed)
         for batch in timed:
             loss, _ = bc_loss(policy, batch, amp=optim.amp)
             loss.backward()
     policy.zero_grad(set_to_none=True)
     flops = counter.get_total_flops()
+    kernels = replay_kernels(recorder.calls, seed=sizes.seed)
     return {
         "value": labelled / seconds,
         "labelled_steps": labelled,
@@ -217,6 +221,10 @@ def measure_training(sizes: Sizes, scratch: Path) -> dict:
         "seconds": seconds,
         "flops": flops,
         "flops_per_s": flops / seconds,
+        "kernel_flops": kernels["flops"],
+        "kernel_seconds": kernels["seconds"],
+        "kernel_calls": kernels["calls"],
+        "kernel_distinct_calls": kernels["distinct"],
         "threads": torch.get_num_threads(),
     }
 

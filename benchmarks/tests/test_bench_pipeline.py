@@ -62,31 +62,38 @@ def test_unknown_commit_is_refused(tiny_repo):
         bench_baseline.resolve_commit("0123456789abcdef", repo)
 
 
-def _output(values: dict[str, float], flops_per_s: float = 0.0) -> dict:
-    """A child's output with these measure values (canned)."""
+def _output(values: dict[str, float], flops_per_s: float = 0.0, kernel_share: float = 0.5) -> dict:
+    """A child's output with these measure values (canned): one second of training, of which
+    the kernels replayed alone take ``kernel_share``."""
     measures = {name: {"value": value, "unit": bench_pipeline.UNITS[name]} for name, value in values.items()}
     if "training" in measures:
-        measures["training"]["flops_per_s"] = flops_per_s
+        measures["training"].update(
+            flops_per_s=flops_per_s, seconds=1.0, kernel_flops=flops_per_s, kernel_seconds=kernel_share
+        )
     return {"measures": measures, "torch_threads": 2, "spf_rl_file": str(ROOT / "spf_rl" / "__init__.py")}
 
 
-def _repeat(raw: float, pipelines: float, matmul: float, training: float, flops: float) -> dict:
+def _repeat(raw: float, pipelines: float, matmul: float, training: float, flops: float, kernel_share: float = 0.5) -> dict:
     values = {"raw": raw, "matmul": matmul, "dataset_generation": pipelines, "dagger_collection": pipelines / 2,
               "evaluation": pipelines / 4, "training": training}
-    return _output(values, flops_per_s=flops)
+    return _output(values, flops_per_s=flops, kernel_share=kernel_share)
 
 
 def test_ratios_are_taken_within_a_repeat_and_each_figure_is_the_median():
     # the machine slows down in repeat 2: the pipelines and their reference move together
-    new = [_repeat(1000.0, 800.0, 100.0, 50.0, 40.0), _repeat(500.0, 400.0, 50.0, 25.0, 20.0),
-           _repeat(1000.0, 900.0, 100.0, 60.0, 60.0)]
+    new = [_repeat(1000.0, 800.0, 100.0, 50.0, 40.0, 0.5), _repeat(500.0, 400.0, 50.0, 25.0, 20.0, 0.25),
+           _repeat(1000.0, 900.0, 100.0, 60.0, 60.0, 0.8)]
     baseline = [_output({"training": value}) for value in (25.0, 20.0, 50.0)]
     summary = bench_pipeline.summarise(new, baseline)
     assert summary["ratios_to_raw"]["dataset_generation"] == pytest.approx(0.8)  # median of 0.8, 0.8, 0.9
     assert summary["ratios_to_raw"]["dagger_collection"] == pytest.approx(0.4)
     assert summary["ratios_to_raw"]["evaluation"] == pytest.approx(0.2)
     assert summary["raw_fps"] == 1000.0 and summary["matmul_flops"] == 100.0
-    assert summary["training"] == {"labelled_steps_per_s": 50.0, "flops_per_s": 40.0, "fraction_of_matmul": 0.4}
+    # the kernels' ceiling: the step's FLOPs over the kernels' seconds alone, / matmul (0.8, 1.6, 0.75)
+    assert summary["training"] == {
+        "labelled_steps_per_s": 50.0, "flops_per_s": 40.0, "fraction_of_matmul": 0.4,
+        "kernel_fraction_of_matmul": pytest.approx(0.8), "kernel_share_of_step": 0.5,
+    }
     assert summary["training_speedup"] == pytest.approx(1.25)  # median of 2.0, 1.25, 1.2
     assert summary["baseline_labelled_steps_per_s"] == 25.0
     assert summary["measures"]["raw"]["repeats"] == [1000.0, 500.0, 1000.0]
@@ -122,7 +129,10 @@ def test_json_layout_from_canned_child_outputs(tmp_path, monkeypatch):
     assert written["workers"] == 2 and written["quick"] is True
     assert set(written["ratios_to_raw"]) == {"dataset_generation", "dagger_collection", "evaluation"}
     assert written["ratios_to_raw"]["dataset_generation"] == pytest.approx(0.9)
-    assert written["training"] == {"labelled_steps_per_s": 300.0, "flops_per_s": 6e10, "fraction_of_matmul": 0.6}
+    assert written["training"] == {
+        "labelled_steps_per_s": 300.0, "flops_per_s": 6e10, "fraction_of_matmul": 0.6,
+        "kernel_fraction_of_matmul": pytest.approx(1.2), "kernel_share_of_step": 0.5,
+    }
     assert written["baseline"] == {"commit": _git(ROOT, "rev-parse", "HEAD"), "labelled_steps_per_s": 200.0}
     assert written["training_speedup"] == 1.5
     assert written["targets"]["training_speedup"] == {"target": 1.3, "measured": 1.5, "holds": True}
@@ -174,6 +184,9 @@ def test_smoke_every_measure_runs_against_the_working_tree(tmp_path):
     training = measures["training"]
     assert 1 <= training["labelled_steps"] <= 16 * 6 and training["gradient_steps"] == 1
     assert training["flops"] > 0 and training["flops_per_s"] > 0
+    # the replayed kernels carry every FLOP the counter saw, in less time than the steps took
+    assert training["kernel_flops"] == training["flops"] and 0 < training["kernel_seconds"]
+    assert training["kernel_distinct_calls"] <= training["kernel_calls"]
     assert (tmp_path / "new" / "bc_data" / "meta.json").exists()  # the training dataset, kept across repeats
 
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import re
+from collections.abc import Sequence
 
 import torch
 from tensordict import TensorDictBase
@@ -449,23 +450,7 @@ class SPFPolicy(TensorDictModuleBase):
         start[:, 0] = True
         h0 = flat_or_zeros(td.get(self.hidden_key, None), (rows, steps, self.config.hidden_size), phi[0])
         eta0 = flat_or_zeros(td.get(self.eta_key, None), (rows, steps, 1), phi[0])
-        h, eta = h0[:, 0], eta0[:, 0]
-        outputs: dict[str, list[torch.Tensor]] = {name: [] for name in ("logits", "h", "eta_used", "eta_next", "mu", "window")}
-        for t in range(steps):
-            segment_start = start[:, t].unsqueeze(-1)
-            h = torch.where(segment_start, h0[:, t], h)
-            eta = torch.where(segment_start, eta0[:, t], eta)
-            memory = mask = None
-            if segments is not None:
-                feats, segment, masks = segments
-                memory = feats.index_select(0, segment[:, t])
-                mask = masks.index_select(0, segment[:, t]) if masks is not None else None
-            mu, window = self.attention.attend(memory, demo_actions[t], eta, mask, step_lengths[t])
-            logits, h, eta_next = self.cell.step(mu, phi[t], window, eta, h, step_lengths[t])
-            for name, value in zip(outputs, (logits, h, eta, eta_next, mu, window)):
-                outputs[name].append(value)
-            eta = eta_next
-        stacked = {name: torch.stack(values, 1) for name, values in outputs.items()}
+        stacked = self._unroll(phi, demo_actions, step_lengths, start, h0, eta0, segments)
         out = {
             self.logits_key: stacked["logits"],
             self.features_key: stacked["h"],
@@ -481,6 +466,38 @@ class SPFPolicy(TensorDictModuleBase):
         if segments is not None:
             self.memory.write_segments(tensordict, *segments)
         return tensordict
+
+    def _unroll(
+        self,
+        phi: Sequence[torch.Tensor],
+        demo_actions: Sequence[torch.Tensor],
+        step_lengths: Sequence[torch.Tensor | None],
+        start: torch.Tensor,
+        h0: torch.Tensor,
+        eta0: torch.Tensor,
+        segments: tuple[torch.Tensor, torch.Tensor, torch.Tensor | None] | None,
+    ) -> dict[str, torch.Tensor]:
+        """The attention and the cell unrolled over the steps, on tensors: per-step
+        ``phi``, ``demo_actions`` and ``step_lengths`` of ``[rows]`` leading shape, ``start``
+        ``[rows, T]`` segment starts, ``h0`` / ``eta0`` ``[rows, T, *]`` the states a segment
+        starts from; returns each output stacked to ``[rows, T, *]``."""
+        h, eta = h0[:, 0], eta0[:, 0]
+        outputs: dict[str, list[torch.Tensor]] = {name: [] for name in ("logits", "h", "eta_used", "eta_next", "mu", "window")}
+        for t in range(len(phi)):
+            segment_start = start[:, t].unsqueeze(-1)
+            h = torch.where(segment_start, h0[:, t], h)
+            eta = torch.where(segment_start, eta0[:, t], eta)
+            memory = mask = None
+            if segments is not None:
+                feats, segment, masks = segments
+                memory = feats.index_select(0, segment[:, t])
+                mask = masks.index_select(0, segment[:, t]) if masks is not None else None
+            mu, window = self.attention.attend(memory, demo_actions[t], eta, mask, step_lengths[t])
+            logits, h, eta_next = self.cell.step(mu, phi[t], window, eta, h, step_lengths[t])
+            for name, value in zip(outputs, (logits, h, eta, eta_next, mu, window)):
+                outputs[name].append(value)
+            eta = eta_next
+        return {name: torch.stack(values, 1) for name, values in outputs.items()}
 
     def _forward_step(self, td: TensorDictBase) -> TensorDictBase:
         # the parts' step forwards, called directly: the batch dim is already there
