@@ -139,6 +139,13 @@ class TensorStore:
         """The full-size, zero-filled layout of a store of ``config``."""
         raise NotImplementedError
 
+    @classmethod
+    def layout(cls, config: Any) -> TensorDict:
+        """:meth:`empty`'s tensors on the ``meta`` device: the layout's shapes and dtypes
+        without its memory (a route dataset's zeros would take gigabytes)."""
+        with torch.device("meta"):
+            return cls.empty(config)
+
     @staticmethod
     def config_to_dict(config: Any) -> dict:
         """The JSON form of a configuration (a dataclass's fields by default)."""
@@ -182,7 +189,7 @@ class TensorStore:
             data = TensorDict.load_memmap(self.root / _DATA_DIR)
         except Exception as err:  # any failure to map means a damaged store
             raise self._fail(f"cannot read the tensors ({err}).") from err
-        expected = self.empty(self.config)
+        expected = self.layout(self.config)
         present = set(data.keys(include_nested=True, leaves_only=True))
         for key in expected.keys(include_nested=True, leaves_only=True):
             if key not in present or data.get(key).shape != expected.get(key).shape:
@@ -329,7 +336,7 @@ class TensorStore:
             if state.get("config") != config_dict:
                 raise ValueError("another configuration")
             data = TensorDict.load_memmap(partial / _DATA_DIR)
-            if data.batch_size != cls.empty(config).batch_size:
+            if data.batch_size != cls.layout(config).batch_size:
                 raise ValueError("another shape")
             done = {
                 str(chunk): str(digest)
@@ -342,6 +349,7 @@ class TensorStore:
             if partial.exists():
                 shutil.rmtree(partial)
             partial.mkdir(parents=True)
-            data = cls.empty(config).memmap_(partial / _DATA_DIR)
+            # zero-filled files made at their size (sparse): no full-size tensor in memory
+            data = cls.layout(config).memmap_like(partial / _DATA_DIR)
             atomic_write_json(partial / "progress.json", {"config": config_dict, "chunks": {}}, sort_keys=True)
             return data, {}

@@ -152,6 +152,29 @@ def test_interrupted_build_resumes_to_the_same_bytes(tmp_path, monkeypatch):
     DemoStore(root)  # complete and verified
 
 
+def test_building_and_opening_never_hold_the_full_size_layout_in_memory(tmp_path, monkeypatch):
+    """The store's full-size zeros (gigabytes for a route dataset) are only ever made as meta
+    tensors; its files start zero-filled."""
+    config = DemoStoreConfig(num_demos=5, num_houses=1, demo_length=5, image_size=32)
+    monkeypatch.setattr(demo_store_module, "DEMO_CHUNK_ROWS", 2)
+    real, devices = DemoStore.empty, []
+
+    def recording(config):
+        layout = real(config)
+        devices.append((len(layout), layout["frames"].device.type))
+        return layout
+
+    monkeypatch.setattr(DemoStore, "empty", staticmethod(recording))
+    assert DemoStore.layout(config)["frames"].shape == (5, 5, 32, 32, 3) and DemoStore.layout(config)["frames"].is_meta
+    devices.clear()
+    store = DemoStore.build(tmp_path / "store", config, progress=False)
+    DemoStore(tmp_path / "store")
+    assert {device for rows, device in devices if rows == 5} == {"meta"}  # build, then open: shapes only
+    assert all(store.frames[row].any() for row in range(5))
+    partial = DemoStore.layout(config).memmap_like(tmp_path / "fresh")
+    assert not partial["frames"].any() and not partial["poses"].any()
+
+
 def test_a_damaged_partial_build_is_rebuilt(tmp_path, monkeypatch):
     config = DemoStoreConfig(num_demos=3, num_houses=1, demo_length=5, image_size=32)
     partial = tmp_path / "store.partial"
