@@ -26,6 +26,7 @@ complete, and is verified against its checksums when opened by path
 """
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import logging
 import os
@@ -276,17 +277,25 @@ class DemoStore(TensorStore):
 
     @classmethod
     def build(
-        cls, root: str | os.PathLike, config: DemoStoreConfig, progress: bool = True, num_workers: int = 1
+        cls,
+        root: str | os.PathLike,
+        config: DemoStoreConfig,
+        progress: bool = True,
+        num_workers: int = 1,
+        pool: concurrent.futures.Executor | None = None,
     ) -> DemoStore:
         """Sample and render the store's demonstrations into ``root`` (or open it if it exists).
 
         Built in chunks of :data:`DEMO_CHUNK_ROWS` into ``<root>.partial`` and renamed to
-        ``root`` when complete; an interrupted build resumes where it stopped.
+        ``root`` when complete; an interrupted build resumes where it stopped. ``num_workers``
+        processes build the chunks, or ``pool``'s (:meth:`~envs.tensor_store.TensorStore.create`).
 
         Raises:
             DemoStoreError: if ``root`` holds a store of another configuration.
         """
-        return cls.create(root, config, make_demo_chunk, DEMO_CHUNK_ROWS, num_workers=num_workers, progress=progress)
+        return cls.create(
+            root, config, make_demo_chunk, DEMO_CHUNK_ROWS, num_workers=num_workers, progress=progress, pool=pool
+        )
 
     # ---------------------------------------------------------------- reading
     @property

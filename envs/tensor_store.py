@@ -25,6 +25,7 @@ and (with ``verify=True``) a checksum that does not match.
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import hashlib
 import json
 import logging
@@ -85,6 +86,23 @@ def worker_threads(num_workers: int) -> int:
         1
     """
     return max(1, (os.cpu_count() or 1) // max(1, num_workers))
+
+
+def worker_pool(num_workers: int) -> concurrent.futures.ProcessPoolExecutor:
+    """``num_workers`` ``spawn`` worker processes, each with its share of the cores for
+    torch's threads (:func:`worker_threads`); started at the first task submitted.
+
+    Examples:
+        >>> with worker_pool(2) as pool:
+        ...     pool.submit(max, 1, 2).result()
+        2
+    """
+    if isinstance(num_workers, bool) or not isinstance(num_workers, int) or num_workers < 1:
+        raise ValueError(f"num_workers must be a positive int, got {num_workers!r}.")
+    return concurrent.futures.ProcessPoolExecutor(
+        num_workers, mp_context=multiprocessing.get_context("spawn"), initializer=torch.set_num_threads,
+        initargs=(worker_threads(num_workers),),
+    )
 
 
 class TensorStore:
@@ -224,6 +242,7 @@ class TensorStore:
         chunk_rows: int,
         num_workers: int = 1,
         progress: bool = True,
+        pool: concurrent.futures.Executor | None = None,
     ):
         """Build the store of ``config`` at ``root``, resuming a partial build, or open it if it exists.
 
@@ -236,6 +255,9 @@ class TensorStore:
             num_workers: ``spawn`` worker processes producing chunks (1: in this process),
                 each with its share of the cores for torch's threads (:func:`worker_threads`).
             progress: show a progress bar.
+            pool: an executor of worker processes (:func:`worker_pool`) to build the chunks
+                in instead of ``num_workers`` new ones, e.g. shared by the stores of one
+                dataset so that their workers start (imports, GL contexts, houses) once.
 
         A store already in place is opened without locking (read-only directories
         work). Otherwise processes building the same ``root`` take a lock file
@@ -248,11 +270,11 @@ class TensorStore:
         """
         root = Path(root)
         if (root / "meta.json").exists():
-            return cls._create_locked(root, config, make_chunk, chunk_rows, num_workers, progress)
+            return cls._create_locked(root, config, make_chunk, chunk_rows, num_workers, progress, pool)
         root.parent.mkdir(parents=True, exist_ok=True)
         lock = root.with_name(root.name + LOCK_SUFFIX)
         with FileLock(str(lock)):
-            store = cls._create_locked(root, config, make_chunk, chunk_rows, num_workers, progress)
+            store = cls._create_locked(root, config, make_chunk, chunk_rows, num_workers, progress, pool)
             # the store is in place: whoever waits on this lock, or takes a new one, opens it
             lock.unlink(missing_ok=True)
         return store
@@ -266,6 +288,7 @@ class TensorStore:
         chunk_rows: int,
         num_workers: int,
         progress: bool,
+        pool: concurrent.futures.Executor | None = None,
     ) -> TensorStore:
         config_dict = cls.config_to_dict(config)
         if (root / "meta.json").exists():
@@ -294,16 +317,13 @@ class TensorStore:
             atomic_write_json(partial / "progress.json", {"config": config_dict, "chunks": done}, sort_keys=True)
             bar.update(1)
 
-        if num_workers <= 1 or len(todo) <= 1:
+        if len(todo) <= 1 or (pool is None and num_workers <= 1):
             for chunk in todo:
                 store(chunk, make_chunk(config, chunk))
         else:
-            context = multiprocessing.get_context("spawn")
-            threads = (worker_threads(num_workers),)
-            with concurrent.futures.ProcessPoolExecutor(
-                num_workers, mp_context=context, initializer=torch.set_num_threads, initargs=threads
-            ) as pool:
-                futures = {pool.submit(make_chunk, config, chunk): chunk for chunk in todo}
+            with contextlib.ExitStack() as stack:
+                workers = pool if pool is not None else stack.enter_context(worker_pool(num_workers))
+                futures = {workers.submit(make_chunk, config, chunk): chunk for chunk in todo}
                 for future in concurrent.futures.as_completed(futures):
                     store(futures[future], future.result())
         bar.close()

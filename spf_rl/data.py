@@ -29,6 +29,7 @@ env version or format raises :class:`DatasetError`.
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 import os
@@ -47,7 +48,7 @@ from envs.homing import FOLLOW, check_task
 from envs.house_grid import check_demo_length
 from envs.route_styles import route_mixture_for
 from envs.specs import NUM_RGB_CHANNELS
-from envs.tensor_store import StoreError, TensorStore
+from envs.tensor_store import StoreError, TensorStore, worker_pool
 from envs.transforms import DEFAULT_NOISE
 from envs.version import ENV_VERSION
 
@@ -365,16 +366,19 @@ class EpisodeDataset(TensorStore):
 
         The demonstrations are rendered first, into ``<root>-demos`` (a
         :class:`~envs.demo_store.DemoStore`); then chunks of ``config.chunk_size``
-        episodes are generated in ``num_workers`` ``spawn`` processes into
-        ``<root>.partial``, renamed to ``root`` when complete. Both builds resume.
+        episodes are generated into ``<root>.partial``, renamed to ``root`` when complete.
+        Both builds run in the same ``num_workers`` ``spawn`` processes (started once, at the
+        first chunk to build; 1: in this process), and both resume.
 
         Raises:
             DatasetError: if ``root`` holds a dataset of another configuration.
             DemoStoreError: if ``<root>-demos`` holds other demonstrations.
         """
-        demos = DemoStore.build(demos_root(root), config.demo_store_config(), progress=progress, num_workers=num_workers)
-        generate = functools.partial(generate_chunk, demos=str(demos.root))
-        dataset = cls.create(root, config, generate, config.chunk_size, num_workers=num_workers, progress=progress)
+        # one set of workers for both stores, so that they start once (1: in this process)
+        with worker_pool(num_workers) if num_workers > 1 else contextlib.nullcontext() as pool:
+            demos = DemoStore.build(demos_root(root), config.demo_store_config(), progress=progress, pool=pool)
+            generate = functools.partial(generate_chunk, demos=str(demos.root))
+            dataset = cls.create(root, config, generate, config.chunk_size, progress=progress, pool=pool)
         dataset.demos  # refuses a demonstration store of another configuration now
         return dataset
 

@@ -187,6 +187,26 @@ def test_homing_datasets_and_evaluations_play_homing_episodes(tmp_path):
 #: collectors (its statistics as runs/bc_row/spf-s0.8-seed0/results.json recorded them; the
 #: run directory's weights are in git history only), and the dataset settings that made it.
 HAND_LOOP_DATASET = {"episodes": 4000, "behaviour_success": 0.99, "mean_length": 33.5905}
+def test_two_workers_build_both_stores_in_one_pool_and_the_same_bytes(built, tmp_path, monkeypatch):
+    """The demonstrations and the episodes are built in one pool of worker processes, which
+    start once, and give the bytes of the one-process build."""
+    import spf_rl.data as data_module
+
+    pools = []
+
+    def counted(num_workers):
+        pools.append(num_workers)
+        return real(num_workers)
+
+    real = data_module.worker_pool
+    monkeypatch.setattr(data_module, "worker_pool", counted)
+    two = EpisodeDataset.build(tmp_path / "two", DatasetConfig(**TINY), num_workers=2, progress=False)
+    assert pools == [2]
+    for key in built.episodes.keys(include_nested=True, leaves_only=True):
+        assert torch.equal(two.episodes[key], built.episodes[key]), key
+    assert torch.equal(two.demos.frames, built.demos.frames)
+
+
 HAND_LOOP_DATASET_CONFIG = {
     "split": "train", "num_houses": None, "noise": "paper", "random_action_prob": 0.2, "demo_length": 30,
     "max_steps": 50, "image_size": 64, "seed": 0, "task": "follow",
