@@ -105,9 +105,9 @@ class Sizes:
         train_warmup_steps: gradient steps before timing.
         raw_chunks, raw_chunk_frames: the raw render loop's timed chunks (median kept).
         workers: worker processes of dataset generation (evaluation runs ``EvalConfig()``'s collectors).
-        collectors: collectors of the DAgger round (``CollectorConfig``'s default).
-        num_agents: agents per DAgger collector (``CollectorConfig``'s default).
-        eval_agents: agents stepped together by the evaluation (``EvalConfig``'s default).
+        collectors: collectors of the DAgger round (``None``: the measured tree's ``CollectorConfig`` default).
+        num_agents: agents per DAgger collector (``None``: the measured tree's ``CollectorConfig`` default).
+        eval_agents: agents stepped together by the evaluation (``None``: the measured tree's ``EvalConfig`` default).
         num_houses: houses of each split.
         demo_length, max_steps, image_size: the episodes' sizes (the defaults').
         seed: seed of weights, episodes and batches.
@@ -121,9 +121,9 @@ class Sizes:
     raw_chunks: int = 5
     raw_chunk_frames: int = 2000
     workers: int = 2
-    collectors: int = 1
-    num_agents: int = 8
-    eval_agents: int = 25
+    collectors: int | None = None
+    num_agents: int | None = None
+    eval_agents: int | None = None
     num_houses: int = 4
     demo_length: int = 30
     max_steps: int = 50

@@ -60,6 +60,11 @@ def frames_rendered(demo_frames: int, episode_steps: list[int]) -> int:
     return demo_frames + sum(steps + 1 for steps in episode_steps)
 
 
+def _given(**values) -> dict:
+    """The values that are set (``None``: the tree's own default)."""
+    return {name: value for name, value in values.items() if value is not None}
+
+
 def _episode_sizes(sizes: Sizes) -> dict:
     return dict(demo_length=sizes.demo_length, max_steps=sizes.max_steps, image_size=sizes.image_size)
 
@@ -139,7 +144,9 @@ def measure_dagger_collection(sizes: Sizes, scratch: Path) -> dict:
         default, episodes_per_round=sizes.dagger_episodes, progress=False, output_dir=str(scratch / "dagger"),
         seed=sizes.seed, device="cpu",
         env=dataclasses.replace(default.env, **_collection_env_values(sizes)),
-        collector=dataclasses.replace(default.collector, num_collectors=sizes.collectors, num_agents=sizes.num_agents),
+        collector=dataclasses.replace(
+            default.collector, **_given(num_collectors=sizes.collectors, num_agents=sizes.num_agents)
+        ),
     )
     env = config.env
     round_config = dagger_rounds.RoundConfig(
@@ -154,7 +161,10 @@ def measure_dagger_collection(sizes: Sizes, scratch: Path) -> dict:
     shutil.rmtree(round_dir.parent)
     lengths = [int(length) for length in episodes["length"]]
     frames = frames_rendered(len(lengths) * sizes.demo_length, lengths)
-    return {"value": frames / seconds, "frames": frames, "episodes": len(lengths), "seconds": seconds}
+    return {
+        "value": frames / seconds, "frames": frames, "episodes": len(lengths), "seconds": seconds,
+        "num_collectors": config.collector.num_collectors, "num_agents": config.collector.num_agents,
+    }
 
 
 def measure_evaluation(sizes: Sizes, scratch: Path) -> dict:
@@ -164,14 +174,14 @@ def measure_evaluation(sizes: Sizes, scratch: Path) -> dict:
 
     config = dataclasses.replace(
         EvalConfig(), split="test", num_episodes=sizes.eval_episodes, noise="paper", seed=sizes.seed,
-        num_agents=sizes.eval_agents, num_houses=sizes.num_houses, **_episode_sizes(sizes),
+        num_houses=sizes.num_houses, **_given(num_agents=sizes.eval_agents), **_episode_sizes(sizes),
     )
     policy = build_learner(sizes)
     start = time.perf_counter()
     summary, records = evaluate_policy(policy, config)
     seconds = time.perf_counter() - start
     frames = frames_rendered(len(records) * sizes.demo_length, [record["steps"] for record in records])
-    return {"value": frames / seconds, "frames": frames, "episodes": len(records), "seconds": seconds}
+    return {"value": frames / seconds, "frames": frames, "episodes": len(records), "seconds": seconds, "num_agents": config.num_agents}
 
 
 def measure_training(sizes: Sizes, scratch: Path) -> dict:

@@ -181,6 +181,7 @@ def test_smoke_every_measure_runs_against_the_working_tree(tmp_path):
     # frames: 5 demonstration frames per episode, then at most 6 steps and the reset frame
     assert 4 * (5 + 2) <= measures["dataset_generation"]["frames"] <= 4 * (5 + 7)
     assert measures["evaluation"]["episodes"] == 2 and measures["dagger_collection"]["episodes"] == 2
+    assert measures["evaluation"]["num_agents"] == 2 and measures["dagger_collection"]["num_agents"] == 2
     training = measures["training"]
     assert 1 <= training["labelled_steps"] <= 16 * 6 and training["gradient_steps"] == 1
     assert training["flops"] > 0 and training["flops_per_s"] > 0
