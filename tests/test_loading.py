@@ -22,6 +22,7 @@ SHIPPED = [
     "homing-spf-s0.8",
     "lengths-spf-s0.8",
     "ppo-spf-s0.8",
+    "routes-spf",
     "rpf-s1",
     "rpf_original-s1",
     "spf-s0.4",
@@ -43,7 +44,9 @@ def test_every_shipped_name_loads_a_ready_policy(name):
     assert isinstance(policy, SPFPolicy) and isinstance(config, SPFConfig)
     assert not policy.training
     assert config is policy.config
-    assert config.num_actions == 3 and config.demo_length == 30 and config.image_size == (64, 64)
+    # the route model follows routes of up to 100 steps; every other shipped policy, the paper's 30
+    assert config.num_actions == 3 and config.image_size == (64, 64)
+    assert config.demo_length == (100 if name == "routes-spf" else 30)
 
 
 def test_config_has_the_memory_of_the_model_type():

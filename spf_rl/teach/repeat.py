@@ -61,8 +61,9 @@ TITLE_FONTSIZE = 10
 DEMO_ZORDER = 5
 #: Letter of each action in the JSON (the ``--actions`` alphabet).
 ACTION_LETTER = {action: letter for letter, action in ACTION_LETTERS.items()}
-#: The default policy: the best shipped SPF checkpoint (docs/results.md).
-DEFAULT_CHECKPOINT = "spf-s0.8"
+#: The default policy: the route model, trained on planner routes, tours and driven routes of 10-100 steps
+#: (docs/results.md); the Table 1 policies follow routes of exactly 30 steps.
+DEFAULT_CHECKPOINT = "routes-spf"
 #: The default policy with homing: SPF 0.8 trained on homing episodes (python recipes/bc.py --preset bc_homing).
 DEFAULT_HOMING_CHECKPOINT = "homing-spf-s0.8"
 #: The default house: the first house of the test split (never seen in training).
