@@ -26,7 +26,7 @@ import logging
 from spf_rl.config import config_or_exit, load_config
 
 #: Schedules in recipes/configs/ that --preset accepts.
-PRESETS = ("bc_quick", "bc_long", "bc_row", "bc_homing", "bc_pointer_long", "bc_routes", "bc_routes_pointer")
+PRESETS = ("bc_quick", "bc_long", "bc_row", "bc_table1", "bc_homing", "bc_pointer_long", "bc_routes", "bc_routes_pointer")
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -37,7 +37,7 @@ def main(argv: list[str] | None = None) -> dict:
         choices=PRESETS,
         default=None,
         help="a schedule from recipes/configs/: bc_quick (smoke run), bc_long (20,000 gradient steps on 8,000 "
-        "episodes), bc_row (5,000 gradient steps on 4,000 episodes, the other Table 1 rows), bc_homing (bc_row on homing episodes), bc_pointer_long (bc_long with RPF's pointer rule) bc_routes (the routes model: bc_row on a mixture of route styles of 10 to 100 steps) or bc_routes_pointer (bc_routes with a pointer loss, optim.pointer_coef 0.1)",
+        "episodes), bc_row (5,000 gradient steps on 4,000 episodes, the earlier Table 1 rows), bc_table1 (bc_long in runs/table1/: Table 1's one budget, every row), bc_homing (bc_row on homing episodes), bc_pointer_long (bc_long with RPF's pointer rule), bc_routes (the routes model: bc_row on a mixture of route styles of 10 to 100 steps) or bc_routes_pointer (bc_routes with a pointer loss, optim.pointer_coef 0.1)",
     )
     parser.add_argument("overrides", nargs="*", help="key=value config overrides")
     args = parser.parse_args(argv)

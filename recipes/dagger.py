@@ -32,7 +32,7 @@ from spf_rl.config import config_or_exit, load_config
 #: Presets in recipes/configs/ that --preset accepts.
 PRESETS = (
     "dagger_quick", "dagger_control", "dagger_long", "dagger_rpf", "dagger_rpf_original", "dagger_spf_rpf_pointer",
-    "dagger_pointer_long", "dagger_routes", "dagger_routes_pointer",
+    "dagger_pointer_long", "dagger_table1", "dagger_routes", "dagger_routes_pointer",
 )
 
 
@@ -44,7 +44,8 @@ def main(argv: list[str] | None = None) -> dict:
         choices=PRESETS,
         default=None,
         help="dagger_quick (smoke run), dagger_control (the expert drives every step: the control at equal steps), "
-        "the DAgger runs after Table 1's rows: dagger_long, dagger_rpf, dagger_rpf_original, dagger_spf_rpf_pointer, dagger_pointer_long, "
+        "the earlier DAgger runs after Table 1's rows: dagger_long, dagger_rpf, dagger_rpf_original, dagger_spf_rpf_pointer, dagger_pointer_long, "
+        "dagger_table1 (Table 1's one DAgger rule, after bc.py --preset bc_table1), "
         "dagger_routes (after bc.py --preset bc_routes: rounds on the same route mixture) "
         "or dagger_routes_pointer (dagger_routes with a pointer loss, optim.pointer_coef 0.1)",
     )

@@ -5,24 +5,23 @@ Rows (``--rows`` names them; each is also the stem of its shipped checkpoint):
 * ``spf-s0.4``, ``spf-s0.6``, ``spf-s0.8``: SPF at sparsity 0.4 / 0.6 / 0.8;
 * ``rpf-s1``: SPF at sparsity 1 (RPF as SPF: full memory, SPF's network);
 * ``rpf_original-s1``: the original RPF (the RPF lab code's memory network);
-* ``spf_rpf_pointer-s0.8`` and ``spf_rpf_pointer_long-s0.8``: SPF 0.8 with RPF's pointer rule, on the ``bc_row``
-  and the long schedule (beyond the paper);
+* ``spf_rpf_pointer-s0.8``: SPF 0.8 with RPF's pointer rule (beyond the paper);
 * ``action_only-s0``: RPF action only; ``open_loop``: open-loop replay (no training);
 * ``spf_random-s0.2-1``: one model trained with a random sparsity per episode in [0.2, 1], evaluated at each of
   :data:`~spf_rl.eval.table1_rows.RANDOM_EVAL_SPARSITIES` (one table line each).
 
-Every learned row is trained with each of ``--seeds`` (default 0, 1, 2) under the ``paper`` noise: SPF 0.8 with
-the long schedule (``--preset bc_long``, 20,000 gradient steps), every other row with ``--preset bc_row`` (5,000
-steps); run directories ``runs/bc_long/<model>-s<sparsity>-seed<S>`` and ``runs/bc_row/...`` (the presets'
-``output_dir``; an interrupted run resumes). A finished run's ``best.pt`` (best by validation) is copied to
-``checkpoints/table1/<row>-seed<S>.pt``, and the seed with the best validation success of each row becomes the
-row's shipped name ``<row>`` (``checkpoints/manifest.json`` maps the name to that file). DAgger checkpoints (a
-DAgger column for the rows with a :attr:`~spf_rl.eval.table1_rows.RowSpec.dagger_preset`) are never trained here:
-a finished run of the row's DAgger preset (``python recipes/dagger.py --preset dagger_long|dagger_rpf|... seed=S``)
-is copied to ``checkpoints/table1/dagger-<row>-seed<S>.pt`` (or put one there yourself), and its best seed by
-validation is shipped as ``dagger-<row>``. ``--from-checkpoints`` trains nothing, but still copies and ships what
-finished runs left. A per-seed checkpoint whose run directory is gone (no ``results.json``) is scored on its run's
-own validation episodes (cached in ``results/eval/table1/val/``), so that shipping stays by validation.
+One budget for every row: each learned row is trained with each of ``--seeds`` (default 0, 1, 2) under the
+``paper`` noise on ``--preset bc_table1`` (``bc_long``'s 20,000 gradient steps on 8,000 episodes, best epoch by
+validation), and the rows with a DAgger column (SPF 0.8, SPF at sparsity 1, the original RPF, the pointer rule)
+then get one DAgger rule, ``--preset dagger_table1`` (10 learner-driven rounds, the round picked on fresh
+validation episodes), from their own BC run. Seed 0 of every row comes first, then seed 1, then seed 2. Run
+directories ``runs/table1/<row>-seed<S>`` and ``runs/table1/dagger-<row>-seed<S>``; an interrupted run resumes.
+A finished run's ``best.pt`` is copied to ``checkpoints/table1/<line>-seed<S>.pt`` (replacing an earlier run's
+file there), and once every seed of a line has finished, the seed with the best validation success becomes the
+line's shipped name (``checkpoints/manifest.json`` maps the name to that file). Per-seed files that are not this
+recipe's runs (earlier runs, on other budgets or code) are still scored, and the table marks their lines.
+``--from-checkpoints`` trains nothing, but still copies and ships what finished runs left. ``key=value``
+overrides reach every BC run; ``device=`` and ``optim.amp=`` reach the DAgger runs too.
 
 Every checkpoint is scored on the same episodes: the ``test`` set (``bc_long``'s test config: 1,000 episodes of
 the 18 test houses, seed 2, ``paper`` noise) and the ``extended`` set (the same with 100 test-split houses).

@@ -66,10 +66,9 @@ def test_table_from_cached_records_counts_seeds_and_tests_the_claims(tmp_path, m
         "dagger-spf-s0.8": (0.9, [0]),
     })
     monkeypatch.setattr(table1_rows, "evaluate_line", lambda *a: pytest.fail("everything is cached: nothing to evaluate"))
-    # the checkpoints have no run results: each is scored on validation (here a stub) and the best one shipped
-    monkeypatch.setattr(table1_rows, "cached_validation", lambda eval_dir, device: lambda line, seed, path, config: (seed / 10, 0.0))
     table = table1.main(options(tmp_path, "--from-checkpoints", "--rows", ROWS, "--sets", "test"))
-    assert table["shipped"]["spf-s0.8"]["seed"] == 2 and table["shipped"]["action_only-s0"]["seed"] == 1
+    # the checkpoints are no finished runs of this recipe: scored and marked as earlier runs', nothing re-shipped
+    assert table["shipped"] == {}
 
     saved = json.loads((tmp_path / "out" / "table1.json").read_text())
     assert saved["seeds"] == [0, 1, 2] and saved["claims"] == json.loads(json.dumps(table["claims"]))
@@ -77,6 +76,8 @@ def test_table_from_cached_records_counts_seeds_and_tests_the_claims(tmp_path, m
     assert rows["spf-s0.8"]["seeds"] == [0, 1, 2] and rows["spf-s0.8"]["missing_seeds"] == []
     assert rows["action_only-s0"]["seeds"] == [0, 1] and rows["action_only-s0"]["missing_seeds"] == [2]
     assert rows["dagger-spf-s0.8"]["dagger_of"] == "spf-s0.8" and rows["dagger-spf-s0.8"]["missing_seeds"] == [1, 2]
+    assert rows["spf-s0.8"]["earlier_seeds"] == [0, 1, 2] and rows["dagger-spf-s0.8"]["earlier_seeds"] == [0]
+    assert rows["open_loop"]["earlier_seeds"] == [] and saved["budget"] == {"preset": "bc_quick"}
     test = rows["spf-s0.8"]["sets"]["test"]
     per_seed = [test["per_seed"][str(s)]["success"] for s in (0, 1, 2)]
     assert test["success"]["mean"] == pytest.approx(np.mean(per_seed))
@@ -96,8 +97,8 @@ def test_table_from_cached_records_counts_seeds_and_tests_the_claims(tmp_path, m
     assert {c["metric"] for c in saved["claims"] if "metric" in c} == {"success", "spl", "success_lab"}
 
     text = (tmp_path / "out" / "table1.md").read_text()
-    assert "| SPF sparsity 0.8 | 3 of 3 |" in text
-    assert "| RPF action only | 2 of 3 (missing: 2) |" in text
+    assert "| SPF sparsity 0.8 † | 3 of 3 |" in text and table1_report.EARLIER_NOTE in text
+    assert "| RPF action only † | 2 of 3 (missing: 2) |" in text
     assert "| open-loop replay | - (not trained) |" in text
     assert "(1 of 3 (missing: 1, 2) seeds)" in text  # the DAgger column
     assert "| SPF 0.8 beats action-only | test | success |" in text and "| yes |" in text
@@ -160,65 +161,115 @@ def test_quick_open_loop_run_plays_real_episodes_once(tmp_path, monkeypatch):
     assert again["rows"] == table["rows"]
 
 
-def test_training_copies_each_finished_seed_and_ships_the_best_by_validation(tmp_path, monkeypatch):
-    """train_bc is replaced by a fake that writes what a finished run leaves: best.pt and results.json."""
-    monkeypatch.chdir(tmp_path)
-    trained = []
+def fake_runs(monkeypatch, val: dict[int, float], dagger_val: dict[int, float]) -> list[tuple]:
+    """``train_bc`` and ``train_dagger`` replaced by fakes that leave what a finished run leaves (best.pt,
+    results.json); returns the list of (kind, config) they were called with, in order."""
+    calls: list[tuple] = []
 
-    def fake_train_bc(config):
+    def finish(config, kind: str, results: dict) -> None:
         run = Path(config.output_dir)
         run.mkdir(parents=True)
-        (run / "best.pt").write_text(f"seed {config.seed}")
-        val = {0: 0.70, 1: 0.76, 2: 0.73}[config.seed]
-        (run / "results.json").write_text(json.dumps({"val_best": {"success": val, "spl": val - 0.1, "epoch": 3}}))
-        trained.append((config.model.name, config.model.sparsity, config.seed, config.optim.epochs, config.output_dir))
+        (run / "best.pt").write_text(f"{kind} {run.name}")
+        (run / "results.json").write_text(json.dumps(results))
+        calls.append((kind, config))
 
-    monkeypatch.setattr("spf_rl.train.bc.train_bc", fake_train_bc)
+    monkeypatch.setattr("spf_rl.train.bc.train_bc", lambda config: finish(
+        config, "bc", {"val_best": {"success": val[config.seed], "spl": val[config.seed] - 0.1, "epoch": 3}}))
+    monkeypatch.setattr("spf_rl.train.dagger.train_dagger", lambda config: finish(
+        config, "dagger", {"best": {"round": 2, "val_success": dagger_val[config.seed], "val_spl": 0.5}}))
+    return calls
+
+
+def test_training_runs_seed_0_of_every_row_first_each_dagger_after_its_row_and_ships_the_best(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    calls = fake_runs(monkeypatch, val={0: 0.70, 1: 0.76, 2: 0.73}, dagger_val={0: 0.9, 1: 0.8, 2: 0.85})
+    rows = [table1_rows.ROW_BY_NAME["spf-s0.8"], table1_rows.ROW_BY_NAME["spf-s0.4"]]
     checkpoints = tmp_path / "checkpoints"
-    shipped = table1_rows.train_missing([table1_rows.ROW_BY_NAME["spf-s0.8"], table1_rows.ROW_BY_NAME["rpf-s1"]], [0, 1, 2], [], checkpoints, False)
-    assert [t[:4] for t in trained] == [("spf", 0.8, s, 40) for s in (0, 1, 2)] + [("rpf", 1.0, s, 20) for s in (0, 1, 2)]
-    assert trained[0][4] == "runs/bc_long/spf-s0.8-seed0" and trained[3][4] == "runs/bc_row/rpf-s1.0-seed0"
-    assert (checkpoints / "table1" / "spf-s0.8-seed2.pt").read_text() == "seed 2"
-    assert shipped_file(checkpoints, "spf-s0.8").read_text() == "seed 1" and shipped["spf-s0.8"]["seed"] == 1
-    trained.clear()
-    table1_rows.train_missing([table1_rows.ROW_BY_NAME["spf-s0.8"]], [0, 1, 2], [], checkpoints, False)
-    assert trained == []  # finished runs are not trained again
+    shipped = table1_rows.train_missing(rows, [0, 1, 2], [], checkpoints, False)
+    assert [(kind, config.output_dir) for kind, config in calls] == [
+        (kind, f"runs/table1/{line}-seed{seed}") for seed in (0, 1, 2)
+        for kind, line in (("bc", "spf-s0.8"), ("dagger", "dagger-spf-s0.8"), ("bc", "spf-s0.4"))
+    ]
+    bc_runs = [config for kind, config in calls if kind == "bc"]
+    assert {(c.optim.epochs, c.data.num_episodes, c.optim.batch_size) for c in bc_runs} == {(40, 8000, 16)}  # one budget
+    for kind, config in calls:
+        if kind == "dagger":  # from its row's own BC run, on that run's data
+            bc = table1_rows.row_config(rows[0], config.seed, [], quick=False)
+            assert config.checkpoint == f"runs/table1/spf-s0.8-seed{config.seed}/best.pt" and config.bc_data == bc.data
+    assert (checkpoints / "table1" / "spf-s0.4-seed2.pt").read_text() == "bc spf-s0.4-seed2"
+    assert shipped["spf-s0.8"]["seed"] == 1 and shipped_file(checkpoints, "spf-s0.8").read_text() == "bc spf-s0.8-seed1"
+    assert shipped["dagger-spf-s0.8"]["seed"] == 0
+    assert shipped_file(checkpoints, "dagger-spf-s0.8").read_text() == "dagger dagger-spf-s0.8-seed0"
+    calls.clear()
+    assert table1_rows.train_missing(rows, [0, 1, 2], [], checkpoints, False) == shipped
+    assert calls == []  # finished runs are not trained again
 
 
-def test_from_checkpoints_trains_nothing_but_ships_finished_bc_and_dagger_runs(tmp_path, monkeypatch):
+def test_a_finished_run_replaces_an_earlier_runs_file_and_the_rest_stay_marked(tmp_path, monkeypatch):
+    """Per-seed files of earlier runs (another budget) are scored until this recipe's runs replace them; the
+    shipped name moves only once every seed of the line is this recipe's."""
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr("spf_rl.train.bc.train_bc", lambda config: pytest.fail("--from-checkpoints must not train"))
-    for seed, val in ((0, 0.81), (2, 0.84)):  # seed 1 has no finished run
-        run = Path(f"runs/bc_long/spf-s0.8-seed{seed}")
-        run.mkdir(parents=True)
-        (run / "best.pt").write_text(f"bc seed {seed}")
-        (run / "results.json").write_text(json.dumps({"val_best": {"success": val, "spl": val, "epoch": 3}}))
-        dagger = Path(f"runs/dagger_long/spf-s0.8-seed{seed}")
-        dagger.mkdir(parents=True)
-        (dagger / "best.pt").write_text(f"dagger seed {seed}")
-        dagger_val = 0.9 - val / 10  # seed 0 is DAgger's best
-        (dagger / "results.json").write_text(json.dumps({"best": {"round": 2, "val_success": dagger_val, "val_spl": 0.5}}))
+    monkeypatch.setattr("spf_rl.train.dagger.train_dagger", lambda config: pytest.fail("--from-checkpoints must not train"))
     checkpoints = tmp_path / "checkpoints"
-    shipped = table1_rows.train_missing([table1_rows.ROW_BY_NAME["spf-s0.8"]], [0, 1, 2], [], checkpoints, False, train=False)
-    assert shipped["spf-s0.8"]["seed"] == 2 and shipped_file(checkpoints, "spf-s0.8").read_text() == "bc seed 2"
-    assert shipped["dagger-spf-s0.8"]["seed"] == 0
-    assert shipped_file(checkpoints, "dagger-spf-s0.8").read_text() == "dagger seed 0"
-    assert (checkpoints / "table1" / "dagger-spf-s0.8-seed2.pt").read_text() == "dagger seed 2"
-    assert not (checkpoints / "table1" / "spf-s0.8-seed1.pt").exists()
+    (checkpoints / "table1").mkdir(parents=True)
+    for seed in (0, 1, 2):
+        (checkpoints / "table1" / f"spf-s0.4-seed{seed}.pt").write_text(f"earlier {seed}")
+    write_manifest(checkpoints, {"spf-s0.4": "table1/spf-s0.4-seed2.pt"})
+    run = Path("runs/table1/spf-s0.4-seed0")
+    run.mkdir(parents=True)
+    (run / "best.pt").write_text("this recipe's seed 0")
+    (run / "results.json").write_text(json.dumps({"val_best": {"success": 0.9, "spl": 0.9, "epoch": 30}}))
+    row = table1_rows.ROW_BY_NAME["spf-s0.4"]
+    assert table1_rows.train_missing([row], [0, 1, 2], [], checkpoints, False, train=False) == {}
+    assert (checkpoints / "table1" / "spf-s0.4-seed0.pt").read_text() == "this recipe's seed 0"
+    assert shipped_file(checkpoints, "spf-s0.4").read_text() == "earlier 2"  # not every seed is this recipe's yet
+    lines = table1_rows.table_lines([row], 30, 64)
+    assert table1_rows.seed_sources(lines, [0, 1, 2], checkpoints, False) == {"spf-s0.4": {"this_recipe": [0], "earlier": [1, 2]}}
 
 
-def test_dagger_column_reads_the_dagger_presets_run_directories():
-    assert table1_rows.dagger_run_dir(table1_rows.ROW_BY_NAME["spf-s0.8"], 2) == Path("runs/dagger_long/spf-s0.8-seed2")
-    assert table1_rows.dagger_run_dir(table1_rows.ROW_BY_NAME["rpf-s1"], 0) == Path("runs/dagger_rpf/rpf-s1.0-seed0")
-    assert table1_rows.dagger_run_dir(table1_rows.ROW_BY_NAME["spf-s0.4"], 0) is None
-    # each DAgger preset starts from the BC run of its row's schedule
+def test_every_row_trains_on_one_budget_and_every_dagger_column_by_one_rule():
+    from spf_rl.train.dagger import DAGGER_VAL_SEED
+
+    trained = [row for row in table1_rows.ROWS if row.trained]
+    assert len(trained) == 8 and {row.name for row in table1_rows.ROWS if row.dagger} == {
+        "spf-s0.8", "rpf-s1", "rpf_original-s1", "spf_rpf_pointer-s0.8"}
+    reference = table1_rows.row_config(table1_rows.ROW_BY_NAME["spf-s0.8"], 1, [], quick=False)
+    for row in trained:
+        config = table1_rows.row_config(row, 1, [], quick=False)
+        assert (config.optim, config.data, config.val, config.test) == (reference.optim, reference.data, reference.val, reference.test)
+        assert config.output_dir == f"runs/table1/{row.name}-seed1"
+        dagger = table1_rows.dagger_config(row, 1)
+        if dagger is None:
+            continue
+        rule = (dagger.rounds, dagger.episodes_per_round, dagger.beta0, dagger.steps_per_round, dagger.window_rounds)
+        assert rule == (10, 256, 0.0, 500, 4) and dagger.val.seed == DAGGER_VAL_SEED != config.val.seed
+        assert dagger.bc_data == config.data and dagger.test == config.test
+        assert dagger.output_dir == f"runs/table1/dagger-{row.name}-seed1" and dagger.checkpoint == f"runs/table1/{row.name}-seed1/best.pt"
+    assert table1_rows.budgets() == {
+        "bc": {"preset": "bc_table1", "gradient_steps": 20_000, "episodes": 8_000, "batch_episodes": 16},
+        "dagger": {"preset": "dagger_table1", "rounds": 10, "episodes_per_round": 256, "gradient_steps": 5_000,
+                   "val_seed": DAGGER_VAL_SEED},
+    }
+
+
+def test_the_table1_presets_are_what_the_table_trains():
+    """``python recipes/bc.py --preset bc_table1`` and ``dagger.py --preset dagger_table1`` train SPF 0.8's runs."""
+    from spf_rl.train.bc import BCConfig
     from spf_rl.train.dagger import DAggerConfig
 
-    for name in ("spf-s0.8", "rpf-s1"):
-        row = table1_rows.ROW_BY_NAME[name]
-        dagger = load_config(DAggerConfig, "dagger", ["seed=1"], preset=row.dagger_preset)
-        bc = table1_rows.row_config(row, 1, [], quick=False)
-        assert Path(dagger.checkpoint) == Path(bc.output_dir) / "best.pt" and dagger.bc_data == bc.data
+    row = table1_rows.ROW_BY_NAME["spf-s0.8"]
+    assert table1_rows.row_config(row, 2, [], quick=False) == load_config(BCConfig, "bc", ["seed=2", "model=spf", "sparsity=0.8"],
+                                                                          preset="bc_table1")
+    assert table1_rows.dagger_config(row, 2) == load_config(DAggerConfig, "dagger", ["seed=2"], preset="dagger_table1")
+
+
+def test_only_device_and_amp_overrides_reach_the_dagger_runs():
+    row = table1_rows.ROW_BY_NAME["rpf-s1"]
+    bc = table1_rows.row_config(row, 0, ["optim.epochs=2", "device=cpu", "optim.amp=true"], quick=False)
+    dagger = table1_rows.dagger_config(row, 0, ["optim.epochs=2", "device=cpu", "optim.amp=true"])
+    assert (bc.optim.epochs, bc.device, bc.optim.amp) == (2, "cpu", True)
+    assert (dagger.device, dagger.optim.amp) == ("cpu", True) and dagger.bc_data == bc.data
 
 
 def test_summary_names_unscored_rows_once_and_leaves_claims_to_the_full_table():
@@ -257,97 +308,26 @@ def test_summary_puts_a_model_scored_at_several_sparsities_on_one_line():
     assert "| Random, at 0.4 / 1 | `r` | 2 of 3 | 0.600 / 0.700 | 0.590 / 0.690 | - | - |" in text
 
 
-@pytest.mark.parametrize("row", [row for row in table1_rows.ROWS if row.dagger_preset], ids=lambda row: row.name)
-def test_every_dagger_preset_starts_from_its_rows_run(row):
-    """A row's DAgger preset starts from that row's own BC run (per seed), so the DAgger column is the row's."""
-    from spf_rl.train.dagger import DAggerConfig
-
-    for seed in (0, 2):
-        dagger = load_config(DAggerConfig, "dagger", [f"seed={seed}"], preset=row.dagger_preset)
-        bc = table1_rows.row_config(row, seed, [], quick=False)
-        assert Path(dagger.checkpoint) == Path(bc.output_dir) / "best.pt"
-        assert dagger.bc_data.num_episodes == bc.data.num_episodes
-
-
 def test_the_pointer_row_trains_spf_with_rpfs_pointer_rule():
     config = table1_rows.row_config(table1_rows.ROW_BY_NAME["spf_rpf_pointer-s0.8"], 1, [], quick=False)
     assert (config.model.name, config.model.sparsity, config.model.pointer_update) == ("spf", 0.8, "rpf")
     assert config.output_dir.endswith("spf_rpf_pointer-s0.8-seed1")
 
 
-def test_the_long_pointer_row_is_the_bc_pointer_long_preset():
-    """The row trains exactly what ``python recipes/bc.py --preset bc_pointer_long`` trains (one schedule, one run dir)."""
-    from spf_rl.train.bc import BCConfig
+def test_summary_marks_lines_holding_earlier_runs():
+    from spf_rl.eval.table1 import EARLIER_MARK, EARLIER_NOTE, summary_markdown
 
-    row = table1_rows.row_config(table1_rows.ROW_BY_NAME["spf_rpf_pointer_long-s0.8"], 1, [], quick=False)
-    assert row == load_config(BCConfig, "bc", ["seed=1"], preset="bc_pointer_long")
-    assert table1_rows.row_config(table1_rows.ROW_BY_NAME["spf-s0.8"], 1, [], quick=False).optim == row.optim
-
-
-def _lost_dagger_seed(tmp_path: Path) -> Path:
-    """Checkpoints and runs of the original RPF: BC seeds 0 and 1 finished, DAgger seed 1 finished, and a
-    per-seed DAgger checkpoint of seed 0 (also the shipped one) whose run directory is gone."""
-    checkpoints = tmp_path / "checkpoints"
-    (checkpoints / "table1").mkdir(parents=True)
-    (checkpoints / "table1" / "dagger-rpf_original-s1-seed0.pt").write_text("dagger seed 0, run lost")
-    write_manifest(checkpoints, {"dagger-rpf_original-s1": "table1/dagger-rpf_original-s1-seed0.pt"})  # shipped
-    for seed in (0, 1):
-        run = Path(f"runs/bc_row/rpf_original-s1.0-seed{seed}")
-        run.mkdir(parents=True)
-        (run / "best.pt").write_text(f"bc seed {seed}")
-        (run / "results.json").write_text(json.dumps({"val_best": {"success": 0.8 + seed / 100, "spl": 0.8, "epoch": 3}}))
-    dagger = Path("runs/dagger_rpf_original/rpf_original-s1.0-seed1")
-    dagger.mkdir(parents=True)
-    (dagger / "best.pt").write_text("dagger seed 1")
-    (dagger / "results.json").write_text(json.dumps({"best": {"round": 4, "val_success": 0.88, "val_spl": 0.87}}))
-    return checkpoints
-
-
-@pytest.mark.parametrize("lost_seed_val, shipped_seed", [(0.95, 0), (0.50, 1)])
-def test_a_seed_without_run_results_is_scored_on_its_runs_validation_episodes(
-    tmp_path, monkeypatch, lost_seed_val, shipped_seed
-):
-    monkeypatch.chdir(tmp_path)
-    checkpoints = _lost_dagger_seed(tmp_path)
-    calls = []
-
-    def validate(line, seed, checkpoint, config):
-        calls.append((line, seed, checkpoint.name, config.split, config.num_episodes, config.seed))
-        return lost_seed_val, lost_seed_val
-
-    shipped = table1_rows.train_missing([table1_rows.ROW_BY_NAME["rpf_original-s1"]], [0, 1, 2], [], checkpoints, False,
-                                   train=False, validate=validate)
-    assert calls == [("dagger-rpf_original-s1", 0, "dagger-rpf_original-s1-seed0.pt", "val", 300, 1)]
-    assert shipped["dagger-rpf_original-s1"] == {"seed": shipped_seed, "val_success": [lost_seed_val, 0.88][shipped_seed],
-                                                 "val_spl": [lost_seed_val, 0.87][shipped_seed]}
-    expected = "dagger seed 0, run lost" if shipped_seed == 0 else "dagger seed 1"
-    assert shipped_file(checkpoints, "dagger-rpf_original-s1").read_text() == expected
-
-
-def test_cached_validation_scores_once_and_rereads_the_cache(tmp_path, monkeypatch):
-    import spf_rl.hub
-    import spf_rl.train.evaluation
-    from spf_rl.train.bc import default_val_config
-
-    checkpoint = tmp_path / "ckpt.pt"
-    checkpoint.write_bytes(b"weights")
-    episodes = [{key: 0 for key in table1_report.RECORD_KEYS} | {"success": s, "spl": s / 2} for s in (1, 0, 1, 1)]
-    monkeypatch.setattr(spf_rl.hub, "policy_from_checkpoint", lambda path, device: ("policy", None))
-    monkeypatch.setattr(spf_rl.train.evaluation, "evaluate_policy", lambda policy, config, progress: ({}, episodes))
-    validate = table1_rows.cached_validation(tmp_path / "eval", "cpu")
-    assert validate("dagger-x", 0, checkpoint, default_val_config()) == (0.75, 0.375)
-    monkeypatch.setattr(spf_rl.train.evaluation, "evaluate_policy", lambda *a, **k: pytest.fail("must read the cache"))
-    assert validate("dagger-x", 0, checkpoint, default_val_config()) == (0.75, 0.375)
-    assert (tmp_path / "eval" / "val" / "dagger-x-seed0.json").exists()
-
-
-def test_a_seed_without_run_results_blocks_reshipping_its_line(tmp_path, monkeypatch):
-    """Without ``validate``, a per-seed DAgger checkpoint whose run directory is gone has no validation
-    score: the shipped file stays."""
-    monkeypatch.chdir(tmp_path)
-    checkpoints = _lost_dagger_seed(tmp_path)
-    shipped = table1_rows.train_missing([table1_rows.ROW_BY_NAME["rpf_original-s1"]], [0, 1, 2], [], checkpoints, False, train=False)
-    assert shipped["rpf_original-s1"]["seed"] == 1
-    assert "dagger-rpf_original-s1" not in shipped
-    assert shipped_file(checkpoints, "dagger-rpf_original-s1").read_text() == "dagger seed 0, run lost"
-    assert (checkpoints / "table1" / "dagger-rpf_original-s1-seed1.pt").read_text() == "dagger seed 1"
+    stats = {"success": {"mean": 0.8, "sd": 0.01}, "spl": {"mean": 0.7, "sd": 0.02}}
+    base = {"model": "spf", "dagger_of": None, "seeds": [0, 1, 2], "seeds_expected": [0, 1, 2], "missing_seeds": [],
+            "paper_success": None, "paper_spl": None, "sets": {"test": stats}}
+    rows = [
+        {**base, "name": "a", "row": "a", "checkpoint_stem": "a", "label": "A", "earlier_seeds": []},
+        {**base, "name": "b", "row": "b", "checkpoint_stem": "b", "label": "B", "earlier_seeds": []},
+        {**base, "name": "dagger-b", "row": "b", "checkpoint_stem": "dagger-b", "label": "DAgger", "dagger_of": "b",
+         "earlier_seeds": [2]},
+    ]
+    lines = summary_markdown({"rows": rows, "claims": []}).splitlines()
+    assert lines[2].startswith("| A | ") and lines[3].startswith(f"| B {EARLIER_MARK} | ")  # its DAgger column is earlier
+    assert lines[-1] == f"{EARLIER_MARK} {EARLIER_NOTE}"
+    rows[2]["earlier_seeds"] = []
+    assert EARLIER_MARK not in summary_markdown({"rows": rows, "claims": []})

@@ -10,7 +10,6 @@ is read and written by :func:`load_cached` and :func:`write_cached`.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import logging
 from collections.abc import Callable, Sequence
@@ -58,14 +57,11 @@ class Line:
 
 
 # ------------------------------------------------------------------------- files
-def file_sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
 def cache_entry(line: str, seed: int | None, set_name: str, config, checkpoint: Path | None, eval_dir: Path):
     """``(path, meta)`` of the cached records of one line x seed x set: the cache is used only when
     ``meta`` (evaluation config, checkpoint file and its SHA-256, env version) is unchanged."""
     from envs.version import ENV_VERSION
+    from spf_rl.hub import file_sha256
     from spf_rl.train.evaluation import episode_identity
 
     meta = {
@@ -275,10 +271,18 @@ def markdown(table: dict) -> str:
             dagger_text = cell(dagger_row["sets"].get("test"), "success") + f" ({seeds_cell(dagger_row)} seeds)"
         paper = ["-" if v is None else f"{v:.3f}" for v in (row["paper_success"], row["paper_spl"])]
         out.append(
-            f"| {row['label']} | {seeds_cell(row)} | {row['memory_bytes']:,} | {cell(on_test, 'success')} | {cell(on_test, 'spl')} "
+            f"| {row['label']}{f' {EARLIER_MARK}' if earlier(row, dagger_row) else ''} | {seeds_cell(row)} | {row['memory_bytes']:,} | {cell(on_test, 'success')} | {cell(on_test, 'spl')} "
             f"| {cell(on_test, 'success_lab')} | {cell(on_extended, 'success')} | {cell(on_extended, 'spl')} | {dagger_text} "
             f"| {paper[0]} | {paper[1]} |"
         )
+    budget = table.get("budget", {})
+    if "bc" in budget:
+        out += ["", f"Budget of every row: {budget['bc']['gradient_steps']:,} gradient steps on {budget['bc']['episodes']:,} "
+                f"episodes (`--preset {budget['bc']['preset']}`); every DAgger column: {budget['dagger']['rounds']} "
+                f"learner-driven rounds, {budget['dagger']['gradient_steps']:,} gradient steps (`--preset "
+                f"{budget['dagger']['preset']}`)."]
+    if any(earlier(row) for row in table["rows"]):
+        out += ["", f"{EARLIER_MARK} {EARLIER_NOTE}"]
     out += ["", "## Ordering claims (paired bootstrap on the shared episodes, pooled over seeds)", "",
             "| claim | set | metric | a - b [95% CI] | p (a > b) | p (two-sided) | holds (p < 0.05) | seeds a / b |",
             "|---|---|---|---|---|---|---|---|"]
@@ -297,13 +301,23 @@ def markdown(table: dict) -> str:
     return "\n".join(out) + "\n"
 
 
+#: Marks a line whose checkpoints include an earlier run's (``earlier_seeds``), and what it means.
+EARLIER_MARK = "†"
+EARLIER_NOTE = "some seeds (of the row or its DAgger column) are earlier runs, not `recipes/table1.py`'s."
+
+
+def earlier(*rows: dict | None) -> bool:
+    """Whether any of ``rows`` (table lines) holds an earlier run's checkpoint for some seed."""
+    return any(row and row.get("earlier_seeds") for row in rows)
+
+
 def _sparsities_line(rows: list[dict]) -> str:
     """One summary line for a model scored at several sparsities: means side by side."""
     def means(metric: str) -> str:
         return " / ".join(f"{r['sets']['test'][metric]['mean']:.3f}" for r in rows)
 
     sparsities = " / ".join(f"{r['sparsity']:g}" for r in rows)
-    label = f"{rows[0]['label'].split(',')[0]}, at {sparsities}"
+    label = f"{rows[0]['label'].split(',')[0]}, at {sparsities}" + (f" {EARLIER_MARK}" if earlier(*rows) else "")
     return (
         f"| {label} | `{rows[0]['checkpoint_stem']}` | {seed_count(rows[0])} | {means('success')} | {means('spl')} "
         f"| - | - |"
@@ -346,12 +360,15 @@ def summary_markdown(table: dict) -> str:
             dagger_text = f"{cell(dagger_row['sets']['test'], 'success', with_ci=False)} ({seed_count(dagger_row)})"
         paper = "-" if row["paper_success"] is None else f"{row['paper_success']:.3f} / {row['paper_spl']:.3f}"
         checkpoint = "-" if row["model"] == "open_loop" else f"`{row['checkpoint_stem']}`"
+        label = row["label"] + (f" {EARLIER_MARK}" if earlier(row, dagger_row) else "")
         out.append(
-            f"| {row['label']} | {checkpoint} | {seeds} | {cell(test, 'success', with_ci=False)} | {cell(test, 'spl', with_ci=False)} "
+            f"| {label} | {checkpoint} | {seeds} | {cell(test, 'success', with_ci=False)} | {cell(test, 'spl', with_ci=False)} "
             f"| {dagger_text} | {paper} |"
         )
     if untrained:
         out += ["", f"Not scored yet (no checkpoint of this noise model): {', '.join(untrained.values())}."]
+    if any(earlier(row) for row in table["rows"]):
+        out += ["", f"{EARLIER_MARK} {EARLIER_NOTE}"]
     return "\n".join(out) + "\n"
 
 

@@ -1,5 +1,6 @@
-"""The rows of Table 1 and the runs behind them: what each row trains, how the seeds of its
-finished runs become per-seed checkpoints and a shipped name, and how every checkpoint is
+"""The rows of Table 1 and the runs behind them: every row trained on one budget
+(:data:`TABLE1_PRESET`) and every DAgger column by one rule (:data:`TABLE1_DAGGER_PRESET`), in
+``runs/table1/``; how the seeds of its finished runs become per-seed checkpoints and a shipped name, and how every checkpoint is
 scored on the table's episode sets (cached per episode). ``recipes/table1.py`` is the
 command line (:class:`Table1Options`, :func:`parse_names`, :func:`parse_seeds`, then
 :func:`reproduce`); :mod:`spf_rl.eval.table1` turns the records into the table.
@@ -9,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -20,19 +21,34 @@ from spf_rl.eval.table1 import Line, build_table, cache_entry, cached_records, w
 logger = logging.getLogger(__name__)
 
 
+#: Table 1's one training budget, every trained row's (``recipes/configs/bc_table1.yaml``).
+TABLE1_PRESET = "bc_table1"
+#: Table 1's one DAgger rule, every DAgger column's (``recipes/configs/dagger_table1.yaml``).
+TABLE1_DAGGER_PRESET = "dagger_table1"
+#: The table's run directories: ``<RUNS_DIR>/<line>-seed<S>``, a line being a row or ``dagger-<row>``.
+RUNS_DIR = Path("runs/table1")
+#: Overrides of ``recipes/table1.py`` that reach the DAgger runs too (the others are BC keys).
+DAGGER_OVERRIDE_KEYS = ("device", "optim.amp")
+
+
 @dataclass(frozen=True)
 class RowSpec:
-    """A row of Table 1: what is trained, with which schedule, and the paper's numbers."""
+    """A row of Table 1: what is trained (on :data:`TABLE1_PRESET`), with what overrides, and the paper's numbers.
+
+    Attributes:
+        trained: the row trains a model (open-loop replay does not).
+        dagger: the row has a DAgger column (:data:`TABLE1_DAGGER_PRESET` from the row's BC runs).
+    """
 
     name: str
     label: str
     model: str
     sparsity: float
-    preset: str | None
     overrides: tuple[str, ...] = ()
     paper: tuple[float | None, float | None] = (None, None)
     eval_sparsities: tuple[float, ...] = ()
-    dagger_preset: str | None = None  # the DAgger preset (recipes/configs/) whose runs give the DAgger column
+    trained: bool = True
+    dagger: bool = False
 
 
 #: Sparsities the random-sparsity model is evaluated at.
@@ -40,44 +56,37 @@ RANDOM_EVAL_SPARSITIES = (0.4, 0.6, 0.8, 1.0)
 RANDOM_MODEL = "spf_random"
 #: Paper: Table 1 (Habitat, MP3D), (success, SPL).
 ROWS = (
-    RowSpec("spf-s0.4", "SPF sparsity 0.4", "spf", 0.4, "bc_row", ("model=spf", "sparsity=0.4"), (0.782, 0.683)),
-    RowSpec("spf-s0.6", "SPF sparsity 0.6", "spf", 0.6, "bc_row", ("model=spf", "sparsity=0.6"), (0.803, 0.724)),
-    RowSpec("spf-s0.8", "SPF sparsity 0.8", "spf", 0.8, "bc_long", ("model=spf", "sparsity=0.8"), (0.819, 0.737),
-            dagger_preset="dagger_long"),
-    RowSpec("rpf-s1", "SPF at sparsity 1 (RPF as SPF)", "rpf", 1.0, "bc_row", ("model=rpf", "sparsity=1"),
-            dagger_preset="dagger_rpf"),
-    RowSpec("rpf_original-s1", "RPF (original)", "rpf_original", 1.0, "bc_row", ("model=rpf_original", "sparsity=1"),
-            (0.833, 0.752), dagger_preset="dagger_rpf_original"),
-    RowSpec("spf_rpf_pointer-s0.8", "SPF 0.8 with RPF's pointer rule (beyond the paper)", "spf", 0.8, "bc_row",
-            ("model=spf", "sparsity=0.8", "model.pointer_update=rpf",
-             "output_dir=runs/ablation/spf_rpf_pointer-s0.8-seed${seed}"), dagger_preset="dagger_spf_rpf_pointer"),
-    RowSpec("spf_rpf_pointer_long-s0.8", "SPF 0.8 with RPF's pointer rule, long schedule (beyond the paper)", "spf", 0.8,
-            "bc_long", ("model=spf", "sparsity=0.8", "model.pointer_update=rpf",
-                        "output_dir=runs/ablation/spf_rpf_pointer_long-s0.8-seed${seed}"),
-            dagger_preset="dagger_pointer_long"),
-    RowSpec("action_only-s0", "RPF action only", "action_only", 0.0, "bc_row", ("model=action_only",), (0.782, 0.648)),
-    RowSpec("open_loop", "open-loop replay", "open_loop", 0.0, None),
-    RowSpec("spf_random-s0.2-1", "SPF random sparsity 0.2-1", RANDOM_MODEL, 0.8, "bc_row", ("model=spf_random",),
+    RowSpec("spf-s0.4", "SPF sparsity 0.4", "spf", 0.4, ("model=spf", "sparsity=0.4"), (0.782, 0.683)),
+    RowSpec("spf-s0.6", "SPF sparsity 0.6", "spf", 0.6, ("model=spf", "sparsity=0.6"), (0.803, 0.724)),
+    RowSpec("spf-s0.8", "SPF sparsity 0.8", "spf", 0.8, ("model=spf", "sparsity=0.8"), (0.819, 0.737), dagger=True),
+    RowSpec("rpf-s1", "SPF at sparsity 1 (RPF as SPF)", "rpf", 1.0, ("model=rpf", "sparsity=1"), dagger=True),
+    RowSpec("rpf_original-s1", "RPF (original)", "rpf_original", 1.0, ("model=rpf_original", "sparsity=1"),
+            (0.833, 0.752), dagger=True),
+    RowSpec("spf_rpf_pointer-s0.8", "SPF 0.8 with RPF's pointer rule (beyond the paper)", "spf", 0.8,
+            ("model=spf", "sparsity=0.8", "model.pointer_update=rpf"), dagger=True),
+    RowSpec("action_only-s0", "RPF action only", "action_only", 0.0, ("model=action_only",), (0.782, 0.648)),
+    RowSpec("open_loop", "open-loop replay", "open_loop", 0.0, trained=False),
+    RowSpec("spf_random-s0.2-1", "SPF random sparsity 0.2-1", RANDOM_MODEL, 0.8, ("model=spf_random",),
             eval_sparsities=RANDOM_EVAL_SPARSITIES),
 )
 ROW_BY_NAME = {row.name: row for row in ROWS}
 #: Ordering claims, each "a > b" on the shared episodes: (a, b, text); lines absent from a run are skipped.
 CLAIMS = (
-    ("spf-s0.8", "action_only-s0", "SPF 0.8 beats action-only"),
     ("spf-s0.6", "spf-s0.4", "SPF 0.6 beats SPF 0.4"),
     ("spf-s0.8", "spf-s0.6", "SPF 0.8 beats SPF 0.6"),
     ("rpf-s1", "spf-s0.8", "full memory (SPF at sparsity 1) beats SPF 0.8"),
+    ("rpf_original-s1", "spf-s0.8", "the original RPF beats SPF 0.8"),
+    ("spf-s0.4", "action_only-s0", "SPF 0.4 beats action-only"),
+    ("spf-s0.8", "action_only-s0", "SPF 0.8 beats action-only"),
     ("rpf_original-s1", "action_only-s0", "the original RPF beats action-only"),
     ("spf-s0.8", "open_loop", "SPF 0.8 beats open-loop replay"),
     ("action_only-s0", "open_loop", "action-only beats open-loop replay"),
+    ("spf_rpf_pointer-s0.8", "spf-s0.8", "RPF's pointer rule improves SPF 0.8"),
     ("dagger-spf-s0.8", "spf-s0.8", "DAgger improves SPF 0.8"),
     ("dagger-rpf-s1", "rpf-s1", "DAgger improves SPF at sparsity 1"),
     ("dagger-rpf_original-s1", "rpf_original-s1", "DAgger improves the original RPF"),
     ("dagger-spf_rpf_pointer-s0.8", "spf_rpf_pointer-s0.8", "DAgger improves SPF 0.8 with RPF's pointer rule"),
-    ("spf_rpf_pointer_long-s0.8", "spf-s0.8", "RPF's pointer rule improves SPF 0.8 (both on the long schedule)"),
-    ("dagger-spf_rpf_pointer_long-s0.8", "spf_rpf_pointer_long-s0.8",
-     "DAgger improves SPF 0.8 with RPF's pointer rule (long schedule)"),
-    ("dagger-spf_rpf_pointer_long-s0.8", "dagger-spf-s0.8", "with DAgger, RPF's pointer rule improves SPF 0.8 (long schedule)"),
+    ("dagger-spf_rpf_pointer-s0.8", "dagger-spf-s0.8", "with DAgger, RPF's pointer rule improves SPF 0.8"),
     # one model, one schedule, only the memory it is given changes: the sparsity order without confounders
     ("spf_random-s0.2-1@0.6", "spf_random-s0.2-1@0.4", "random sparsity: 0.6 beats 0.4"),
     ("spf_random-s0.2-1@0.8", "spf_random-s0.2-1@0.6", "random sparsity: 0.8 beats 0.6"),
@@ -121,7 +130,7 @@ def table_lines(rows: list[RowSpec], demo_length: int, image_size: int) -> list[
         else:
             lines.append(Line(name=row.name, label=row.label, sparsity=row.sparsity,
                               memory_bytes=memory(row.model, row.sparsity), checkpoint_stem=row.name, **common))
-        if row.dagger_preset:
+        if row.dagger:
             lines.append(Line(name=f"dagger-{row.name}", label=f"DAgger from {row.label}", sparsity=row.sparsity,
                               memory_bytes=memory(row.model, row.sparsity), checkpoint_stem=f"dagger-{row.name}",
                               dagger_of=row.name, row=row.name, model=row.model))
@@ -130,62 +139,73 @@ def table_lines(rows: list[RowSpec], demo_length: int, image_size: int) -> list[
 
 # ---------------------------------------------------------------------- configs
 def preset_of(row: RowSpec, quick: bool) -> str | None:
-    """The training schedule of a row: its preset, or ``bc_quick`` for every row with ``--quick``."""
-    return "bc_quick" if quick and row.preset else row.preset
+    """The training schedule of a row: :data:`TABLE1_PRESET`, or ``bc_quick`` with ``--quick`` (none untrained)."""
+    if not row.trained:
+        return None
+    return "bc_quick" if quick else TABLE1_PRESET
+
+
+def run_dir(line: str, seed: int, quick: bool = False) -> Path:
+    """The run directory of a line (a row, or ``dagger-<row>``) and seed: ``runs/table1/<line>-seed<S>``."""
+    return (QUICK_DIR / "runs" if quick else RUNS_DIR) / f"{line}-seed{seed}"
 
 
 def row_config(row: RowSpec, seed: int, overrides: list[str], quick: bool):
-    """The ``BCConfig`` of one row and seed: the row's preset (``bc_quick`` with ``--quick``) and overrides."""
+    """The ``BCConfig`` of one row and seed: the one schedule (``bc_quick`` with ``--quick``), the row's
+    keys, its run directory and ``overrides``."""
     from spf_rl.train.bc import BCConfig
 
-    items = [*row.overrides, f"seed={seed}", *overrides]
-    if quick:
-        items.append(f"output_dir={QUICK_DIR}/runs/{row.name}-seed{seed}")
+    items = [*row.overrides, f"seed={seed}", f"output_dir={run_dir(row.name, seed, quick)}", *overrides]
     return load_config(BCConfig, "bc", items, preset=preset_of(row, quick))
 
 
 def eval_sets(overrides: list[str], quick: bool) -> dict:
-    """``{"test": EvalConfig, "extended": EvalConfig}``: ``bc_long``'s test config, and the same on 100 houses."""
+    """``{"test": EvalConfig, "extended": EvalConfig}``: the schedule's test config, and the same on 100 houses."""
     from spf_rl.train.bc import BCConfig
     from spf_rl.train.evaluation import with_episode_sizes
 
-    base = load_config(BCConfig, "bc", overrides, preset="bc_long")
+    base = load_config(BCConfig, "bc", overrides, preset=TABLE1_PRESET)
     test = with_episode_sizes(base.test, base.data)
     if quick:
         test = dataclasses.replace(test, num_episodes=QUICK_EPISODES, num_agents=QUICK_EPISODES)
     return {"test": test, "extended": dataclasses.replace(test, num_houses=EXTENDED_HOUSES)}
 
 
+def dagger_config(row: RowSpec, seed: int, overrides: Sequence[str] = ()):
+    """The ``DAggerConfig`` of a row's DAgger run for ``seed`` (``None`` without a DAgger column): the one
+    DAgger rule, from the row's BC run, aggregating that run's BC data; of ``overrides`` only the keys of
+    :data:`DAGGER_OVERRIDE_KEYS` apply."""
+    if not row.dagger:
+        return None
+    from spf_rl.train.dagger import DAggerConfig
+
+    bc = row_config(row, seed, list(overrides), quick=False)
+    items = [f"seed={seed}", f"checkpoint={Path(bc.output_dir) / 'best.pt'}",
+             f"output_dir={run_dir(f'dagger-{row.name}', seed)}",
+             *(item for item in overrides if item.split("=", 1)[0] in DAGGER_OVERRIDE_KEYS)]
+    return dataclasses.replace(load_config(DAggerConfig, "dagger", items, preset=TABLE1_DAGGER_PRESET), bc_data=bc.data)
+
+
+def budgets(overrides: Sequence[str] = ()) -> dict:
+    """The table's one budget: BC gradient steps and episodes, DAgger rounds and gradient steps."""
+    from spf_rl.train.bc import BCConfig
+    from spf_rl.train.dagger import DAggerConfig
+
+    bc = load_config(BCConfig, "bc", list(overrides), preset=TABLE1_PRESET)
+    dagger = load_config(DAggerConfig, "dagger", [], preset=TABLE1_DAGGER_PRESET)
+    steps_per_epoch = -(-bc.data.num_episodes // bc.optim.batch_size)
+    return {
+        "bc": {"preset": TABLE1_PRESET, "gradient_steps": bc.optim.epochs * steps_per_epoch,
+               "episodes": bc.data.num_episodes, "batch_episodes": bc.optim.batch_size},
+        "dagger": {"preset": TABLE1_DAGGER_PRESET, "rounds": dagger.rounds, "episodes_per_round": dagger.episodes_per_round,
+                   "gradient_steps": dagger.rounds * dagger.steps_per_round, "val_seed": dagger.val.seed},
+    }
+
+
 # --------------------------------------------------------------------- training
 def copy_atomic(source: Path, target: Path) -> None:
     target.parent.mkdir(parents=True, exist_ok=True)
     atomic_write(target, lambda handle: handle.write(source.read_bytes()), binary=True)
-
-
-def dagger_config(row: RowSpec, seed: int):
-    """The ``DAggerConfig`` of a row's DAgger run for ``seed`` (its DAgger preset), if the row has one."""
-    if row.dagger_preset is None:
-        return None
-    from spf_rl.train.dagger import DAggerConfig
-
-    return load_config(DAggerConfig, "dagger", [f"seed={seed}"], preset=row.dagger_preset)
-
-
-def dagger_run_dir(row: RowSpec, seed: int) -> Path | None:
-    """The run directory of a row's DAgger run for ``seed`` (its preset's ``output_dir``), if the row has one."""
-    config = dagger_config(row, seed)
-    return None if config is None else Path(config.output_dir)
-
-
-def run_validation(line: str, row: RowSpec, seed: int, overrides: list[str], quick: bool):
-    """The validation episodes the run of ``line`` (a row, or ``dagger-<row>``) and ``seed`` picked its checkpoint on."""
-    from spf_rl.train.evaluation import with_episode_sizes
-
-    if line == row.name:
-        config = row_config(row, seed, overrides, quick)
-        return with_episode_sizes(config.val, config.data)
-    config = dagger_config(row, seed)
-    return with_episode_sizes(config.val, config.env)
 
 
 def shipped_names(checkpoints: Path) -> dict[str, str]:
@@ -209,63 +229,85 @@ def ship_best(checkpoints: Path, line: str, scores: dict) -> dict | None:
     return {"seed": seed, "val_success": scores[seed][0], "val_spl": scores[seed][1]}
 
 
+def keep_run(checkpoints: Path, line: str, seed: int, directory: Path, best_key: str) -> tuple[float, float] | None:
+    """A finished run's validation ``(success, spl)`` (``None``: not finished), its ``best.pt`` copied to the
+    line's per-seed checkpoint where that file is missing or another (an earlier run's: this run supersedes it)."""
+    results = directory / "results.json"
+    if not results.exists():
+        return None
+    target, best = seed_checkpoint(checkpoints, line, seed), directory / "best.pt"
+    if not target.exists() or target.read_bytes() != best.read_bytes():
+        copy_atomic(best, target)
+    record = json.loads(results.read_text())[best_key]
+    prefix = "val_" if best_key == "best" else ""
+    return record[f"{prefix}success"], record[f"{prefix}spl"]
+
+
 def train_missing(
-    rows: list[RowSpec], seeds: list[int], overrides: list[str], checkpoints: Path, quick: bool, train: bool = True,
-    validate: Callable[[str, int, Path, object], tuple[float, float]] | None = None,
+    rows: list[RowSpec], seeds: list[int], overrides: list[str], checkpoints: Path, quick: bool, train: bool = True
 ) -> dict:
-    """Train (or resume) every missing row x seed (with ``train``), copy the best checkpoint of every finished
-    BC and DAgger run to its per-seed name, and ship each line's best seed by validation; returns ``{line: shipped}``.
+    """Train (or resume) every row x seed whose run has not finished (with ``train``; seed 0 of every row
+    first, each DAgger column right after its row), copy each finished run's best checkpoint to its per-seed
+    name, and ship each line's best seed by validation once every seed of the line has a finished run;
+    returns ``{line: shipped}``. ``--quick`` trains no DAgger.
 
-    A per-seed checkpoint whose run directory has no results (e.g. a run directory that was lost) is scored
-    with ``validate(line, seed, checkpoint, val_config)`` -> ``(success, spl)`` on its run's validation
-    episodes; without ``validate`` its score is unknown, and its line is not re-shipped (its shipped
-    checkpoint is left as it is)."""
+    A line whose seeds are not all finished runs of this recipe keeps its shipped name as it is (its per-seed
+    files may be earlier runs', see :func:`seed_sources`)."""
     from spf_rl.train.bc import train_bc
+    from spf_rl.train.dagger import train_dagger
 
-    shipped = {}
-    for row in (row for row in rows if row.preset):
-        scores, dagger_scores = {}, {}
-        unscored: dict[str, list[int]] = {row.name: [], f"dagger-{row.name}": []}
-        for seed in seeds:
+    trained = [row for row in rows if row.trained]
+    scores: dict[str, dict[int, tuple[float, float]]] = {}
+    for seed in seeds:
+        for row in trained:
             config = row_config(row, seed, overrides, quick)
-            run_dir, target = Path(config.output_dir), seed_checkpoint(checkpoints, row.name, seed)
-            if train and not (run_dir / "results.json").exists() and not target.exists():
-                logger.info("training %s seed %d in %s (preset %s)", row.name, seed, run_dir, preset_of(row, quick))
+            bc_dir = Path(config.output_dir)
+            if train and not (bc_dir / "results.json").exists():
+                logger.info("training %s seed %d in %s (preset %s)", row.name, seed, bc_dir, preset_of(row, quick))
                 train_bc(config)
-            if (run_dir / "results.json").exists():
-                if not target.exists():
-                    copy_atomic(run_dir / "best.pt", target)
-                best = json.loads((run_dir / "results.json").read_text())["val_best"]
-                scores[seed] = (best["success"], best["spl"])
-            elif target.exists():
-                unscored[row.name].append(seed)
-            dagger_dir = None if quick else dagger_run_dir(row, seed)  # --quick trains no DAgger
-            if dagger_dir and (dagger_dir / "results.json").exists():
-                dagger_target = seed_checkpoint(checkpoints, f"dagger-{row.name}", seed)
-                if not dagger_target.exists():
-                    copy_atomic(dagger_dir / "best.pt", dagger_target)
-                best = json.loads((dagger_dir / "results.json").read_text())["best"]
-                dagger_scores[seed] = (best["val_success"], best["val_spl"])
-            elif dagger_dir and seed_checkpoint(checkpoints, f"dagger-{row.name}", seed).exists():
-                unscored[f"dagger-{row.name}"].append(seed)
-        for line, line_scores in ((row.name, scores), (f"dagger-{row.name}", dagger_scores)):
-            while validate is not None and unscored[line]:
-                seed = unscored[line].pop()
-                val_config = run_validation(line, row, seed, overrides, quick)
-                line_scores[seed] = validate(line, seed, seed_checkpoint(checkpoints, line, seed), val_config)
-            if unscored[line]:  # a seed's validation score is unknown: it may be the best, so ship nothing new
-                logger.warning(
-                    "%s: seed(s) %s have a checkpoint in %s/table1 but no run results (validation unknown): "
-                    "the name %s is left as it is", line, unscored[line], checkpoints, line,
-                )
+            if (bc_score := keep_run(checkpoints, row.name, seed, bc_dir, "val_best")) is not None:
+                scores.setdefault(row.name, {})[seed] = bc_score
+            if not row.dagger or quick:
                 continue
-            if (picked := ship_best(checkpoints, line, line_scores)) is not None:
-                shipped[line] = picked
+            dagger = dagger_config(row, seed, overrides)
+            dagger_dir = Path(dagger.output_dir)
+            if train and bc_score is not None and not (dagger_dir / "results.json").exists():
+                logger.info("DAgger from %s seed %d in %s", row.name, seed, dagger_dir)
+                train_dagger(dagger)
+            if (score := keep_run(checkpoints, f"dagger-{row.name}", seed, dagger_dir, "best")) is not None:
+                scores.setdefault(f"dagger-{row.name}", {})[seed] = score
+    shipped = {}
+    for line in (name for row in trained for name in (row.name, *([f"dagger-{row.name}"] if row.dagger and not quick else []))):
+        line_scores = scores.get(line, {})
+        if set(line_scores) != set(seeds):
+            logger.info("%s: seeds %s have no finished run here yet: the name %s is left as it is", line,
+                        sorted(set(seeds) - set(line_scores)), line)
+            continue
+        shipped[line] = ship_best(checkpoints, line, line_scores)
     if checkpoints.is_dir():  # per-seed files copied above are listed too
         from spf_rl.hub import write_manifest
 
         write_manifest(checkpoints, shipped_names(checkpoints))
     return shipped
+
+
+def seed_sources(lines: Sequence[Line], seeds: Sequence[int], checkpoints: Path, quick: bool) -> dict:
+    """``{line: {"this_recipe": [seeds], "earlier": [seeds]}}`` for the trained lines: whether each seed's
+    per-seed checkpoint is the best of this recipe's finished run, or an earlier run's file (another budget or
+    older code: the table says so)."""
+    sources: dict = {}
+    for line in lines:
+        if line.model == "open_loop" or line.checkpoint_stem in sources:
+            continue
+        entry = sources.setdefault(line.checkpoint_stem, {"this_recipe": [], "earlier": []})
+        for seed in seeds:
+            target = seed_checkpoint(checkpoints, line.checkpoint_stem, seed)
+            if not target.exists():
+                continue
+            best = run_dir(line.checkpoint_stem, seed, quick) / "best.pt"
+            ours = (best.parent / "results.json").exists() and best.read_bytes() == target.read_bytes()
+            entry["this_recipe" if ours else "earlier"].append(seed)
+    return sources
 
 
 # ------------------------------------------------------------------- evaluation
@@ -314,24 +356,6 @@ def evaluate_all(
                 entry = cache_entry(line.name, seed, set_name, config, checkpoint, eval_dir)
                 evaluations[line.name][set_name][seed] = cached_records(*entry, evaluate)
     return evaluations, missing
-
-
-def cached_validation(eval_dir: Path, device: str) -> Callable[[str, int, Path, object], tuple[float, float]]:
-    """``validate`` for :func:`train_missing`: a checkpoint's (success, SPL) on validation episodes, cached."""
-    from spf_rl.hub import policy_from_checkpoint
-    from spf_rl.train.evaluation import evaluate_policy
-
-    def validate(line: str, seed: int, checkpoint: Path, config) -> tuple[float, float]:
-        def evaluate() -> list[dict]:
-            logger.info("%s seed %d has no run results: scoring it on %d validation episodes", line, seed,
-                        config.num_episodes)
-            return evaluate_policy(policy_from_checkpoint(checkpoint, device=device)[0], config, progress=False)[1]
-
-        records = cached_records(*cache_entry(line, seed, "val", config, checkpoint, eval_dir), evaluate)
-        return (sum(float(r["success"]) for r in records) / len(records),
-                sum(float(r["spl"]) for r in records) / len(records))
-
-    return validate
 
 
 # ---------------------------------------------------------------------- the run
@@ -434,8 +458,10 @@ class Table1Options:
         put("out", Path(self.out) if self.out else (root / "results" if self.quick else Path("results")))
         try:  # bad overrides are refused here, before any work
             put("eval_sets", eval_sets(list(self.overrides), self.quick))
-            for row in (ROW_BY_NAME[name] for name in self.rows if ROW_BY_NAME[name].preset):
+            for row in (ROW_BY_NAME[name] for name in self.rows if ROW_BY_NAME[name].trained):
                 row_config(row, self.seeds[0], list(self.overrides), self.quick)
+                if not self.quick:
+                    dagger_config(row, self.seeds[0], self.overrides)
         except ValueError as err:
             raise ValueError(f"overrides: {err}") from err
 
@@ -446,22 +472,25 @@ def reproduce(options: Table1Options) -> dict:
 
     Returns:
         The table (:func:`spf_rl.eval.table1.build_table`), with ``shipped`` (line -> the seed shipped and
-        its validation scores) and ``schedules`` (row -> training preset).
+        its validation scores), ``budget`` (:func:`budgets`; ``bc_quick`` with ``--quick``) and each line's
+        ``earlier_seeds`` (seeds whose checkpoint is an earlier run's, not this recipe's: :func:`seed_sources`).
     """
     from spf_rl.device import resolve_device
     from spf_rl.train.bc import BCConfig
 
     overrides, seeds = list(options.overrides), list(options.seeds)
-    base = load_config(BCConfig, "bc", overrides, preset="bc_long")
+    base = load_config(BCConfig, "bc", overrides, preset=TABLE1_PRESET)
     device = str(resolve_device(base.device))
     rows = [ROW_BY_NAME[name] for name in options.rows]
-    shipped = train_missing(rows, seeds, overrides, options.checkpoints, options.quick, train=not options.from_checkpoints,
-                            validate=cached_validation(options.eval_dir, device))
+    shipped = train_missing(rows, seeds, overrides, options.checkpoints, options.quick, train=not options.from_checkpoints)
     sets = {name: options.eval_sets[name] for name in options.sets}
     lines = table_lines(rows, base.data.demo_length, base.data.image_size)
     evaluations, missing = evaluate_all(lines, seeds, sets, options.checkpoints, options.eval_dir, device)
     table = build_table(lines, evaluations, sets, seeds, CLAIMS, missing, options.num_resamples)
     table["shipped"] = shipped
-    table["schedules"] = {row.name: preset_of(row, options.quick) for row in rows}
+    table["budget"] = {"preset": "bc_quick"} if options.quick else budgets(overrides)
+    sources = seed_sources(lines, seeds, options.checkpoints, options.quick)
+    for row in table["rows"]:
+        row["earlier_seeds"] = sources.get(row["checkpoint_stem"], {}).get("earlier", [])
     write_reports(table, options.out)
     return table
