@@ -41,8 +41,11 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--noise", default=DEFAULT_NOISE, choices=sorted(NOISE_PRESETS), help="actuation-noise preset")
     parser.add_argument("--seed", type=int, default=2)
     parser.add_argument("--num-agents", type=int, default=25)
-    parser.add_argument("--max-steps", type=int, default=50)
-    parser.add_argument("--demo-length", type=int, default=30, help="for open_loop only")
+    parser.add_argument("--max-steps", type=int, default=None, help="episode limit, steps (default: ceil(5/3 x the route length))")
+    parser.add_argument(
+        "--demo-length", type=int, default=None,
+        help="route length, steps (default: the checkpoint's own, 30 for open_loop); a checkpoint runs at another length with the same weights",
+    )
     parser.add_argument("--image-size", type=int, default=64, help="for open_loop only")
     parser.add_argument(
         "--sparsity", type=float, default=None, help="memory sparsity to evaluate a random-sparsity (spf_random) model at"
@@ -69,6 +72,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
         parser.error(f"--episodes must be > 0, got {args.episodes}")
     if args.num_collectors <= 0:
         parser.error(f"--num-collectors must be a positive int, got {args.num_collectors}")
+    for name, value in (("--demo-length", args.demo_length), ("--max-steps", args.max_steps)):
+        if value is not None and value <= 0:
+            parser.error(f"{name} must be a positive number of steps, got {value}")
     try:
         device = resolve_device(args.device, name="--device")
         targets = expand_targets(args.paths)

@@ -1,4 +1,5 @@
-"""Paired comparison of two evaluations of the same episodes (``recipes/evaluate.py`` JSONs):
+"""Paired comparison of two evaluations of the same episodes (``recipes/evaluate.py`` JSONs, a
+run's ``test_episodes.json``, or ``recipes/table1.py``'s per-episode cache in ``results/eval/table1/``):
 the command line of :func:`spf_rl.eval.paired.compare`.
 
 Each side is one JSON, or several joined by commas (one per training seed: the

@@ -86,3 +86,26 @@ def test_num_collectors_is_checked_before_any_work(checkpoint, tmp_path, capsys)
         _run(_evaluate_module(), checkpoint, tmp_path / "f", "--num-collectors", "0")
     assert "--num-collectors must be a positive int" in capsys.readouterr().err
     assert not (tmp_path / "f").exists()
+
+
+def test_a_checkpoint_follows_routes_of_another_length_with_its_own_weights(checkpoint, tmp_path):
+    """--demo-length plays routes of that length with the same weights; the step limit follows (ceil(5/3 n))."""
+    module = _evaluate_module()
+    args = [str(checkpoint), "--split", "val", "--episodes", "2", "--num-agents", "2", "--seed", "5", "--no-progress"]
+    (own,) = module.main([*args, "--out", str(tmp_path / "own")])
+    (longer,) = module.main([*args, "--out", str(tmp_path / "longer"), "--demo-length", "9"])
+    assert (own["eval"]["demo_length"], own["eval"]["max_steps"]) == (6, 10)  # the checkpoint's own length
+    assert (longer["eval"]["demo_length"], longer["eval"]["max_steps"]) == (9, 15)
+    from spf_rl.train.bc import model_memory_bytes
+
+    assert longer["memory_bytes"] == model_memory_bytes("spf", 9, 0.5, 32) > own["memory_bytes"]  # the memory of 9 steps
+    assert max(r["steps"] for r in longer["episodes_records"]) <= 15
+
+
+@pytest.mark.parametrize("flag", ["--demo-length", "--max-steps"])
+def test_lengths_are_checked_before_any_work(checkpoint, tmp_path, capsys, flag):
+    with pytest.raises(SystemExit) as exit_info:
+        _run(_evaluate_module(), checkpoint, tmp_path / "g", flag, "0")
+    assert exit_info.value.code == 2
+    assert f"{flag} must be a positive number of steps, got 0" in capsys.readouterr().err
+    assert not (tmp_path / "g").exists()

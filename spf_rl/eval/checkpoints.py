@@ -29,6 +29,8 @@ logger = logging.getLogger(__name__)
 
 #: The target that evaluates open-loop replay (no checkpoint, no training).
 OPEN_LOOP = "open_loop"
+#: Route length of :data:`OPEN_LOOP` without ``demo_length``: the paper's, steps.
+OPEN_LOOP_DEMO_LENGTH = 30
 
 
 @dataclass(frozen=True)
@@ -41,8 +43,12 @@ class EvalOptions:
         noise: actuation-noise preset.
         seed: seed of the episodes.
         num_agents: agents stepped together.
-        max_steps: episode limit, steps.
-        demo_length: demonstration length, for :data:`OPEN_LOOP` only (a checkpoint has its own).
+        max_steps: episode limit, steps; ``None``: ``ceil(5/3 n)`` for routes of ``n`` steps
+            (:func:`~envs.follow.default_max_steps`).
+        demo_length: route length, steps; ``None``: the checkpoint's own (30 for :data:`OPEN_LOOP`).
+            A checkpoint runs at another length with the same weights
+            (:func:`~spf_rl.train.lengths.policy_for_length`): a Table 1 policy at 50 steps, or
+            ``routes-spf`` (100) on 30-step routes.
         image_size: frame side, pixels, for :data:`OPEN_LOOP` only.
         sparsity: the memory sparsity to evaluate a random-sparsity (``spf_random``) model
             at; ``None``: the model's own. A fixed-sparsity model refuses it.
@@ -59,8 +65,8 @@ class EvalOptions:
     noise: str = DEFAULT_NOISE
     seed: int = 2
     num_agents: int = 25
-    max_steps: int = 50
-    demo_length: int = 30
+    max_steps: int | None = None
+    demo_length: int | None = None
     image_size: int = 64
     sparsity: float | None = None
     model_type: str | None = None
@@ -133,14 +139,17 @@ def evaluate_checkpoint(target: str, options: EvalOptions) -> dict:
         CheckpointError: a checkpoint of another model type than :attr:`EvalOptions.model_type`.
     """
     import envs  # noqa: F401  (selects the headless GL back-end first)
+    from envs.follow import default_max_steps
     from spf_rl.device import module_device
     from spf_rl.hub import policy_from_checkpoint, resolve_checkpoint
     from spf_rl.modules.open_loop import OpenLoopPolicy
     from spf_rl.train.bc import model_memory_bytes
     from spf_rl.train.evaluation import EvalConfig, config_dict, evaluate_policy
+    from spf_rl.train.lengths import policy_for_length
 
     if target == OPEN_LOOP:
-        policy, model_type, demo_length, image_size, sparsity = OpenLoopPolicy(), OPEN_LOOP, options.demo_length, options.image_size, 0.0
+        demo_length = OPEN_LOOP_DEMO_LENGTH if options.demo_length is None else options.demo_length
+        policy, model_type, image_size, sparsity = OpenLoopPolicy(), OPEN_LOOP, options.image_size, 0.0
         memory = demo_length
     else:
         policy, payload = policy_from_checkpoint(
@@ -157,6 +166,11 @@ def evaluate_checkpoint(target: str, options: EvalOptions) -> dict:
                 )
             policy.set_sparsity(options.sparsity)
             sparsity = options.sparsity
+        if options.demo_length is not None and options.demo_length != demo_length:
+            policy = policy_for_length(policy, options.demo_length)  # the same weights, another route length
+            if config.sparsity_range is not None:  # the sparsity is set per view, not in the weights
+                policy.set_sparsity(sparsity)
+            demo_length = options.demo_length
         memory = model_memory_bytes(model_type, demo_length, sparsity, image_size)
     eval_config = EvalConfig(
         split=options.split,
@@ -165,7 +179,7 @@ def evaluate_checkpoint(target: str, options: EvalOptions) -> dict:
         seed=options.seed,
         num_agents=options.num_agents,
         demo_length=demo_length,
-        max_steps=options.max_steps,
+        max_steps=default_max_steps(demo_length) if options.max_steps is None else options.max_steps,
         image_size=image_size,
         render=target != OPEN_LOOP,
         store_root=options.store_root or None,

@@ -25,12 +25,20 @@ RECORD_KEYS = ("episodes_records", "episodes")
 
 
 def load_records(path: Path) -> tuple[dict, list[dict]]:
-    """``(evaluation JSON, its per-episode records)``; a clear error for a file without records."""
+    """``(evaluation JSON, its per-episode records)``; a clear error for a file without records.
+
+    Records are a list under one of :data:`RECORD_KEYS`, or per-episode columns (``{"columns": {key:
+    [...]}}``, the per-episode cache of ``recipes/table1.py``, ``results/eval/table1/<set>/<line>-seed<S>.json``).
+    """
     payload = json.loads(Path(path).read_text())
     records = next((payload[key] for key in RECORD_KEYS if isinstance(payload.get(key), list) and payload[key]), None)
+    columns = payload.get("columns")
+    if not records and isinstance(columns, dict) and columns:
+        records = [dict(zip(columns, values)) for values in zip(*columns.values())]
     if not records:
         raise ValueError(
-            f"{path} has no per-episode records (a list under one of {RECORD_KEYS}): write it with recipes/evaluate.py."
+            f"{path} has no per-episode records (a list under one of {RECORD_KEYS}, or per-episode 'columns'): "
+            "write it with recipes/evaluate.py."
         )
     return payload, records
 
