@@ -63,6 +63,14 @@ def test_train_resume_and_results(tmp_path):
     assert results["memory_bytes"] == 2 * 3 * 32 * 32 + 5  # l = round(0.4 * 5) = 2 frames + 5 actions
     assert (run / "training_curves.png").stat().st_size > 1000
     assert (run / "best.pt").exists() and (run / "last.pt").exists()
+    # the test records say what they are of, so a DAgger run from best.pt reuses them (tests/test_dagger.py)
+    from spf_rl.train.evaluation import read_test_episodes, with_episode_sizes
+
+    config = tiny_config(tmp_path, epochs=2)
+    test_config = with_episode_sizes(config.test, config.data)
+    summary, records = read_test_episodes(run / "test_episodes.json", test_config, run / "best.pt")
+    assert summary["success"] == results["test"]["success"] and len(records) == 2
+    assert read_test_episodes(run / "test_episodes.json", test_config, run / "last.pt") is None  # another file
 
 
 def test_rows_logged_after_the_last_checkpoint_are_not_logged_twice(tmp_path):

@@ -389,3 +389,34 @@ def test_the_best_round_is_tested_from_best_pt(three_learner_driven_rounds):
     assert results["best"]["test_success"] == summary["success"] and results["best"]["test_spl"] == summary["spl"]
     shipped = json.loads((Path(config.output_dir) / "test_episodes.json").read_text())  # for recipes/paired.py
     assert shipped["round"] == best["round"] and shipped["episodes"] == json.loads(json.dumps(records, default=str))
+
+
+def test_round_0_reuses_the_start_checkpoints_own_test_records(tmp_path, monkeypatch):
+    """A start checkpoint with its BC run's test records beside it (the same file, the same episodes) is not
+    tested again at round 0; records of other episodes are not reused."""
+    import dataclasses
+
+    import spf_rl.train.dagger as dagger_module
+    from spf_rl.train.evaluation import evaluate_policy, with_episode_sizes, write_test_episodes
+
+    start = save_bc_checkpoint(tmp_path)
+    config = tiny_config(tmp_path, start, rounds=0)
+    test_config = with_episode_sizes(config.test, config.env)
+    policy = build_policy("spf", load_checkpoint(start)["model_config"])
+    policy.load_state_dict(load_checkpoint(start)["model"])
+    summary, records = evaluate_policy(policy, test_config)
+    write_test_episodes(tmp_path / "test_episodes.json", records, test_config, start)
+    played = []
+    monkeypatch.setattr(dagger_module, "evaluate_policy", lambda p, c, progress=False: played.append(c) or evaluate_policy(p, c))
+
+    results = train_dagger(config)
+    assert [c.split for c in played] == ["val"]  # round 0's test came from the file
+    assert (results["start"]["test_success"], results["start"]["test_spl"]) == (summary["success"], summary["spl"])
+    shipped = json.loads((Path(config.output_dir) / "test_episodes.json").read_text())
+    assert shipped["round"] == 0 and shipped["episodes"] == json.loads(json.dumps(records, default=str))
+
+    other = dataclasses.replace(test_config, seed=9)  # records of other episodes: played again
+    write_test_episodes(tmp_path / "test_episodes.json", records, other, start)
+    played.clear()
+    train_dagger(dataclasses.replace(config, output_dir=str(tmp_path / "again")))
+    assert [c.split for c in played] == ["val", "test"]

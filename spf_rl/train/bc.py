@@ -39,7 +39,14 @@ from spf_rl.modules.memory import memory_bytes
 from spf_rl.modules.policy import SPFPolicy
 from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
 from spf_rl.train.distributed import ShardedSampler, barrier, init_distributed
-from spf_rl.train.evaluation import EvalConfig, episode_store_root, evaluate_policy, with_episode_sizes
+from spf_rl.train.evaluation import (
+    TEST_EPISODES_FILE,
+    EvalConfig,
+    episode_store_root,
+    evaluate_policy,
+    with_episode_sizes,
+    write_test_episodes,
+)
 from spf_rl.train.run import OptimConfig, TrainingRun, run_on_device, start_run, trim_csv_logs
 
 logger = logging.getLogger(__name__)
@@ -347,7 +354,7 @@ def _train_bc(config: BCConfig, device: torch.device) -> dict:
         "config": asdict(config),
     }
     atomic_write_json(output / "results.json", results, default=str)
-    atomic_write_json(output / "test_episodes.json", {"episodes": records}, default=str)
+    write_test_episodes(output / TEST_EPISODES_FILE, records, test_config, run.best_path)
     from spf_rl.viz import plot_if_available, plot_training_curves
 
     plot_if_available(plot_training_curves, history, output / "training_curves.png", title=f"BC {model_type}")

@@ -75,7 +75,15 @@ from spf_rl.train.dagger_rounds import (
     training_sources,
 )
 from spf_rl.train.distributed import Ranks, backward_on_shard, barrier, batch_mean, init_distributed, shard_indices
-from spf_rl.train.evaluation import EvalConfig, FramesFromStore, evaluate_policy, with_episode_sizes
+from spf_rl.train.evaluation import (
+    TEST_EPISODES_FILE,
+    EvalConfig,
+    FramesFromStore,
+    evaluate_policy,
+    read_test_episodes,
+    with_episode_sizes,
+    write_test_episodes,
+)
 from spf_rl.train.run import OptimConfig, trim_csv_logs
 from spf_rl.train.run_config import DAGGER_RESUME_FREE, write_run_config
 from spf_rl.viz import plot_if_available, pyplot
@@ -267,7 +275,8 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
     barrier(ranks)
     last_path, best_path = output / "last.pt", output / "best.pt"
     # a resumed run needs only its own state (last.pt, learners/), not the starting checkpoint
-    payload = load_checkpoint(last_path if last_path.exists() else checked_checkpoint(config.checkpoint))
+    start_path = None if last_path.exists() else checked_checkpoint(config.checkpoint)
+    payload = load_checkpoint(last_path if start_path is None else start_path)
     model_type, policy_config = payload["model_type"], payload["model_config"]
     env = config.env
     if (policy_config.demo_length, policy_config.image_size) != (env.demo_length, (env.image_size, env.image_size)):
@@ -307,15 +316,27 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
     tested: dict[int, list[dict]] = {}  # the per-episode test records of rounds tested in this process
 
     def keep_test_records(round_index: int) -> None:
-        """The new best round's test records, if it was tested, as ``test_episodes.json``."""
+        """The new best round's test records, if it was tested, as ``test_episodes.json`` (of ``best.pt``)."""
         if round_index in tested:
-            _write_test_episodes(output, round_index, tested[round_index])
+            write_test_episodes(output / TEST_EPISODES_FILE, tested[round_index], test_config, best_path, round=round_index)
+
+    def start_test() -> tuple[dict, list[dict]]:
+        """Round 0's test: the start checkpoint's test records beside it (its BC run's ``test_episodes.json``)
+        where they are of the same file on the same episodes, else played now."""
+        reused = read_test_episodes(start_path.parent / TEST_EPISODES_FILE, test_config, start_path)
+        if reused is None:
+            return evaluate_policy(policy, test_config, progress=config.progress)
+        logger.info("round 0: the test of %s on these episodes is in %s: reused", start_path, start_path.parent / TEST_EPISODES_FILE)
+        return reused
 
     def score(round_index: int, extra: dict) -> dict:
         val, _ = evaluate_policy(policy, val_config)
         record = {"round": round_index, **extra, "val_success": val["success"], "val_spl": val["spl"]}
         if config.test_every_round or round_index in (0, config.rounds):
-            summary, records = evaluate_policy(policy, test_config, progress=config.progress)
+            if round_index == 0:
+                summary, records = start_test()
+            else:
+                summary, records = evaluate_policy(policy, test_config, progress=config.progress)
             record.update(_test_fields(summary))
             tested[round_index] = records
         logger.info("round %d: %s", round_index, record)
@@ -409,7 +430,7 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
             )
         policy.load_state_dict(shipped["model"])
         summary, records = evaluate_policy(policy, test_config, progress=config.progress)
-        _write_test_episodes(output, best["round"], records)
+        write_test_episodes(output / TEST_EPISODES_FILE, records, test_config, best_path, round=best["round"])
         best = {**best, **_test_fields(summary)}
         logger.info("best round %d (best.pt): %s", best["round"], best)
     results = {
@@ -428,15 +449,9 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
     return results
 
 
-def _write_test_episodes(output: Path, round_index: int, records: list[dict]) -> None:
-    """``test_episodes.json``: the best round's per-episode test records, as ``recipes/bc.py``
-    writes a run's (``recipes/paired.py`` compares runs on them)."""
-    atomic_write_json(output / "test_episodes.json", {"round": round_index, "episodes": records}, default=str)
-
-
 def _test_episodes_round(output: Path) -> int | None:
     """The round whose test records ``test_episodes.json`` holds (``None``: there is none)."""
-    path = output / "test_episodes.json"
+    path = output / TEST_EPISODES_FILE
     return json.loads(path.read_text()).get("round") if path.exists() else None
 
 

@@ -435,9 +435,50 @@ def evaluate_policy(policy: TensorDictModuleBase, config: EvalConfig, progress: 
                     records = record_episodes(collector, config.num_episodes, progress=progress)
     finally:
         policy.train(was_training)
+    return summarize_episodes(records), records
+
+
+def summarize_episodes(records: list[dict]) -> dict:
+    """:func:`evaluate_policy`'s summary of per-episode records: :func:`~spf_rl.metrics.summarize` and the
+    mean distance to the goal, metres."""
     summary = summarize(records)
     summary["mean_goal_distance_m"] = float(sum(r["goal_distance"] for r in records) / len(records))
-    return summary, records
+    return summary
+
+
+#: A run's per-episode test records, beside its ``results.json`` (``recipes/bc.py``, ``recipes/dagger.py``).
+TEST_EPISODES_FILE = "test_episodes.json"
+
+
+def write_test_episodes(path: str | os.PathLike, records: list[dict], config: EvalConfig,
+                        checkpoint: str | os.PathLike, **extra) -> None:
+    """Write ``checkpoint``'s per-episode test records on ``config``'s episodes, with what they are of (the
+    episodes' :func:`episode_identity`, the checkpoint's SHA-256), so that :func:`read_test_episodes` can
+    give them to a later run that tests the same file on the same episodes; ``extra`` keys go beside them."""
+    from envs.atomic_io import atomic_write_json
+    from spf_rl.hub import file_sha256
+
+    payload = {**extra, "eval": episode_identity(config), "checkpoint_sha256": file_sha256(checkpoint), "episodes": records}
+    atomic_write_json(path, payload, default=str)
+
+
+def read_test_episodes(path: str | os.PathLike, config: EvalConfig, checkpoint: str | os.PathLike) -> tuple[dict, list[dict]] | None:
+    """``(summary, records)`` of ``checkpoint`` on ``config``'s episodes from a file of
+    :func:`write_test_episodes`, or ``None`` where the file is missing or holds other episodes or another
+    checkpoint (an older file without that record too)."""
+    import json
+
+    from spf_rl.hub import file_sha256
+
+    path = Path(path)
+    if not path.is_file():
+        return None
+    payload = json.loads(path.read_text())
+    if payload.get("eval") != json.loads(json.dumps(episode_identity(config))) or not payload.get("episodes"):
+        return None
+    if payload.get("checkpoint_sha256") != file_sha256(checkpoint):
+        return None
+    return summarize_episodes(payload["episodes"]), payload["episodes"]
 
 
 def _worker_collector(policy: TensorDictModuleBase, config: EvalConfig, store: DemoStore | None) -> Collector:
