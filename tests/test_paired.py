@@ -98,11 +98,12 @@ def test_table1s_per_episode_cache_pairs_with_an_evaluation(tmp_path):
     successes = [True] * 30 + [False] * 70
     records = [{"episode_index": i, "episode_seed": i, "house_seed": i % 3, "success": ok, "success_lab": ok,
                 "spl": 0.9 * ok, "steps": 20} for i, ok in enumerate(successes)]
-    write_cached(tmp_path / "cache.json", {"line": "x", "seed": 0}, records)
+    write_cached(tmp_path / "cache.json", {"line": "x", "seed": 0, "checkpoint": "ckpt/x-seed0.pt"}, records)
     a = _evaluation(tmp_path / "a.json", [True] * 80 + [False] * 20)
     result = _module().compare(a, tmp_path / "cache.json", num_resamples=200, seed=0)
     assert result["metrics"]["success"]["b"] == pytest.approx(0.3)
     assert result["metrics"]["success"]["difference"] == pytest.approx(0.5)
+    assert result["b_checkpoints"] == ["ckpt/x-seed0.pt"] and result["a_checkpoints"] == ["a"]
 
 
 def test_the_cli_refuses_files_without_records_with_status_2(tmp_path, capsys):

@@ -43,6 +43,11 @@ def load_records(path: Path) -> tuple[dict, list[dict]]:
     return payload, records
 
 
+def checkpoint_of(payload: dict) -> str | None:
+    """The checkpoint an evaluation file is of (``evaluate.py``'s key, or the table cache's ``meta``)."""
+    return payload.get("checkpoint") or payload.get("meta", {}).get("checkpoint")
+
+
 def split_paths(paths: Path | str | list) -> list[Path]:
     """One path, a comma-joined string of paths, or a list of paths -> a list of paths."""
     if isinstance(paths, (list, tuple)):
@@ -88,8 +93,8 @@ def compare(path_a: Path | str | list, path_b: Path | str | list, num_resamples:
     return {
         "a": [str(path) for path in files["a"]],
         "b": [str(path) for path in files["b"]],
-        "a_checkpoints": [payload.get("checkpoint") for payload, _ in loaded["a"]],
-        "b_checkpoints": [payload.get("checkpoint") for payload, _ in loaded["b"]],
+        "a_checkpoints": [checkpoint_of(payload) for payload, _ in loaded["a"]],
+        "b_checkpoints": [checkpoint_of(payload) for payload, _ in loaded["b"]],
         "episodes": len(reference),
         "houses": len(set(houses)),
         "num_resamples": num_resamples,
