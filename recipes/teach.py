@@ -12,7 +12,8 @@ to N), and the policy follows it at that length. Routes into a
 wall, out of the house or ending within the success radius (0.6 m) of their start are refused with the step or
 waypoint named.
 
-The policy then repeats the route ``--repeats`` times, each under its own actuation noise, greedily. With
+The policy (``--checkpoint``; default ``routes-spf``, trained on routes of every style and 10-100 steps) then
+repeats the route ``--repeats`` times, each under its own actuation noise, greedily. With
 ``--homing`` it brings the route home instead: each repeat starts at the route's end, facing back along it, and
 must return to the route's start, its memory the env's homing demonstration of the route (frames rendered looking
 back along it, :mod:`envs.homing`), with ``homing-spf-s0.8`` (SPF 0.8 trained on homing episodes,

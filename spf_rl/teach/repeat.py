@@ -98,7 +98,7 @@ class TeachOptions:
 
     Examples:
         >>> TeachOptions().checkpoint, TeachOptions(homing=True).checkpoint, TeachOptions(homing=True).task
-        ('spf-s0.8', 'homing-spf-s0.8', 'homing')
+        ('routes-spf', 'homing-spf-s0.8', 'homing')
         >>> TeachOptions(repeats=0)
         Traceback (most recent call last):
         ...
