@@ -60,16 +60,10 @@ class Line:
 def cache_entry(line: str, seed: int | None, set_name: str, config, checkpoint: Path | None, eval_dir: Path):
     """``(path, meta)`` of the cached records of one line x seed x set: the cache is used only when
     ``meta`` (evaluation config, checkpoint file and its SHA-256, env version) is unchanged."""
-    from envs.version import ENV_VERSION
-    from spf_rl.hub import file_sha256
-    from spf_rl.train.evaluation import episode_identity
+    from spf_rl.train.evaluation import records_identity
 
-    meta = {
-        "line": line, "seed": seed, "set": set_name, "eval": episode_identity(config),
-        "checkpoint": None if checkpoint is None else str(checkpoint),
-        "checkpoint_sha256": None if checkpoint is None else file_sha256(checkpoint),
-        "env_version": ENV_VERSION,
-    }
+    meta = {"line": line, "seed": seed, "set": set_name, "checkpoint": None if checkpoint is None else str(checkpoint),
+            **records_identity(config, checkpoint)}
     return eval_dir / set_name / (line + ("" if seed is None else f"-seed{seed}") + ".json"), meta
 
 
