@@ -125,3 +125,38 @@ def _fields(options) -> dict:
     names = ("models", "styles", "buckets", "sets", "episodes", "seed", "noise", "out", "quick", "device", "random_sparsity",
              "num_resamples", "test_houses", "image_size", "num_agents", "num_collectors", "store_root", "progress")
     return {name: getattr(options, name) for name in names}
+
+
+def test_training_seeds_of_one_recipe_are_pooled_into_one_column():
+    rng = __import__("numpy").random.default_rng(0)
+    houses = [h for h in range(4) for _ in range(8)]
+
+    def records(p):
+        success = (rng.random(32) < p).astype(float).tolist()
+        return {"success": success, "spl": [0.5 * s for s in success], "ndtw": rng.random(32).tolist(), "sdtw": [0.0] * 32}
+
+    models = {"open_loop": records(0.3), "r/a-seed0": records(0.9), "r/a-seed2": records(0.6), "r/a-seed1": records(0.8),
+              "r/b-seed0": records(0.5)}
+    cell = {"set": "test", "style": "tour", "bucket": [10, 30], "episodes": {"house_seed": houses},
+            "models": {label: {"records": rec} for label, rec in models.items()}}
+    stats = route_bench.cell_stats(cell, num_resamples=500)
+
+    assert route_bench.seed_groups(list(models)) == {"r/a (3 seeds)": ["r/a-seed0", "r/a-seed1", "r/a-seed2"]}
+    pooled = stats["r/a (3 seeds)"]
+    per_seed = [stats[f"r/a-seed{s}"] for s in range(3)]
+    for metric in route_bench.METRICS:
+        means = [row[metric]["mean"] for row in per_seed]
+        assert pooled["per_seed"][metric] == pytest.approx(means)
+        assert pooled[metric]["mean"] == pytest.approx(sum(means) / 3)
+        low, high = pooled[metric]["ci"]
+        assert low <= pooled[metric]["mean"] <= high
+    for metric in route_bench.PAIRED_METRICS:
+        differences = [row["vs_open_loop"][metric]["difference"] for row in per_seed]
+        assert pooled["vs_open_loop"][metric]["difference"] == pytest.approx(sum(differences) / 3)
+
+    setup = {"episodes": 32, "models": {label: {} for label in models}, "seed_groups": route_bench.seed_groups(list(models))}
+    table = route_bench.format_table({"setup": setup, "cells": {"test/tour/10-30": {**cell, "stats": stats}}})
+    header, _, row = table.splitlines()[:3]
+    assert header.endswith("| r/b-seed0 | r/a (3 seeds) |")
+    assert row.split(" | ")[-1].startswith(f"{pooled['success']['mean']:.2f}")
+    assert "pooled over seeds" in table

@@ -17,6 +17,8 @@ sparsity (its config's by default).
 Per cell and model: mean success, SPL, nDTW and SDTW with house-level bootstrap intervals
 (:func:`~spf_rl.stats.hierarchical_bootstrap_ci`), and the paired difference from open-loop
 replay on the same episodes in success and nDTW (:func:`~spf_rl.stats.paired_bootstrap`).
+Training seeds of one recipe (labels that differ only in a ``-seed<N>`` suffix) are also
+reported pooled over seeds, as one more column (:func:`seed_groups`, :func:`pooled_stats`).
 
 * :class:`BenchOptions`: what a run does, checked when made (a ``ValueError`` naming the option);
 * :func:`parse_buckets`, :func:`parse_list`: the command line's comma-separated values;
@@ -66,6 +68,8 @@ PAIRED_METRICS = ("success", "ndtw")
 RECORD_KEYS = ("success", "success_lab", "spl", "ndtw", "sdtw", "path_length_ratio", "wall_hits", "steps",
                "goal_distance", "path_length", "shortest_path_length")
 EPISODE_KEYS = ("episode_index", "episode_seed", "house_seed", "demo_steps")
+#: A label of one training seed of a recipe (see :func:`seed_groups`).
+SEED_SUFFIX = re.compile(r"(?P<base>.+)-seed(?P<seed>\d+)")
 CONFIDENCE = 0.95
 #: Paired differences with a two-sided p-value below this are marked in the table.
 ALPHA = 0.05
@@ -73,7 +77,9 @@ STATISTICS = (
     "mean over the cell's episodes; ci: 95% percentile bootstrap resampling houses, then episodes within each "
     "drawn house (spf_rl.stats.hierarchical_bootstrap_ci). vs_open_loop: paired bootstrap of mean(model) - "
     "mean(open_loop) on the same episodes, the same resamples for both (spf_rl.stats.paired_bootstrap); "
-    "p_greater: fraction of resamples with a difference <= 0; p_two_sided: twice the smaller tail."
+    "p_greater: fraction of resamples with a difference <= 0; p_two_sided: twice the smaller tail. "
+    "A seed group ('<base> (<n> seeds)': models whose labels differ only in -seed<N>) is pooled: means over seeds "
+    "and episodes, each episode's scores averaged over the seeds before resampling (spf_rl.eval.route_bench.pooled_stats)."
 )
 
 
@@ -449,10 +455,62 @@ def cell_stats(cell: dict, num_resamples: int) -> dict:
         if label != OPEN_LOOP:
             row["vs_open_loop"] = paired_against(records, floor, houses, num_resamples)
         stats[label] = row
+    for group, members in seed_groups(list(cell["models"])).items():
+        stats[group] = pooled_stats(cell, members, num_resamples)
     return stats
 
 
+def seed_groups(labels: Sequence[str]) -> dict[str, list[str]]:
+    """Models that are training seeds of one recipe: labels that differ only in a ``-seed<N>`` suffix,
+    two or more of them, as ``{"<base> (<n> seeds)": [labels in seed order]}``.
+
+    Examples:
+        >>> seed_groups(["open_loop", "routes/a-seed1", "routes/a-seed0", "routes/b-seed0", "spf-s0.8"])
+        {'routes/a (2 seeds)': ['routes/a-seed0', 'routes/a-seed1']}
+    """
+    groups: dict[str, list[tuple[int, str]]] = {}
+    for label in labels:
+        match = SEED_SUFFIX.fullmatch(label)
+        if match is not None:
+            groups.setdefault(match["base"], []).append((int(match["seed"]), label))
+    return {f"{base} ({len(members)} seeds)": [label for _, label in sorted(members)]
+            for base, members in groups.items() if len(members) >= 2}
+
+
+def pooled_stats(cell: dict, members: Sequence[str], num_resamples: int) -> dict:
+    """The statistics of :func:`cell_stats` for training seeds ``members`` of one recipe, pooled: each
+    metric's mean over seeds and episodes, its house-level interval, and the paired difference from
+    open-loop replay pooled over seeds (every seed played the cell's episodes; resamples draw houses, then
+    episodes, and take every seed's score of a drawn episode). ``per_seed`` gives each seed's mean.
+
+    Examples:
+        >>> cell = {"episodes": {"house_seed": [0, 0, 1, 1]}, "models": {
+        ...     "open_loop": {"records": {"success": [0, 0, 1, 0], "spl": [0, 0, 1, 0], "ndtw": [0.2] * 4, "sdtw": [0] * 4}},
+        ...     "m-seed0": {"records": {"success": [1, 1, 1, 0], "spl": [1, 1, 1, 0], "ndtw": [0.8] * 4, "sdtw": [0] * 4}},
+        ...     "m-seed1": {"records": {"success": [1, 0, 1, 1], "spl": [1, 0, 1, 1], "ndtw": [0.6] * 4, "sdtw": [0] * 4}}}}
+        >>> row = pooled_stats(cell, ["m-seed0", "m-seed1"], num_resamples=200)
+        >>> row["success"]["mean"], row["per_seed"]["success"], round(row["vs_open_loop"]["ndtw"]["difference"], 6)
+        (0.75, [0.75, 0.75], 0.5)
+    """
+    houses = np.asarray(cell["episodes"]["house_seed"])
+    floor = cell["models"][OPEN_LOOP]["records"]
+    columns = {metric: np.asarray([cell["models"][m]["records"][metric] for m in members], dtype=float)
+               for metric in METRICS}
+    row = {"episodes": int(houses.size), "houses": int(np.unique(houses).size), "seeds": list(members)}
+    for metric, values in columns.items():
+        row[metric] = {"mean": float(values.mean()),
+                       "ci": list(hierarchical_bootstrap_ci(values.mean(axis=0), houses, CONFIDENCE, num_resamples))}
+    row["per_seed"] = {metric: [float(v) for v in values.mean(axis=1)] for metric, values in columns.items()}
+    row["vs_open_loop"] = paired_against(columns, floor, houses, num_resamples)
+    return row
+
+
 # ------------------------------------------------------------------------ reports
+def report_labels(setup: dict) -> list[str]:
+    """The columns of the table and the lines of the figure: every model, then every seed group."""
+    return list(setup["models"]) + list(setup.get("seed_groups", {}))
+
+
 def format_table(content: dict) -> str:
     """The markdown table of a benchmark's JSON content: a row per set x style x bucket, a column per
     model, ``success / nDTW`` (``*``: paired difference from open-loop replay with two-sided p < 0.05).
@@ -473,7 +531,7 @@ def format_table(content: dict) -> str:
         <BLANKLINE>
         success / nDTW, mean over 8 episodes per cell; * after a number: paired difference from open-loop replay on the same episodes, two-sided p < 0.05 (house-level bootstrap).
     """
-    labels = list(content["setup"]["models"])
+    labels = report_labels(content["setup"])
     lines = ["| set | style | steps | " + " | ".join(labels) + " |", "|---" * (3 + len(labels)) + "|"]
     for cell in content["cells"].values():
         stats = cell.get("stats")
@@ -491,6 +549,8 @@ def format_table(content: dict) -> str:
         lines.append(f"| {cell['set']} | {cell['style']} | {bucket_name(cell['bucket'])} | " + " | ".join(entries) + " |")
     lines += ["", f"success / nDTW, mean over {content['setup']['episodes']} episodes per cell; * after a number: paired "
               "difference from open-loop replay on the same episodes, two-sided p < 0.05 (house-level bootstrap)."]
+    if content["setup"].get("seed_groups"):
+        lines[-1] += " (n seeds): the seeds' columns pooled, means over seeds and episodes, paired tests pooled over seeds."
     return "\n".join(lines)
 
 
@@ -505,13 +565,14 @@ def plot_bench(content: dict, path: str | Path) -> Path:
     for i, set_name in enumerate(sets):
         for j, style in enumerate(styles):
             ax = axes[i][j]
-            for k, label in enumerate(setup["models"]):
+            labels = report_labels(setup)
+            for k, label in enumerate(labels):
                 xs, ys, errors = [], [], []
                 for x, bucket in enumerate(buckets):
                     row = (content["cells"].get(cell_key(set_name, style, bucket), {}).get("stats") or {}).get(label)
                     if row is not None:
                         mean, (low, high) = row["success"]["mean"], row["success"]["ci"]
-                        xs.append(x + 0.04 * (k - len(setup["models"]) / 2))
+                        xs.append(x + 0.04 * (k - len(labels) / 2))
                         ys.append(mean)
                         errors.append((mean - low, high - mean))
                 if xs:
@@ -540,6 +601,7 @@ def setup_of(options: BenchOptions, models: list[BenchModel]) -> dict:
         "max_steps": "each route's own: ceil(5/3 n)", "image_size": options.image_size, "num_resamples": options.num_resamples,
         "random_sparsity": options.random_sparsity, "env_version": ENV_VERSION,
         "models": {m.label: {**m.info, **m.identity} for m in models},
+        "seed_groups": seed_groups([m.label for m in models]),
     }
 
 
