@@ -11,10 +11,10 @@ Usage::
     python recipes/evaluate.py checkpoints/ --split test --episodes 500 --noise paper --out results/eval
     python recipes/evaluate.py open_loop --split test
     python recipes/evaluate.py spf_random-s0.2-1 --sparsity 0.6   # one model, any sparsity
-
-A shipped name's JSON is named ``checkpoints_<name>-...``, a file's after its path.
+    python recipes/evaluate.py routes-spf --demo-length 30        # the same weights on 30-step routes
     python recipes/evaluate.py checkpoints/ --device cpu     # default --device auto: CUDA if available
 
+A shipped name's JSON is named ``checkpoints_<name>-...``, a file's after its path.
 The policy runs on ``--device``; the env and its rendering on the CPU.
 """
 from __future__ import annotations
