@@ -442,19 +442,7 @@ def paired_against(a: dict, b: dict, houses: Sequence, num_resamples: int, metri
 def cell_stats(cell: dict, num_resamples: int) -> dict:
     """Per model of a complete cell: the mean and house-level interval of each of :data:`METRICS`,
     and (models other than open-loop replay) ``vs_open_loop``: :func:`paired_against` open-loop replay."""
-    houses = np.asarray(cell["episodes"]["house_seed"])
-    floor = cell["models"][OPEN_LOOP]["records"]
-    stats = {}
-    for label, entry in cell["models"].items():
-        records = entry["records"]
-        row = {"episodes": int(houses.size), "houses": int(np.unique(houses).size)}
-        for metric in METRICS:
-            values = np.asarray(records[metric], dtype=float)
-            row[metric] = {"mean": float(values.mean()),
-                           "ci": list(hierarchical_bootstrap_ci(values, houses, CONFIDENCE, num_resamples))}
-        if label != OPEN_LOOP:
-            row["vs_open_loop"] = paired_against(records, floor, houses, num_resamples)
-        stats[label] = row
+    stats = {label: _scores(cell, [label], num_resamples, paired=label != OPEN_LOOP) for label in cell["models"]}
     for group, members in seed_groups(list(cell["models"])).items():
         stats[group] = pooled_stats(cell, members, num_resamples)
     return stats
@@ -492,16 +480,24 @@ def pooled_stats(cell: dict, members: Sequence[str], num_resamples: int) -> dict
         >>> row["success"]["mean"], row["per_seed"]["success"], round(row["vs_open_loop"]["ndtw"]["difference"], 6)
         (0.75, [0.75, 0.75], 0.5)
     """
+    row = _scores(cell, members, num_resamples, paired=True)
+    row["seeds"] = list(members)
+    row["per_seed"] = {metric: [float(v) for v in np.asarray([cell["models"][m]["records"][metric] for m in members],
+                                                               dtype=float).mean(axis=1)] for metric in METRICS}
+    return row
+
+
+def _scores(cell: dict, members: Sequence[str], num_resamples: int, paired: bool) -> dict:
+    """Means over ``members``' seeds and the cell's episodes, house-level intervals and (``paired``) the
+    difference from open-loop replay: one model is one member."""
     houses = np.asarray(cell["episodes"]["house_seed"])
-    floor = cell["models"][OPEN_LOOP]["records"]
-    columns = {metric: np.asarray([cell["models"][m]["records"][metric] for m in members], dtype=float)
-               for metric in METRICS}
-    row = {"episodes": int(houses.size), "houses": int(np.unique(houses).size), "seeds": list(members)}
+    columns = {metric: np.asarray([cell["models"][m]["records"][metric] for m in members], dtype=float) for metric in METRICS}
+    row = {"episodes": int(houses.size), "houses": int(np.unique(houses).size)}
     for metric, values in columns.items():
         row[metric] = {"mean": float(values.mean()),
                        "ci": list(hierarchical_bootstrap_ci(values.mean(axis=0), houses, CONFIDENCE, num_resamples))}
-    row["per_seed"] = {metric: [float(v) for v in values.mean(axis=1)] for metric, values in columns.items()}
-    row["vs_open_loop"] = paired_against(columns, floor, houses, num_resamples)
+    if paired:
+        row["vs_open_loop"] = paired_against(columns, cell["models"][OPEN_LOOP]["records"], houses, num_resamples)
     return row
 
 
