@@ -91,7 +91,9 @@ def test_a_tiny_run_pairs_models_by_episode_and_resumes(tmp_path, monkeypatch):
     same = route_bench.paired_against(floor, floor, cell["episodes"]["house_seed"], num_resamples=200)
     assert same["success"]["difference"] == 0.0 and same["ndtw"]["difference"] == 0.0
     assert "| test | driven | 10-12 |" in content["table"] and (tmp_path / "bench.png").is_file()
-    assert (tmp_path / "bench.md").read_text().strip() == content["table"]
+    assert (tmp_path / "bench.md").read_text().strip() == content["table"] + "\n\n" + content["table_by_model"]
+    by_model = content["table_by_model"].splitlines()
+    assert by_model[2] == "| model | driven 10-12 |" and any(line.startswith("| tiny/best | ") for line in by_model)
 
     # a rerun of the same set-up evaluates nothing; one more model plays only itself, on the same episodes
     played = []

@@ -25,7 +25,7 @@ reported pooled over seeds, as one more column (:func:`seed_groups`, :func:`pool
 * :func:`run_bench`: evaluate what is missing (the JSON is written after every evaluation, and
   a rerun with the same set-up skips what it holds: an interrupted run resumes), then the
   table and the figure;
-* :func:`cell_stats`, :func:`paired_against`: the statistics of a cell; :func:`format_table`
+* :func:`cell_stats`, :func:`paired_against`: the statistics of a cell; :func:`format_table`, :func:`format_by_model`
   (markdown) and :func:`plot_bench` (success by bucket, a panel per set and style).
 """
 from __future__ import annotations
@@ -550,6 +550,55 @@ def format_table(content: dict) -> str:
     return "\n".join(lines)
 
 
+def format_by_model(content: dict) -> str:
+    """Markdown tables of a benchmark's success, one per set: a row per model (and seed group), a column per
+    style x bucket (``*``: paired difference from open-loop replay with two-sided p < 0.05). The layout that
+    stays readable with many models; nDTW is in :func:`format_table`.
+
+    Examples:
+        >>> def model(success, p=None):
+        ...     row = {"success": {"mean": success}, "ndtw": {"mean": 0.5}}
+        ...     if p is not None:
+        ...         row["vs_open_loop"] = {"success": {"p_two_sided": p}}
+        ...     return row
+        >>> cells = {f"test/{style}/10-30": {"set": "test", "style": style, "bucket": [10, 30],
+        ...          "stats": {"open_loop": model(0.25), "spf-s0.8": model(0.75, p=0.01 if style == "tour" else 0.2)}}
+        ...          for style in ("tour", "driven")}
+        >>> content = {"setup": {"episodes": 8, "models": {"open_loop": {}, "spf-s0.8": {}}}, "cells": cells}
+        >>> print(format_by_model(content))
+        **test** (success, mean over 8 episodes per cell)
+        <BLANKLINE>
+        | model | tour 10-30 | driven 10-30 |
+        |---|---|---|
+        | open_loop | 0.25 | 0.25 |
+        | spf-s0.8 | 0.75* | 0.75 |
+        <BLANKLINE>
+        * after a number: paired difference from open-loop replay on the same episodes, two-sided p < 0.05 (house-level bootstrap).
+    """
+    labels = report_labels(content["setup"])
+    cells = [cell for cell in content["cells"].values() if cell.get("stats")]
+    lines: list[str] = []
+    for set_name in dict.fromkeys(cell["set"] for cell in cells):
+        columns = [cell for cell in cells if cell["set"] == set_name]
+        lines += [f"**{set_name}** (success, mean over {content['setup']['episodes']} episodes per cell)", "",
+                  "| model | " + " | ".join(f"{c['style']} {bucket_name(c['bucket'])}" for c in columns) + " |",
+                  "|---" * (1 + len(columns)) + "|"]
+        for label in labels:
+            entries = []
+            for cell in columns:
+                row = cell["stats"].get(label)
+                if row is None:
+                    entries.append("-")
+                    continue
+                p = row.get("vs_open_loop", {}).get("success", {}).get("p_two_sided")
+                entries.append(f"{row['success']['mean']:.2f}" + ("*" if p is not None and p < ALPHA else ""))
+            lines.append(f"| {label} | " + " | ".join(entries) + " |")
+        lines.append("")
+    lines.append("* after a number: paired difference from open-loop replay on the same episodes, two-sided p < 0.05 "
+                 "(house-level bootstrap).")
+    return "\n".join(lines)
+
+
 def plot_bench(content: dict, path: str | Path) -> Path:
     """Success (95% CI) by length bucket, a panel per set (row) and style (column), a line per model, to a PNG."""
     from spf_rl.viz import pyplot, save_figure
@@ -629,7 +678,7 @@ def run_bench(options: BenchOptions) -> dict:
     Returns:
         The JSON content: ``recipe``, ``setup``, ``statistics``, ``cells`` (``{key: {set, style, bucket,
         identity, episodes, models: {label: {identity, records}}, stats}}``, records as per-episode columns in
-        the order of ``episodes``), ``table`` (markdown) and ``figure``.
+        the order of ``episodes``), ``table`` and ``table_by_model`` (markdown) and ``figure``.
 
     Raises:
         ValueError: two models of a cell played different episodes.
@@ -673,6 +722,7 @@ def run_bench(options: BenchOptions) -> dict:
     for key in previous:
         logger.warning("dropping the file's cell %s (not a cell of this run)", key)
     content["table"] = format_table(content)
+    content["table_by_model"] = format_by_model(content)
     from spf_rl.viz import plot_if_available
 
     figure = plot_if_available(plot_bench, content, out.with_suffix(".png"))
@@ -680,5 +730,5 @@ def run_bench(options: BenchOptions) -> dict:
     atomic_write_json(out, content, indent=1)
     from envs.atomic_io import atomic_write_text
 
-    atomic_write_text(out.with_suffix(".md"), content["table"] + "\n")
+    atomic_write_text(out.with_suffix(".md"), content["table"] + "\n\n" + content["table_by_model"] + "\n")
     return content
