@@ -93,7 +93,9 @@ def test_a_tiny_run_pairs_models_by_episode_and_resumes(tmp_path, monkeypatch):
     assert "| test | driven | 10-12 |" in content["table"] and (tmp_path / "bench.png").is_file()
     assert (tmp_path / "bench.md").read_text().strip() == content["table"] + "\n\n" + content["table_by_model"]
     by_model = content["table_by_model"].splitlines()
-    assert by_model[2] == "| model | driven 10-12 |" and any(line.startswith("| tiny/best | ") for line in by_model)
+    assert by_model[2] == "| model | driven 10-12 | driven |" and any(line.startswith("| tiny/best | ") for line in by_model)
+    for label in ("open_loop", "tiny/best"):  # one cell per style here: the style's mean is the cell's
+        assert content["by_style"]["test"]["driven"][label]["success"] == pytest.approx(cell["stats"][label]["success"]["mean"])
 
     # a rerun of the same set-up evaluates nothing; one more model plays only itself, on the same episodes
     played = []

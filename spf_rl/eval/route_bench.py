@@ -25,7 +25,7 @@ reported pooled over seeds, as one more column (:func:`seed_groups`, :func:`pool
 * :func:`run_bench`: evaluate what is missing (the JSON is written after every evaluation, and
   a rerun with the same set-up skips what it holds: an interrupted run resumes), then the
   table and the figure;
-* :func:`cell_stats`, :func:`paired_against`: the statistics of a cell; :func:`format_table`, :func:`format_by_model`
+* :func:`cell_stats`, :func:`paired_against`: the statistics of a cell; :func:`by_style` (means per style), :func:`format_table`, :func:`format_by_model`
   (markdown) and :func:`plot_bench` (success by bucket, a panel per set and style).
 """
 from __future__ import annotations
@@ -550,6 +550,35 @@ def format_table(content: dict) -> str:
     return "\n".join(lines)
 
 
+def by_style(content: dict) -> dict:
+    """Each model's (and seed group's) means over all of a style's complete cells, per set:
+    ``{set: {style: {label: {"success": x, "ndtw": x, "episodes": n}}}}``, every cell's episodes
+    weighted alike (for a seed group, the mean over its seeds too).
+
+    Examples:
+        >>> def row(success, episodes=4):
+        ...     return {"episodes": episodes, "success": {"mean": success}, "ndtw": {"mean": success / 2}}
+        >>> cells = {f"test/tour/{b}": {"set": "test", "style": "tour", "bucket": [1, 2],
+        ...          "stats": {"spf-s0.8": row(s, n)}} for b, s, n in (("a", 1.0, 4), ("b", 0.25, 12))}
+        >>> by_style({"setup": {"models": {"spf-s0.8": {}}}, "cells": cells})
+        {'test': {'tour': {'spf-s0.8': {'success': 0.4375, 'ndtw': 0.21875, 'episodes': 16}}}}
+    """
+    out: dict = {}
+    for cell in content["cells"].values():
+        for label, row in (cell.get("stats") or {}).items():
+            into = out.setdefault(cell["set"], {}).setdefault(cell["style"], {}).setdefault(
+                label, {"success": 0.0, "ndtw": 0.0, "episodes": 0})
+            for metric in ("success", "ndtw"):
+                into[metric] += row[metric]["mean"] * row["episodes"]
+            into["episodes"] += row["episodes"]
+    for styles in out.values():
+        for labels in styles.values():
+            for into in labels.values():
+                for metric in ("success", "ndtw"):
+                    into[metric] /= into["episodes"]
+    return out
+
+
 def format_by_model(content: dict) -> str:
     """Markdown tables of a benchmark's success, one per set: a row per model (and seed group), a column per
     style x bucket (``*``: paired difference from open-loop replay with two-sided p < 0.05). The layout that
@@ -557,21 +586,21 @@ def format_by_model(content: dict) -> str:
 
     Examples:
         >>> def model(success, p=None):
-        ...     row = {"success": {"mean": success}, "ndtw": {"mean": 0.5}}
+        ...     row = {"episodes": 8, "success": {"mean": success}, "ndtw": {"mean": 0.5}}
         ...     if p is not None:
         ...         row["vs_open_loop"] = {"success": {"p_two_sided": p}}
         ...     return row
-        >>> cells = {f"test/{style}/10-30": {"set": "test", "style": style, "bucket": [10, 30],
-        ...          "stats": {"open_loop": model(0.25), "spf-s0.8": model(0.75, p=0.01 if style == "tour" else 0.2)}}
-        ...          for style in ("tour", "driven")}
+        >>> cells = {f"test/{style}/{b}": {"set": "test", "style": style, "bucket": bucket,
+        ...          "stats": {"open_loop": model(0.25), "spf-s0.8": model(success, p=0.01 if style == "tour" else 0.2)}}
+        ...          for style in ("tour", "driven") for b, bucket, success in (("10-30", [10, 30], 0.75), ("31-60", [31, 60], 0.5))}
         >>> content = {"setup": {"episodes": 8, "models": {"open_loop": {}, "spf-s0.8": {}}}, "cells": cells}
         >>> print(format_by_model(content))
-        **test** (success, mean over 8 episodes per cell)
+        **test** (success, mean over 8 episodes per cell; a style's column: over all of its lengths)
         <BLANKLINE>
-        | model | tour 10-30 | driven 10-30 |
-        |---|---|---|
-        | open_loop | 0.25 | 0.25 |
-        | spf-s0.8 | 0.75* | 0.75 |
+        | model | tour 10-30 | tour 31-60 | driven 10-30 | driven 31-60 | tour | driven |
+        |---|---|---|---|---|---|---|
+        | open_loop | 0.25 | 0.25 | 0.25 | 0.25 | 0.250 | 0.250 |
+        | spf-s0.8 | 0.75* | 0.50* | 0.75 | 0.50 | 0.625 | 0.625 |
         <BLANKLINE>
         * after a number: paired difference from open-loop replay on the same episodes, two-sided p < 0.05 (house-level bootstrap).
     """
@@ -580,9 +609,11 @@ def format_by_model(content: dict) -> str:
     lines: list[str] = []
     for set_name in dict.fromkeys(cell["set"] for cell in cells):
         columns = [cell for cell in cells if cell["set"] == set_name]
-        lines += [f"**{set_name}** (success, mean over {content['setup']['episodes']} episodes per cell)", "",
-                  "| model | " + " | ".join(f"{c['style']} {bucket_name(c['bucket'])}" for c in columns) + " |",
-                  "|---" * (1 + len(columns)) + "|"]
+        styles = by_style(content)[set_name]
+        lines += [f"**{set_name}** (success, mean over {content['setup']['episodes']} episodes per cell; "
+                  "a style's column: over all of its lengths)", "",
+                  "| model | " + " | ".join([f"{c['style']} {bucket_name(c['bucket'])}" for c in columns] + list(styles)) + " |",
+                  "|---" * (1 + len(columns) + len(styles)) + "|"]
         for label in labels:
             entries = []
             for cell in columns:
@@ -592,6 +623,7 @@ def format_by_model(content: dict) -> str:
                     continue
                 p = row.get("vs_open_loop", {}).get("success", {}).get("p_two_sided")
                 entries.append(f"{row['success']['mean']:.2f}" + ("*" if p is not None and p < ALPHA else ""))
+            entries += [f"{labels_[label]['success']:.3f}" if label in labels_ else "-" for labels_ in styles.values()]
             lines.append(f"| {label} | " + " | ".join(entries) + " |")
         lines.append("")
     lines.append("* after a number: paired difference from open-loop replay on the same episodes, two-sided p < 0.05 "
@@ -678,7 +710,7 @@ def run_bench(options: BenchOptions) -> dict:
     Returns:
         The JSON content: ``recipe``, ``setup``, ``statistics``, ``cells`` (``{key: {set, style, bucket,
         identity, episodes, models: {label: {identity, records}}, stats}}``, records as per-episode columns in
-        the order of ``episodes``), ``table`` and ``table_by_model`` (markdown) and ``figure``.
+        the order of ``episodes``), ``by_style`` (:func:`by_style`), ``table`` and ``table_by_model`` (markdown) and ``figure``.
 
     Raises:
         ValueError: two models of a cell played different episodes.
@@ -723,6 +755,7 @@ def run_bench(options: BenchOptions) -> dict:
         logger.warning("dropping the file's cell %s (not a cell of this run)", key)
     content["table"] = format_table(content)
     content["table_by_model"] = format_by_model(content)
+    content["by_style"] = by_style(content)
     from spf_rl.viz import plot_if_available
 
     figure = plot_if_available(plot_bench, content, out.with_suffix(".png"))
