@@ -16,6 +16,7 @@ Usage::
     python recipes/dagger.py --preset dagger_rpf_original     # after bc.py --preset bc_row model=rpf_original sparsity=1
     python recipes/dagger.py --preset dagger_spf_rpf_pointer  # after SPF 0.8 with RPF's pointer rule (python recipes/table1.py --rows spf_rpf_pointer-s0.8)
     python recipes/dagger.py --preset dagger_routes           # after bc.py --preset bc_routes: rounds on the routes people teach
+    python recipes/dagger.py --preset dagger_routes_pointer_more seed=S   # 10 more rounds after dagger_routes_pointer seed=S
     python recipes/dagger.py checkpoint=runs/bc/spf-s0.8-seed0/best.pt rounds=6
     python recipes/dagger.py collector.backend=ray collector.num_collectors=2 device=cpu   # pip install '.[distributed]'
     python recipes/dagger.py device=cuda:1                    # the learner on the second GPU (default device=auto)
@@ -32,7 +33,7 @@ from spf_rl.config import config_or_exit, load_config
 #: Presets in recipes/configs/ that --preset accepts.
 PRESETS = (
     "dagger_quick", "dagger_control", "dagger_long", "dagger_rpf", "dagger_rpf_original", "dagger_spf_rpf_pointer",
-    "dagger_pointer_long", "dagger_table1", "dagger_routes", "dagger_routes_pointer",
+    "dagger_pointer_long", "dagger_table1", "dagger_routes", "dagger_routes_pointer", "dagger_routes_pointer_more",
 )
 
 
@@ -47,7 +48,8 @@ def main(argv: list[str] | None = None) -> dict:
         "the earlier DAgger runs after Table 1's rows: dagger_long, dagger_rpf, dagger_rpf_original, dagger_spf_rpf_pointer, dagger_pointer_long, "
         "dagger_table1 (Table 1's one DAgger rule, after bc.py --preset bc_table1), "
         "dagger_routes (after bc.py --preset bc_routes: rounds on the same route mixture) "
-        "or dagger_routes_pointer (dagger_routes with a pointer loss, optim.pointer_coef 0.1)",
+        "dagger_routes_pointer (dagger_routes with a pointer loss, optim.pointer_coef 0.1) "
+        "or dagger_routes_pointer_more (10 more such rounds from dagger_routes_pointer's kept weights, on fresh routes)",
     )
     parser.add_argument("overrides", nargs="*", help="key=value config overrides")
     args = parser.parse_args(argv)

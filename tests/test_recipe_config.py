@@ -213,6 +213,22 @@ def test_pointer_routes_dagger_differs_from_routes_dagger_in_its_pointer_loss_al
     assert dataclasses.replace(dagger.optim, pointer_coef=0.0) == plain.optim
 
 
+def test_more_routes_dagger_continues_the_kept_weights_on_fresh_routes():
+    """dagger_routes_pointer_more is dagger_routes_pointer from that run's shipped kept weights, into
+    its own directory, and every one of its rounds draws another seed than every round of the first run."""
+    from spf_rl.train.dagger import DAggerConfig, episode_seed_of_round
+
+    first = load_config(DAggerConfig, "dagger", ["seed=2"], preset="dagger_routes_pointer")
+    more = load_config(DAggerConfig, "dagger", ["seed=2"], preset="dagger_routes_pointer_more")
+    assert more.checkpoint == "checkpoints/routes/dagger_pointer-spf_random-seed2.pt"
+    assert Path(more.checkpoint).is_file() and more.output_dir not in (first.output_dir, first.checkpoint)
+    assert dataclasses.replace(more, checkpoint=first.checkpoint, output_dir=first.output_dir, round_seed_offset=0) == first
+    seeds = [{episode_seed_of_round(config, r) for r in range(1, config.rounds + 1)} for config in (first, more)]
+    assert len(seeds[1]) == more.rounds and not seeds[0] & seeds[1]
+    with pytest.raises(ValueError, match="round_seed_offset must be a non-negative int"):
+        dataclasses.replace(first, round_seed_offset=-1)
+
+
 def test_routes_dagger_starts_from_the_routes_bc_run_on_its_data_and_routes():
     """dagger_routes reuses bc_routes' dataset (the same DatasetConfig), starts from its best.pt,
     and collects, validates and tests on the same route mixture and lengths."""

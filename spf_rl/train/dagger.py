@@ -163,6 +163,10 @@ class DAggerConfig:
         device: where the learner trains and acts: ``"auto"`` (CUDA if available, else
             the CPU), ``"cpu"``, ``"cuda"`` or ``"cuda:N"``; envs stay on the CPU.
         rounds: DAgger rounds after the starting model.
+        round_seed_offset: round ``r``'s episodes are drawn with the seed ``(seed, r +
+            round_seed_offset)``. 0 by default; a run that continues an earlier run's kept
+            weights sets it to that run's ``rounds``, so that its rounds draw routes the
+            earlier rounds did not.
         episodes_per_round: learner episodes collected per round.
         beta0: expert probability in round 1.
         beta_decay: ``beta`` is multiplied by this each round.
@@ -195,6 +199,7 @@ class DAggerConfig:
     seed: int = 0
     device: str = DEFAULT_DEVICE
     rounds: int = 10
+    round_seed_offset: int = 0
     episodes_per_round: int = 256
     beta0: float = 0.0
     beta_decay: float = 0.5
@@ -216,10 +221,10 @@ class DAggerConfig:
 
     def __post_init__(self) -> None:
         check_device(self.device)
-        for name in ("rounds", "episodes_per_round", "epochs_per_round"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < (0 if name == "rounds" else 1):
-                raise ValueError(f"{name} must be a {'non-negative' if name == 'rounds' else 'positive'} int, got {value!r}.")
+        for name in ("rounds", "round_seed_offset", "episodes_per_round", "epochs_per_round"):
+            value, least = getattr(self, name), 0 if name in ("rounds", "round_seed_offset") else 1
+            if isinstance(value, bool) or not isinstance(value, int) or value < least:
+                raise ValueError(f"{name} must be a {'non-negative' if least == 0 else 'positive'} int, got {value!r}.")
         for name in ("steps_per_round", "window_rounds"):
             value = getattr(self, name)
             if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
@@ -251,6 +256,18 @@ def behaviour_statistics(episodes: TensorDictBase) -> dict:
         "behaviour_success": float(episodes["success"].float().mean()),
         "mean_length": float(episodes["length"].float().mean()),
     }
+
+
+def episode_seed_of_round(config: DAggerConfig, round_index: int) -> int:
+    """The seed of the episodes round ``round_index`` collects: from ``(config.seed, round_index +
+    config.round_seed_offset)``.
+
+    Examples:
+        >>> first, more = DAggerConfig(), DAggerConfig(round_seed_offset=10)
+        >>> episode_seed_of_round(more, 1) == episode_seed_of_round(first, 11) != episode_seed_of_round(first, 1)
+        True
+    """
+    return int(np.random.SeedSequence([config.seed, round_index + config.round_seed_offset]).generate_state(1)[0] % (2**31))
 
 
 def train_dagger(config: DAggerConfig) -> dict:
@@ -359,7 +376,7 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
                 learner_path(output, old).unlink(missing_ok=True)
 
     def round_config_of(round_index: int) -> RoundConfig:
-        round_seed = int(np.random.SeedSequence([config.seed, round_index]).generate_state(1)[0] % (2**31))
+        round_seed = episode_seed_of_round(config, round_index)
         return RoundConfig(
             round_index=round_index, seed=round_seed, beta=config.beta(round_index), num_episodes=config.episodes_per_round,
             demo_length=env.demo_length, max_steps=env.max_steps, image_size=env.image_size, split=env.split,
@@ -562,4 +579,4 @@ def plot_rounds(history: list[dict], path: Path, title: str = "DAgger") -> None:
     plt.close(fig)
 
 
-__all__ = ["DAggerConfig", "ExpertMixturePolicy", "behaviour_statistics", "plot_rounds", "train_dagger"]
+__all__ = ["DAggerConfig", "ExpertMixturePolicy", "behaviour_statistics", "episode_seed_of_round", "plot_rounds", "train_dagger"]
