@@ -606,10 +606,11 @@ def format_by_model(content: dict) -> str:
     """
     labels = report_labels(content["setup"])
     cells = [cell for cell in content["cells"].values() if cell.get("stats")]
+    means = by_style(content)
     lines: list[str] = []
     for set_name in dict.fromkeys(cell["set"] for cell in cells):
         columns = [cell for cell in cells if cell["set"] == set_name]
-        styles = by_style(content)[set_name]
+        styles = means[set_name]
         lines += [f"**{set_name}** (success, mean over {content['setup']['episodes']} episodes per cell; "
                   "a style's column: over all of its lengths)", "",
                   "| model | " + " | ".join([f"{c['style']} {bucket_name(c['bucket'])}" for c in columns] + list(styles)) + " |",
