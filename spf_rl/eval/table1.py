@@ -297,7 +297,7 @@ def markdown(table: dict) -> str:
 
 #: Marks a line whose checkpoints include an earlier run's (``earlier_seeds``), and what it means.
 EARLIER_MARK = "†"
-EARLIER_NOTE = "some seeds (of the row or its DAgger column) are earlier runs, not `recipes/table1.py`'s."
+EARLIER_NOTE = "the row's (or its DAgger column's) seeds under `earlier_seeds` in `results/table1.json` are earlier runs, not `recipes/table1.py`'s."
 
 
 def earlier(*rows: dict | None) -> bool:
