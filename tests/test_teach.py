@@ -173,6 +173,17 @@ def test_keys_drive_undo_and_finish():
     assert finished.demonstration.poses.tolist() == expected.poses.tolist()
 
 
+def test_keyboard_with_a_required_length_refuses_a_shorter_route():
+    short = "FFLRFFLRFFRFFLFFFFFFRLRF"  # 24 steps, a valid route from this start
+    recorder = RouteRecorder(0, (7.5, 1.5, 0.0), max_steps=30)
+    for letter in short:
+        handle_key(recorder, ord(letter.lower()), 30, exact=True)
+    refused = handle_key(recorder, curses.KEY_ENTER, 30, exact=True)
+    assert refused.demonstration is None and recorder.length == 24
+    assert refused.message.startswith("the route has 24 steps; demonstrations must have exactly 30 steps")
+    assert handle_key(recorder, curses.KEY_ENTER, 30).demonstration.length == 24  # without a required length
+
+
 def test_raw_escape_arrows_are_decoded():
     assert decode_escape([ord("["), ord("A")]) == curses.KEY_UP
     assert decode_escape([ord("O"), ord("D")]) == curses.KEY_LEFT

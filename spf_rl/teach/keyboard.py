@@ -66,17 +66,20 @@ class KeyOutcome:
     cancelled: bool = False
 
 
-def handle_key(recorder: RouteRecorder, key: int, max_length: int) -> KeyOutcome:
+def handle_key(recorder: RouteRecorder, key: int, max_length: int, exact: bool = False) -> KeyOutcome:
     """Apply one key press to ``recorder`` (a route of at most ``max_length`` steps; Enter ends it).
 
     A refused step (into a wall, past ``max_length``) or a refused end (a route too short
-    to follow) leaves the route as it was and says why.
+    to follow, or with ``exact`` fewer than ``max_length`` steps) leaves the route as it
+    was and says why.
 
     Examples:
         >>> recorder = RouteRecorder(0, (7.5, 1.5, 0.0), max_steps=3)
         >>> handle_key(recorder, curses.KEY_UP, 3).message, recorder.length
         ('', 1)
         >>> handle_key(recorder, 10, 3).message.startswith("the route is too short")
+        True
+        >>> handle_key(recorder, 10, 3, exact=True).message.startswith("the route has 1 steps")
         True
     """
     if key == NO_KEY:
@@ -87,7 +90,7 @@ def handle_key(recorder: RouteRecorder, key: int, max_length: int) -> KeyOutcome
         return KeyOutcome(message="" if recorder.undo() else "nothing to undo")
     if key in FINISH_KEYS:
         try:
-            return KeyOutcome(message="done", demonstration=recorder.demonstration())
+            return KeyOutcome(message="done", demonstration=recorder.demonstration(length=max_length if exact else None))
         except RouteError as err:
             return KeyOutcome(message=str(err))
     if key in KEY_ACTIONS:
@@ -169,8 +172,9 @@ def status_lines(recorder: RouteRecorder, max_length: int, message: str) -> list
     ]
 
 
-def record_with_keyboard(house: House, start: Sequence[float], max_length: int) -> Demonstration | None:
-    """Let the user drive a route of up to ``max_length`` steps from ``start`` (x m, y m, heading deg) in the terminal.
+def record_with_keyboard(house: House, start: Sequence[float], max_length: int, exact: bool = False) -> Demonstration | None:
+    """Let the user drive a route of up to ``max_length`` steps (with ``exact``: of exactly ``max_length``)
+    from ``start`` (x m, y m, heading deg) in the terminal.
 
     Returns:
         the demonstration, or ``None`` when the user cancels.
@@ -187,7 +191,7 @@ def record_with_keyboard(house: House, start: Sequence[float], max_length: int) 
             for row, line in enumerate(lines[: height - 1]):
                 screen.addstr(row, 0, line[: width - 1])
             screen.refresh()
-            outcome = handle_key(recorder, read_key(screen), max_length)
+            outcome = handle_key(recorder, read_key(screen), max_length, exact)
             if outcome.cancelled or outcome.demonstration is not None:
                 return outcome.demonstration
             message = outcome.message

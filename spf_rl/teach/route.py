@@ -98,7 +98,7 @@ def teach_route(
         from spf_rl.teach.keyboard import record_with_keyboard  # curses, only for the keyboard
 
         start = default_start(house) if start is None else start
-        return record_with_keyboard(house_of(house), start, MAX_TAUGHT_STEPS if length is None else length)
+        return record_with_keyboard(house_of(house), start, MAX_TAUGHT_STEPS if length is None else length, exact=length is not None)
     _check_steps(demo.length)
     return demo
 
