@@ -23,6 +23,7 @@ import argparse
 import json
 import logging
 
+from spf_rl.cli import ArgumentParser
 from spf_rl.config import config_or_exit, load_config
 
 #: Schedules in recipes/configs/ that --preset accepts.
@@ -30,7 +31,7 @@ PRESETS = ("bc_quick", "bc_long", "bc_row", "bc_table1", "bc_homing", "bc_pointe
 
 
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="small preset that runs in a few minutes (= --preset bc_quick)")
     parser.add_argument(
         "--preset",

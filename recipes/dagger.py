@@ -28,6 +28,7 @@ import argparse
 import json
 import logging
 
+from spf_rl.cli import ArgumentParser
 from spf_rl.config import config_or_exit, load_config
 
 #: Presets in recipes/configs/ that --preset accepts.
@@ -38,7 +39,7 @@ PRESETS = (
 
 
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="small preset that runs in a few minutes (= --preset dagger_quick)")
     parser.add_argument(
         "--preset",

@@ -25,6 +25,7 @@ from pathlib import Path
 
 from envs.scenes import SPLIT_SEED_OFFSETS
 from envs.transforms import DEFAULT_NOISE, NOISE_PRESETS
+from spf_rl.cli import ArgumentParser
 from spf_rl.device import DEFAULT_DEVICE, DEVICE_CHOICES, resolve_device
 from spf_rl.eval.checkpoints import EvalOptions, evaluate_checkpoints, expand_targets
 
@@ -34,7 +35,7 @@ SPLITS = tuple(SPLIT_SEED_OFFSETS)
 def main(argv: list[str] | None = None) -> list[dict]:
     from spf_rl.train.evaluation import episode_store_root
 
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("paths", nargs="+", help="checkpoint files, directories of *.pt, or 'open_loop'")
     parser.add_argument("--split", default="test", choices=SPLITS, help="house split (default: test)")
     parser.add_argument("--episodes", type=int, default=500)

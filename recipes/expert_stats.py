@@ -32,6 +32,7 @@ from envs.demos import DEFAULT_DEMO_LENGTH
 from envs.homing import FOLLOW, TASKS
 from envs.route_expert import EXPERTS
 from envs.route_styles import route_mixture_for
+from spf_rl.cli import ArgumentParser
 from spf_rl.eval.scripted import (
     DEFAULT_RUNS,
     RESULTS_NAME,
@@ -47,7 +48,7 @@ RESULTS_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "results" / 
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--episodes", type=int, default=500, help="episodes per (split, policy, noise)")
     parser.add_argument("--splits", nargs="+", default=["train", "test"])
     parser.add_argument("--num-agents", type=int, default=25, help="agents of the batched env")

@@ -15,11 +15,12 @@ import argparse
 import json
 import logging
 
+from spf_rl.cli import ArgumentParser
 from spf_rl.config import config_or_exit, load_config
 
 
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="the --quick preset's small dataset")
     parser.add_argument("overrides", nargs="*", help="key=value config overrides (as for bc.py)")
     args = parser.parse_args(argv)

@@ -25,13 +25,14 @@ import logging
 from pathlib import Path
 
 from envs.atomic_io import atomic_write_json
+from spf_rl.cli import ArgumentParser
 from spf_rl.eval.paired import compare, split_paths
 
 logger = logging.getLogger("paired")
 
 
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("a", help="evaluation JSON(s) of model A (comma-separated: one per training seed)")
     parser.add_argument("b", help="evaluation JSON(s) of model B (same episodes)")
     parser.add_argument("--out", type=Path, required=True, help="output JSON")

@@ -24,6 +24,7 @@ import logging
 from pathlib import Path
 
 from envs.atomic_io import atomic_write_json
+from spf_rl.cli import ArgumentParser
 from spf_rl.device import DEFAULT_DEVICE, DEVICE_CHOICES
 from spf_rl.eval.picking import epoch_files, plot_study, summarize_study, validation_history
 
@@ -31,7 +32,7 @@ logger = logging.getLogger("picking_study")
 
 
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("run", help="a BC run directory trained with keep_epochs=true")
     parser.add_argument("--episodes", type=int, default=None, help="test episodes per epoch (default: the run's test count)")
     parser.add_argument("--out", default="results/picking", help="output directory (default results/picking)")

@@ -20,12 +20,13 @@ import logging
 from pathlib import Path
 
 from envs.transforms import DEFAULT_NOISE, NOISE_PRESETS
+from spf_rl.cli import ArgumentParser
 
 DEFAULT_OUT = Path("results/pointer_trace.json")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def build_parser() -> ArgumentParser:
+    parser = ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--checkpoint", required=True, help="a shipped name or a .pt path (RPF pointer rule)")
     parser.add_argument("--styles", default="planner,tour,driven", help="route styles (default planner,tour,driven)")
     parser.add_argument("--route-lengths", type=int, nargs=2, default=(10, 100), metavar=("SHORTEST", "LONGEST"),

@@ -23,6 +23,7 @@ import argparse
 import json
 import logging
 
+from spf_rl.cli import ArgumentParser
 from spf_rl.config import config_or_exit, load_config
 
 #: Shorthands of this recipe, expanded before the generic ones of ``spf_rl.config``.
@@ -45,7 +46,7 @@ def expand_shorthands(overrides: list[str]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="small preset that runs in a few minutes")
     parser.add_argument("overrides", nargs="*", help="key=value config overrides")
     args = parser.parse_args(argv)

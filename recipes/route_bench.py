@@ -22,10 +22,11 @@ import argparse
 import logging
 
 from envs.transforms import DEFAULT_NOISE
+from spf_rl.cli import ArgumentParser
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def build_parser() -> ArgumentParser:
+    parser = ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--models", help="comma-separated shipped names or .pt paths (default: all shipped but homing-*, ppo-*)")
     parser.add_argument("--styles", default="planner,tour,driven", help="route styles (default planner,tour,driven)")
     parser.add_argument("--buckets", help="length buckets lo-hi, steps (default 10-30,31-60,61-100)")
@@ -48,7 +49,8 @@ def main(argv: list[str] | None = None) -> dict:
     """Run the recipe; returns the JSON content it writes (with the markdown ``table``)."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    from spf_rl.eval.route_bench import STYLES, BenchOptions, parse_buckets, parse_list
+    from spf_rl.checkpoint import CheckpointError
+    from spf_rl.eval.route_bench import STYLES, BenchOptions, load_models, parse_buckets, parse_list, run_bench
 
     try:
         options = BenchOptions(
@@ -61,10 +63,12 @@ def main(argv: list[str] | None = None) -> dict:
         )
     except ValueError as err:
         parser.error(str(err))
+    try:
+        models = load_models(options)
+    except (ValueError, FileNotFoundError, CheckpointError) as err:
+        parser.error(f"argument --models: {err}")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
-    from spf_rl.eval.route_bench import run_bench
-
-    content = run_bench(options)
+    content = run_bench(options, models)
     print(content["table"])
     print(f"-> {options.out}" + (f", {content['figure']}" if content["figure"] else ""))
     return content

@@ -20,11 +20,12 @@ from envs.expert import FORWARD, FORWARD_STEP_M
 from envs.house_grid import default_grid_size_cells, house_seed
 from envs.route_styles import MAX_STYLE_LENGTH, MIN_STYLE_LENGTH, ROUTE_STYLES, sample_route
 from envs.scenes import build_house
+from spf_rl.cli import ArgumentParser
 from spf_rl.viz import plot_route_styles
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--house", type=int, default=0, help="house base seed (default 0)")
     parser.add_argument("--lengths", type=int, nargs="+", default=[20, 30, 45], help="one route of each length, steps (default 20 30 45)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the routes (default 0)")

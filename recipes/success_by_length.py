@@ -23,10 +23,11 @@ from pathlib import Path
 
 from envs.scenes import SPLIT_SEED_OFFSETS
 from envs.transforms import DEFAULT_NOISE, NOISE_PRESETS
+from spf_rl.cli import ArgumentParser
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def build_parser() -> ArgumentParser:
+    parser = ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("checkpoints", nargs="+", help="shipped checkpoint names or .pt paths")
     parser.add_argument("--lengths", type=int, nargs="+", default=[30, 50, 100], help="demonstration lengths, steps")
     parser.add_argument("--episodes", type=int, default=200, help="episodes per length and checkpoint (default 200)")

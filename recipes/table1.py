@@ -48,6 +48,7 @@ import logging
 from collections.abc import Callable
 from pathlib import Path
 
+from spf_rl.cli import ArgumentParser
 from spf_rl.eval.table1_rows import QUICK_DIR, QUICK_EPISODES, ROW_BY_NAME, SETS, Table1Options, parse_names, parse_seeds, reproduce
 
 
@@ -64,7 +65,7 @@ def arg_type(parse: Callable, *params) -> Callable[[str], object]:
 
 def parse_args(argv: list[str] | None) -> Table1Options:
     """The options, all checked before any work (a bad one exits with a message naming it)."""
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument(
         "--from-checkpoints", action="store_true",
         help="train nothing: score the checkpoints there are (finished runs are still copied and shipped)",

@@ -42,14 +42,15 @@ from envs.scenes import build_house
 from envs.transforms import DEFAULT_NOISE, NOISE_PRESETS
 from envs.user_demos import RouteError, check_position, parse_actions, parse_pose, parse_waypoints, pose_from_degrees
 from spf_rl.checkpoint import CheckpointError
+from spf_rl.cli import ArgumentParser
 from spf_rl.device import resolve_device
 from spf_rl.hub import load_policy
 from spf_rl.teach import repeat
 from spf_rl.teach.route import MAX_TAUGHT_STEPS, route_source, teach_route
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="teach.py", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def build_parser() -> ArgumentParser:
+    parser = ArgumentParser(prog="teach.py", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     route = parser.add_mutually_exclusive_group()
     route.add_argument("--actions", help="the route as letters F (forward), L (left), R (right), e.g. FFLFFR")
     route.add_argument("--waypoints", help='points "x,y;x,y;..." in metres, joined by the planner')
@@ -68,7 +69,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def setup(parser: argparse.ArgumentParser, args: argparse.Namespace):
+def setup(parser: ArgumentParser, args: argparse.Namespace):
     """Check every argument before any work (a bad one: one ``parser.error`` line naming it), load the policy
     and teach the route; returns ``(options, the demonstration, the policy, its config)``."""
     try:

@@ -19,12 +19,13 @@ import argparse
 
 from envs.scenes import SPLIT_SEED_OFFSETS
 from envs.transforms import DEFAULT_NOISE, NOISE_PRESETS
+from spf_rl.cli import ArgumentParser
 
 SPLITS = tuple(SPLIT_SEED_OFFSETS)
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("checkpoint", help="a checkpoint file, a shipped name (spf_rl.list_checkpoints()) or 'open_loop'")
     parser.add_argument("--episodes", type=int, default=3)
     parser.add_argument("--split", default="test", choices=SPLITS, help="house split (default: test)")

@@ -104,4 +104,4 @@ def config_or_exit(parser: argparse.ArgumentParser, load: Any, *args: Any, **kwa
     try:
         return load(*args, **kwargs)
     except ValueError as err:
-        parser.exit(2, f"{parser.prog}: error: {err}\n")
+        parser.error(str(err))

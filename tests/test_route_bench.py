@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 import route_bench as recipe
@@ -55,11 +56,26 @@ def test_defaults_leave_out_homing_and_ppo_and_quick_is_small():
 
 @pytest.mark.parametrize("argv", [["--episodes", "0"], ["--models", "nope"], ["--buckets", "10-5"], ["--styles", "walk"]])
 def test_the_recipe_refuses_bad_arguments_before_any_work(argv, capsys, monkeypatch):
-    monkeypatch.setattr(route_bench, "run_bench", lambda options: pytest.fail("ran"))
+    monkeypatch.setattr(route_bench, "run_bench", lambda *args: pytest.fail("ran"))
     with pytest.raises(SystemExit) as info:
         recipe.main(argv)
     assert info.value.code == 2
-    assert "error: argument --" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert re.fullmatch(r"\S+: error: argument --[^\n]*\n", err), err  # the message alone, one line
+
+
+def test_the_recipe_refuses_a_model_of_another_frame_size_before_any_work(tmp_path, capsys, monkeypatch):
+    config = SPFConfig(demo_length=10, feature_dim=8, hidden_size=8, image_size=(16, 16))
+    checkpoint = tmp_path / "tiny" / "best.pt"
+    checkpoint.parent.mkdir()
+    save_checkpoint(checkpoint, "spf", config, {"model": build_policy("spf", config).state_dict()})
+    monkeypatch.setattr(route_bench, "run_bench", lambda *args: pytest.fail("ran"))
+    with pytest.raises(SystemExit) as info:
+        recipe.main(["--models", str(checkpoint), "--out", str(tmp_path / "bench.json")])
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert re.fullmatch(r"\S+: error: argument --models: [^\n]*sees \(16, 16\) frames[^\n]*\n", err), err
+    assert not (tmp_path / "bench.json").exists()
 
 
 def test_a_tiny_run_pairs_models_by_episode_and_resumes(tmp_path, monkeypatch):

@@ -299,13 +299,13 @@ class BenchOptions:
         put("sets", parse_list(",".join(self.sets if self.sets is not None else (QUICK_SETS if quick else SETS)), tuple(SETS), "--sets"))
         put("episodes", self.episodes if self.episodes is not None else (QUICK_EPISODES if quick else 128))
         put("out", Path(self.out) if self.out is not None else (QUICK_OUT if quick else DEFAULT_OUT))
-        for name, option in (("episodes", "--episodes"), ("num_resamples", "--num-resamples"), ("image_size", "--image-size"),
-                             ("num_agents", "--num-agents"), ("num_collectors", "--num-collectors")):
+        for name, option in (("episodes", "--episodes"), ("num_resamples", "--num-resamples"), ("image_size", "image_size"),
+                             ("num_agents", "num_agents"), ("num_collectors", "--num-collectors")):
             positive(name, option)
         if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
             raise ValueError(f"argument --seed: must be an int >= 0, got {self.seed!r}")
         if self.test_houses is not None:
-            positive("test_houses", "--test-houses")
+            positive("test_houses", "test_houses")
         from envs.transforms import NOISE_PRESETS
 
         if self.noise not in NOISE_PRESETS:
@@ -700,9 +700,10 @@ def episodes_of(records: list[dict]) -> dict:
     return {key: [r[key] for r in records] for key in EPISODE_KEYS}
 
 
-def run_bench(options: BenchOptions) -> dict:
+def run_bench(options: BenchOptions, models: list[BenchModel] | None = None) -> dict:
     """Evaluate every model and open-loop replay on every cell of ``options`` (skipping what ``options.out``
     already holds for the same episodes and checkpoints), then write the JSON, ``.md`` table and ``.png`` figure.
+    ``models``: :func:`load_models` of ``options``, if the caller has loaded them already (to check them first).
 
     The JSON is written after every evaluation (a cell's statistics once all its models have played), so an
     interrupted run keeps its results and a rerun resumes; what an earlier file holds for other episodes,
@@ -716,7 +717,7 @@ def run_bench(options: BenchOptions) -> dict:
     Raises:
         ValueError: two models of a cell played different episodes.
     """
-    models = load_models(options)
+    models = load_models(options) if models is None else models
     out = Path(options.out)
     previous = load_previous(out)
     content = {"recipe": RECIPE, "setup": setup_of(options, models), "statistics": STATISTICS, "cells": {}}
