@@ -21,6 +21,7 @@ from pathlib import Path
 
 from envs.transforms import DEFAULT_NOISE, NOISE_PRESETS
 from spf_rl.cli import ArgumentParser
+from spf_rl.train.evaluation import TEST_SEED
 
 DEFAULT_OUT = Path("results/pointer_trace.json")
 
@@ -35,7 +36,7 @@ def build_parser() -> ArgumentParser:
     parser.add_argument("--split", default="test", help="house split (default test)")
     parser.add_argument("--noise", default=DEFAULT_NOISE, help=f"actuation noise preset (default {DEFAULT_NOISE})")
     parser.add_argument("--sparsity", type=float, help="sparsity of a random-sparsity model (default: its config's)")
-    parser.add_argument("--seed", type=int, default=2, help="seed of the routes and noise (default 2, the test seed)")
+    parser.add_argument("--seed", type=int, default=TEST_SEED, help="seed of the routes and noise (default %(default)s, the test seed)")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"the JSON (default {DEFAULT_OUT})")
     return parser
 

@@ -19,25 +19,43 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 
 from envs.transforms import DEFAULT_NOISE
+from spf_rl.checkpoint import CheckpointError
 from spf_rl.cli import ArgumentParser
+from spf_rl.eval.route_bench import (
+    DEFAULT_EPISODES,
+    QUICK_EPISODES,
+    STYLES,
+    BenchOptions,
+    load_models,
+    parse_buckets,
+    parse_list,
+    run_bench,
+)
+from spf_rl.train.evaluation import TEST_SEED
+
+#: The options' own defaults, shown in --help.
+DEFAULTS = {option.name: option.default for option in dataclasses.fields(BenchOptions)}
 
 
 def build_parser() -> ArgumentParser:
     parser = ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--models", help="comma-separated shipped names or .pt paths (default: all shipped but homing-*, ppo-*)")
-    parser.add_argument("--styles", default="planner,tour,driven", help="route styles (default planner,tour,driven)")
+    parser.add_argument("--styles", help=f"route styles (default {','.join(STYLES)})")
     parser.add_argument("--buckets", help="length buckets lo-hi, steps (default 10-30,31-60,61-100)")
     parser.add_argument("--sets", help="episode sets: test, extended (100 houses) (default both)")
-    parser.add_argument("--episodes", type=int, help="episodes per cell (default 128)")
-    parser.add_argument("--seed", type=int, default=2, help="seed of the episodes (default 2, the test seed)")
+    parser.add_argument("--episodes", type=int, help=f"episodes per cell (default {DEFAULT_EPISODES}; --quick {QUICK_EPISODES})")
+    parser.add_argument("--seed", type=int, default=TEST_SEED, help=f"seed of the episodes (default {TEST_SEED}, the test seed)")
     parser.add_argument("--noise", default=DEFAULT_NOISE, help=f"actuation noise preset (default {DEFAULT_NOISE})")
     parser.add_argument("--random-sparsity", type=float, help="sparsity of random-sparsity models (default: their config's)")
-    parser.add_argument("--num-resamples", type=int, default=10_000, help="bootstrap resamples (default 10000)")
-    parser.add_argument("--device", default="cpu", help="where the policies run: cpu, auto, cuda, cuda:N (default cpu)")
-    parser.add_argument("--num-collectors", type=int, default=1, help="processes playing a cell's episodes (default 1)")
+    parser.add_argument("--num-resamples", type=int, default=DEFAULTS["num_resamples"],
+                        help="bootstrap resamples (default %(default)s)")
+    parser.add_argument("--device", default=DEFAULTS["device"], help="where the policies run: cpu, auto, cuda, cuda:N (default %(default)s)")
+    parser.add_argument("--num-collectors", type=int, default=DEFAULTS["num_collectors"],
+                        help="processes playing a cell's episodes (default %(default)s)")
     parser.add_argument("--out", help="the JSON (default results/route_bench.json; --quick: results/route_bench_quick.json)")
     parser.add_argument("--quick", action="store_true",
                         help="smoke run: spf-s0.8, rpf_original-s1 and open-loop, 8 episodes, test set, buckets 10-30, 31-60")
@@ -49,13 +67,11 @@ def main(argv: list[str] | None = None) -> dict:
     """Run the recipe; returns the JSON content it writes (with the markdown ``table``)."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    from spf_rl.checkpoint import CheckpointError
-    from spf_rl.eval.route_bench import STYLES, BenchOptions, load_models, parse_buckets, parse_list, run_bench
 
     try:
         options = BenchOptions(
             models=None if args.models is None else parse_list(args.models, None, "--models"),
-            styles=parse_list(args.styles, STYLES, "--styles"),
+            styles=STYLES if args.styles is None else parse_list(args.styles, STYLES, "--styles"),
             buckets=None if args.buckets is None else parse_buckets(args.buckets),
             sets=None if args.sets is None else parse_list(args.sets, None, "--sets"),
             episodes=args.episodes, seed=args.seed, noise=args.noise, random_sparsity=args.random_sparsity,

@@ -24,6 +24,7 @@ from pathlib import Path
 from envs.scenes import SPLIT_SEED_OFFSETS
 from envs.transforms import DEFAULT_NOISE, NOISE_PRESETS
 from spf_rl.cli import ArgumentParser
+from spf_rl.train.evaluation import TEST_SEED
 
 
 def build_parser() -> ArgumentParser:
@@ -34,7 +35,7 @@ def build_parser() -> ArgumentParser:
     parser.add_argument("--split", default="test", help=f"house split: {', '.join(SPLIT_SEED_OFFSETS)} (default test)")
     parser.add_argument("--num-houses", type=int, default=None, help="houses of the split (default: all of it)")
     parser.add_argument("--noise", default=DEFAULT_NOISE, help=f"actuation noise: {', '.join(sorted(NOISE_PRESETS))}")
-    parser.add_argument("--seed", type=int, default=2, help="seed of the episodes (default 2)")
+    parser.add_argument("--seed", type=int, default=TEST_SEED, help="seed of the episodes (default %(default)s, the test seed)")
     parser.add_argument("--num-agents", type=int, default=25, help="agents stepped together (default 25)")
     parser.add_argument("--device", default="cpu", help="where the policies run: cpu, auto, cuda, cuda:N")
     parser.add_argument("--no-render", action="store_true", help="black frames (a pipeline check, not a result)")

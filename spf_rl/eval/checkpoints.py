@@ -24,6 +24,7 @@ import torch
 from envs.atomic_io import atomic_write_json
 from envs.transforms import DEFAULT_NOISE
 from spf_rl.hub import CHECKPOINT_DIR, list_checkpoints
+from spf_rl.train.evaluation import TEST_SEED
 
 logger = logging.getLogger(__name__)
 
@@ -63,7 +64,7 @@ class EvalOptions:
     split: str = "test"
     episodes: int = 500
     noise: str = DEFAULT_NOISE
-    seed: int = 2
+    seed: int = TEST_SEED
     num_agents: int = 25
     max_steps: int | None = None
     demo_length: int | None = None

@@ -39,7 +39,10 @@ from pathlib import Path
 import numpy as np
 
 from envs.atomic_io import atomic_write_json
-from spf_rl.stats import hierarchical_bootstrap_ci, paired_bootstrap
+from envs.route_styles import ROUTE_STYLES
+from envs.transforms import DEFAULT_NOISE
+from spf_rl.stats import DEFAULT_CONFIDENCE, DEFAULT_NUM_RESAMPLES, hierarchical_bootstrap_ci, paired_bootstrap
+from spf_rl.train.evaluation import TEST_SEED
 
 logger = logging.getLogger(__name__)
 
@@ -49,7 +52,7 @@ OPEN_LOOP = "open_loop"
 #: Episode sets: name -> houses of the test split (``None``: the split's own).
 EXTENDED_HOUSES = 100
 SETS: dict[str, int | None] = {"test": None, "extended": EXTENDED_HOUSES}
-STYLES = ("planner", "tour", "driven")
+STYLES = tuple(ROUTE_STYLES)
 #: Length buckets, steps (inclusive).
 DEFAULT_BUCKETS = ((10, 30), (31, 60), (61, 100))
 #: Shipped names left out by default (see :func:`default_models`).
@@ -57,6 +60,8 @@ EXCLUDED_PREFIXES = ("homing-", "ppo-")
 #: ``--quick``: a smoke run.
 QUICK_MODELS = ("spf-s0.8", "rpf_original-s1")
 QUICK_EPISODES = 8
+#: Episodes per cell of the full run.
+DEFAULT_EPISODES = 128
 QUICK_BUCKETS = ((10, 30), (31, 60))
 QUICK_SETS = ("test",)
 DEFAULT_OUT = Path("results/route_bench.json")
@@ -70,7 +75,6 @@ RECORD_KEYS = ("success", "success_lab", "spl", "ndtw", "sdtw", "path_length_rat
 EPISODE_KEYS = ("episode_index", "episode_seed", "house_seed", "demo_steps")
 #: A label of one training seed of a recipe (see :func:`seed_groups`).
 SEED_SUFFIX = re.compile(r"(?P<base>.+)-seed(?P<seed>\d+)")
-CONFIDENCE = 0.95
 #: Paired differences with a two-sided p-value below this are marked in the table.
 ALPHA = 0.05
 STATISTICS = (
@@ -234,8 +238,8 @@ class BenchOptions:
         styles: route styles (:data:`STYLES`).
         buckets: length buckets ``(lo, hi)``, steps (default :data:`DEFAULT_BUCKETS`; quick :data:`QUICK_BUCKETS`).
         sets: episode sets (:data:`SETS`; quick: the test set).
-        episodes: episodes per cell (default 128; quick :data:`QUICK_EPISODES`).
-        seed: seed of the episodes (2: the test seed of the other evaluations).
+        episodes: episodes per cell (default :data:`DEFAULT_EPISODES`; quick :data:`QUICK_EPISODES`).
+        seed: seed of the episodes (:data:`~spf_rl.train.evaluation.TEST_SEED`, that of the other evaluations).
         noise: actuation-noise preset.
         out: the JSON (the figure and the markdown table go next to it, ``.png`` and ``.md``);
             default :data:`DEFAULT_OUT` (quick :data:`QUICK_OUT`).
@@ -268,13 +272,13 @@ class BenchOptions:
     buckets: tuple[tuple[int, int], ...] | None = None
     sets: tuple[str, ...] | None = None
     episodes: int | None = None
-    seed: int = 2
-    noise: str = "paper"
+    seed: int = TEST_SEED
+    noise: str = DEFAULT_NOISE
     out: Path | None = None
     quick: bool = False
     device: str = "cpu"
     random_sparsity: float | None = None
-    num_resamples: int = 10_000
+    num_resamples: int = DEFAULT_NUM_RESAMPLES
     test_houses: int | None = None
     image_size: int = 64
     num_agents: int = 25
@@ -297,7 +301,7 @@ class BenchOptions:
         put("styles", parse_list(",".join(self.styles), STYLES, "--styles"))
         put("buckets", check_buckets(self.buckets if self.buckets is not None else (QUICK_BUCKETS if quick else DEFAULT_BUCKETS)))
         put("sets", parse_list(",".join(self.sets if self.sets is not None else (QUICK_SETS if quick else SETS)), tuple(SETS), "--sets"))
-        put("episodes", self.episodes if self.episodes is not None else (QUICK_EPISODES if quick else 128))
+        put("episodes", self.episodes if self.episodes is not None else (QUICK_EPISODES if quick else DEFAULT_EPISODES))
         put("out", Path(self.out) if self.out is not None else (QUICK_OUT if quick else DEFAULT_OUT))
         for name, option in (("episodes", "--episodes"), ("num_resamples", "--num-resamples"), ("image_size", "image_size"),
                              ("num_agents", "num_agents"), ("num_collectors", "--num-collectors")):
@@ -433,7 +437,7 @@ def paired_against(a: dict, b: dict, houses: Sequence, num_resamples: int, metri
     out = {}
     for metric in metrics:
         result = paired_bootstrap(np.asarray(a[metric], dtype=float), np.asarray(b[metric], dtype=float), np.asarray(houses),
-                                  CONFIDENCE, num_resamples)
+                                  DEFAULT_CONFIDENCE, num_resamples)
         out[metric] = {"difference": result.difference, "ci": list(result.ci), "p_greater": result.p_greater,
                        "p_two_sided": result.p_two_sided}
     return out
@@ -495,7 +499,7 @@ def _scores(cell: dict, members: Sequence[str], num_resamples: int, paired: bool
     row = {"episodes": int(houses.size), "houses": int(np.unique(houses).size)}
     for metric, values in columns.items():
         row[metric] = {"mean": float(values.mean()),
-                       "ci": list(hierarchical_bootstrap_ci(values.mean(axis=0), houses, CONFIDENCE, num_resamples))}
+                       "ci": list(hierarchical_bootstrap_ci(values.mean(axis=0), houses, DEFAULT_CONFIDENCE, num_resamples))}
     if paired:
         row["vs_open_loop"] = paired_against(columns, cell["models"][OPEN_LOOP]["records"], houses, num_resamples)
     return row

@@ -41,6 +41,8 @@ from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
 from spf_rl.train.distributed import ShardedSampler, barrier, init_distributed
 from spf_rl.train.evaluation import (
     TEST_EPISODES_FILE,
+    TEST_SEED,
+    VAL_SEED,
     EvalConfig,
     episode_store_root,
     evaluate_policy,
@@ -55,12 +57,12 @@ logger = logging.getLogger(__name__)
 def default_val_config() -> EvalConfig:
     """Validation that picks the checkpoint: 300 episodes of the ``val`` split, seed 1
     (fewer pick noisily: the standard error of a success rate on 100 episodes is about 0.05)."""
-    return EvalConfig(split="val", num_episodes=300, seed=1, store_root=episode_store_root())
+    return EvalConfig(split="val", num_episodes=300, seed=VAL_SEED, store_root=episode_store_root())
 
 
 def default_test_config() -> EvalConfig:
     """The final test of the best checkpoint: 500 episodes of the ``test`` split, seed 2."""
-    return EvalConfig(split="test", num_episodes=500, seed=2, store_root=episode_store_root())
+    return EvalConfig(split="test", num_episodes=500, seed=TEST_SEED, store_root=episode_store_root())
 
 
 @dataclass

@@ -55,6 +55,11 @@ from envs.version import ENV_VERSION
 from spf_rl.device import act_on_device, module_device
 from spf_rl.metrics import summarize
 
+#: Seed of the test episodes every evaluation of a trained policy plays (Table 1, the route bench, recipes/evaluate.py).
+TEST_SEED = 2
+#: Seed of the validation episodes on which BC picks its epoch (DAgger picks its rounds on others).
+VAL_SEED = 1
+
 
 @dataclass
 class EvalConfig:

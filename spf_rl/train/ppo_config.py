@@ -14,7 +14,7 @@ from spf_rl.device import DEFAULT_DEVICE, check_device
 from spf_rl.hub import DEFAULT_START_CHECKPOINT
 from spf_rl.modules import SPFConfig
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig
-from spf_rl.train.evaluation import EvalConfig, episode_store_root
+from spf_rl.train.evaluation import TEST_SEED, VAL_SEED, EvalConfig, episode_store_root
 
 logger = logging.getLogger(__name__)
 
@@ -134,10 +134,10 @@ class PPOConfig:
         default_factory=lambda: CollectionEnvConfig(split="train", noise="paper", with_expert=False)
     )
     val: EvalConfig = field(
-        default_factory=lambda: EvalConfig(split="val", num_episodes=100, seed=1, noise="paper", store_root=episode_store_root())
+        default_factory=lambda: EvalConfig(split="val", num_episodes=100, seed=VAL_SEED, noise="paper", store_root=episode_store_root())
     )
     test: EvalConfig = field(
-        default_factory=lambda: EvalConfig(split="test", num_episodes=500, seed=2, noise="paper", store_root=episode_store_root())
+        default_factory=lambda: EvalConfig(split="test", num_episodes=500, seed=TEST_SEED, noise="paper", store_root=episode_store_root())
     )
 
     def __post_init__(self) -> None:
