@@ -43,6 +43,26 @@ def atomic_write(path: str | os.PathLike, write: Callable[[IO], Any], binary: bo
         tmp.unlink(missing_ok=True)
 
 
+def atomic_write_path(path: str | os.PathLike, write: Callable[[Path], Any]) -> None:
+    """Call ``write(temporary_path)`` for writers that take a file name (a video encoder), then move
+    the file over ``path``; the temporary name keeps ``path``'s suffix. It is removed if ``write`` raises.
+
+    Examples:
+        >>> import tempfile
+        >>> path = Path(tempfile.mkdtemp()) / "frames.bin"
+        >>> atomic_write_path(path, lambda tmp: tmp.write_bytes(b"abc"))
+        >>> path.read_bytes(), sorted(p.name for p in path.parent.iterdir())
+        (b'abc', ['frames.bin'])
+    """
+    path = Path(path)
+    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     """Write ``text`` to ``path`` atomically."""
     atomic_write(path, lambda handle: handle.write(text))

@@ -88,6 +88,16 @@ def nominal_motion(action: int | np.ndarray) -> np.ndarray:
     return motion
 
 
+
+def wrap_angle(radians: float | np.ndarray) -> float | np.ndarray:
+    """Headings wrapped into ``[-pi, pi)``, radians (every pose's heading).
+
+    Examples:
+        >>> round(float(wrap_angle(3 * np.pi / 2)), 4), round(float(wrap_angle(np.pi)), 4)
+        (-1.5708, -3.1416)
+    """
+    return np.mod(radians + np.pi, 2 * np.pi) - np.pi
+
 def apply_motion(house: House, poses: np.ndarray, motion: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Apply agent-frame motions ``(N, 3)`` = (forward m, lateral m, rotation rad) to ``(N, 3)`` poses.
 
@@ -101,7 +111,7 @@ def apply_motion(house: House, poses: np.ndarray, motion: np.ndarray) -> tuple[n
     c, s = np.cos(heading), np.sin(heading)
     displacement = np.stack([c * motion[:, 0] - s * motion[:, 1], s * motion[:, 0] + c * motion[:, 1]], axis=1)
     xy, travelled = house.occupancy.move_many(poses[:, :2], displacement)
-    new_heading = np.mod(heading + motion[:, 2] + np.pi, 2 * np.pi) - np.pi
+    new_heading = wrap_angle(heading + motion[:, 2])
     return np.concatenate([xy, new_heading[:, None]], axis=1), travelled
 
 
@@ -124,7 +134,7 @@ def move_agents(houses: Sequence[House], poses: np.ndarray, motion: np.ndarray) 
     c, s = np.cos(heading), np.sin(heading)
     dx = c * motion[:, 0] - s * motion[:, 1]
     dy = s * motion[:, 0] + c * motion[:, 1]
-    new_heading = np.mod(heading + motion[:, 2] + np.pi, 2 * np.pi) - np.pi
+    new_heading = wrap_angle(heading + motion[:, 2])
     travelled = np.empty(len(poses))
     for index, house in enumerate(houses):
         poses[index, :2], travelled[index] = house.occupancy.move(poses[index, :2], (dx[index], dy[index]))

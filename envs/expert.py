@@ -25,6 +25,10 @@ ACTION_NAMES = ("forward", "turn_left", "turn_right", "stop")
 #: Nominal forward step, metres, and turn, degrees (the paper's action space).
 FORWARD_STEP_M = 0.3
 TURN_ANGLE_DEG = 20.0
+#: A forward step may lose this much of its length to the collision model (a glancing
+#: contact that slides along a wall), metres; a step shortened more runs into a wall.
+#: Half a step: the planner's own routes slide along walls by up to 0.13 m.
+WALL_CONTACT_TOLERANCE_M = FORWARD_STEP_M / 2
 #: Number of candidate headings examined (360 / 20 degrees).
 NUM_HEADINGS = 18
 #: Headings whose straight move is checked against collisions, best predicted first.

@@ -71,6 +71,19 @@ EXCURSION_REACH_M = 1.0
 ARRIVAL_RULE = "after-excursions"
 
 
+
+def success_radius(
+    initial_distance_m: float | np.ndarray, radius_m: float = SUCCESS_RADIUS_M, fraction: float = SUCCESS_FRACTION
+) -> float | np.ndarray:
+    """Success radius, metres, of an episode starting ``initial_distance_m`` (geodesic) from the route's
+    end: ``max(radius_m, fraction x initial_distance_m)`` (the follow protocol's, by default).
+
+    Examples:
+        >>> float(success_radius(2.0)), float(success_radius(10.0))
+        (0.6, 1.0)
+    """
+    return np.maximum(radius_m, fraction * initial_distance_m)
+
 def route_excursions(distances_m: np.ndarray, radius_m: float) -> np.ndarray:
     """Indices of the apexes of a route's excursions, in route order.
 
@@ -216,8 +229,9 @@ class FollowRules:
     step_penalty: float
 
     def radius(self, initial_distance_m: float | np.ndarray) -> float | np.ndarray:
-        """Success radius, metres, of episodes starting ``initial_distance_m`` (geodesic) from the end."""
-        return np.maximum(self.success_radius_m, self.success_fraction * initial_distance_m)
+        """Success radius, metres, of episodes starting ``initial_distance_m`` (geodesic) from the end
+        (:func:`success_radius` with these rules' radius and fraction)."""
+        return success_radius(initial_distance_m, self.success_radius_m, self.success_fraction)
 
     def score(
         self,

@@ -53,7 +53,7 @@ from envs.checks import check_action, check_actuation_noise, check_positive_int,
 from envs.demo_store import DemoStore
 from envs.demos import DEFAULT_DEMO_LENGTH, Demonstration, default_min_route_length_m, move_agents, nominal_motion
 from envs.episode_numbering import EpisodeNumbering
-from envs.expert import GeodesicExpert
+from envs.expert import WALL_CONTACT_TOLERANCE_M, GeodesicExpert
 from envs.follow import (
     EXCURSION_REACH_M,
     PROGRESS_REWARD_PER_M,
@@ -76,7 +76,6 @@ from envs.route_styles import RouteMixture, route_mixture_for
 from envs.scenes import House
 from envs.specs import NUM_DEMO_ACTIONS, NUM_RGB_CHANNELS, path_follow_specs
 from envs.transforms import ACTUATION_NOISE_KEY
-from envs.user_demos import WALL_CONTACT_TOLERANCE_M
 
 logger = logging.getLogger(__name__)
 

@@ -49,7 +49,7 @@ import numbers
 
 import numpy as np
 
-from envs.user_demos import WALL_CONTACT_TOLERANCE_M
+from envs.expert import WALL_CONTACT_TOLERANCE_M
 
 logger = logging.getLogger(__name__)
 
@@ -299,7 +299,7 @@ def wall_hits(requested_m: np.ndarray, moved_m: np.ndarray, tolerance_m: float =
 
     The project's notion of a step that runs into a wall
     (:class:`~envs.user_demos.RouteRecorder`): it moves less than requested minus
-    :data:`~envs.user_demos.WALL_CONTACT_TOLERANCE_M`; a glancing contact that slides
+    :data:`~envs.expert.WALL_CONTACT_TOLERANCE_M`; a glancing contact that slides
     along a wall loses less and does not count. Turns request no displacement and
     never count.
 

@@ -31,7 +31,7 @@ from __future__ import annotations
 import numpy as np
 
 from envs.demos import Demonstration
-from envs.expert import FORWARD, FORWARD_STEP_M, TURN_ANGLE_DEG, TURN_LEFT, TURN_RIGHT, GeodesicExpert
+from envs.expert import FORWARD, FORWARD_STEP_M, TURN_LEFT, TURN_RIGHT, GeodesicExpert
 from envs.path_fidelity import drop_repeats
 from envs.scenes import House
 
@@ -66,8 +66,6 @@ class RouteExpert:
         demonstration: the route; its ``end_field`` steers the last stretch.
         stop_radius_m: if given, :data:`~envs.expert.STOP` is returned within this
             distance (geodesic) of the route's end once the last waypoint is the target.
-        forward_step_m: nominal forward step, metres.
-        turn_angle_rad: nominal turn, radians.
 
     Examples:
         >>> from envs.route_styles import driven_route
@@ -87,8 +85,6 @@ class RouteExpert:
         house: House,
         demonstration: Demonstration,
         stop_radius_m: float | None = None,
-        forward_step_m: float = FORWARD_STEP_M,
-        turn_angle_rad: float = np.deg2rad(TURN_ANGLE_DEG),
     ) -> None:
         self.house = house
         poses = np.asarray(demonstration.poses, dtype=np.float64)
@@ -101,9 +97,8 @@ class RouteExpert:
         self.progress = 0
         self.matched = 0
         self._last_turn: tuple[int, np.ndarray] | None = None
-        self._step = (float(forward_step_m), float(turn_angle_rad))
         self._experts: dict[int, GeodesicExpert] = {
-            self.last_waypoint: GeodesicExpert(house.occupancy, demonstration.end_field, *self._step, stop_radius_m=stop_radius_m)
+            self.last_waypoint: GeodesicExpert(house.occupancy, demonstration.end_field, stop_radius_m=stop_radius_m)
         }
 
     @property
@@ -184,14 +179,14 @@ class RouteExpert:
         expert = self._experts.get(target)
         if expert is None:
             field = self.house.graph.distance_field(self.waypoints[target])
-            expert = self._experts[target] = GeodesicExpert(self.house.occupancy, field, *self._step)
+            expert = self._experts[target] = GeodesicExpert(self.house.occupancy, field)
         action = expert.action(pose)
         if action in (TURN_LEFT, TURN_RIGHT):
             last = self._last_turn
             if last is not None and action != last[0] and np.hypot(*(pose[:2] - last[1])) < OSCILLATION_RADIUS_M:
                 # a near target between two headings makes the greedy rule turn back and forth:
                 # go forward if that gets closer, else keep turning the way it turned
-                ahead, _ = self.house.occupancy.move(pose[:2], self._step[0] * np.array([np.cos(pose[2]), np.sin(pose[2])]))
+                ahead, _ = self.house.occupancy.move(pose[:2], FORWARD_STEP_M * np.array([np.cos(pose[2]), np.sin(pose[2])]))
                 action = FORWARD if expert.field.at(ahead) < expert.field.at(pose[:2]) else last[0]
             if action != FORWARD:
                 self._last_turn = (action, pose[:2].copy())

@@ -62,14 +62,13 @@ from envs.demos import (
     default_min_route_length_m,
     sample_demonstration,
 )
-from envs.expert import FORWARD, FORWARD_STEP_M, NUM_HEADINGS, TURN_LEFT, TURN_RIGHT, GeodesicExpert
+from envs.expert import FORWARD, FORWARD_STEP_M, NUM_HEADINGS, TURN_LEFT, TURN_RIGHT, WALL_CONTACT_TOLERANCE_M, GeodesicExpert
 from envs.geodesic import DistanceField
 from envs.homing import REVERSED_ACTION
 from envs.house_grid import MAX_DEMO_LENGTH
 from envs.scenes import House
 from envs.user_demos import (
     MIN_USER_ROUTE_M,
-    WALL_CONTACT_TOLERANCE_M,
     RouteError,
     RouteRecorder,
     demonstration_from_actions,
@@ -101,8 +100,6 @@ MAX_TOUR_WAYPOINTS = 12
 
 #: Turn actions of a turn-around (180 degrees).
 TURN_AROUND_STEPS = NUM_HEADINGS // 2
-#: The other turn key of each turn key.
-OTHER_SIDE = {TURN_LEFT: TURN_RIGHT, TURN_RIGHT: TURN_LEFT}
 
 
 @dataclass(frozen=True)
@@ -138,7 +135,7 @@ class DrivenStyle:
         home_steps_per_m: steps the person budgets per metre (geodesic) of the way home.
         glance_m: the person takes a forward step only if it keeps all but this much of its
             length (metres): they steer clear of walls rather than scrape along them, which a
-            taught route allows up to :data:`~envs.user_demos.WALL_CONTACT_TOLERANCE_M`.
+            taught route allows up to :data:`~envs.expert.WALL_CONTACT_TOLERANCE_M`.
 
     Examples:
         >>> DrivenStyle().turn_steps
@@ -450,7 +447,7 @@ class _Driver:
             if rng.random() < style.backtrack_prob:
                 self.backtrack(driven)
         else:
-            side = self.side if rng.random() < style.same_side_prob else OTHER_SIDE[self.side]
+            side = self.side if rng.random() < style.same_side_prob else int(REVERSED_ACTION[self.side])
             low, high = style.turn_steps
             self.turn(side, int(rng.integers(low, high + 1)))
 

@@ -25,18 +25,19 @@ Typed input (a command line's text) is read by :func:`parse_pose` (``"x,y,headin
 A route that is refused raises :class:`RouteError` (a ``ValueError``) naming the
 step or waypoint and why: a start or waypoint outside the house or inside a wall
 or furniture, a forward step that runs into a wall (the collision model shortens
-it by more than :data:`WALL_CONTACT_TOLERANCE_M`), waypoints the planner cannot
+it by more than :data:`~envs.expert.WALL_CONTACT_TOLERANCE_M`), waypoints the planner cannot
 join, or a route whose end lies within the success radius of its start (geodesic;
 an agent would succeed without moving).
 
-Lengths: policies follow demonstrations of one length n (the shipped ones: 30).
+Lengths: Table 1's policies follow demonstrations of exactly their ``demo_length`` n (30);
+``routes-spf`` (trained on 10 to 100 steps) follows each at its own length.
 With ``length=n``, an action route must have exactly n actions (a clear error names
 n otherwise); a waypoint route is planned and then cropped to its first n steps,
 as :func:`~envs.demos.sample_demonstration` crops planned routes (an error if the
 plan is shorter than n). Without ``length`` a route keeps its own length.
 
 The env plays given demonstrations with ``PathFollowEnv(..., demonstrations=[...])``
-(see :class:`~envs.playlist.DemonstrationPlaylist`, importable from here too) or
+(see :class:`~envs.playlist.DemonstrationPlaylist`) or
 ``env.reset(demonstration=demo)``; with ``task="homing"`` it plays their homing
 demonstrations (:mod:`envs.homing`).
 
@@ -64,8 +65,9 @@ from envs.demos import (
     demonstration_from_route,
     drive_expert,
     nominal_motion,
+    wrap_angle,
 )
-from envs.expert import FORWARD, FORWARD_STEP_M, NUM_HEADINGS, TURN_LEFT, TURN_RIGHT
+from envs.expert import FORWARD, FORWARD_STEP_M, NUM_HEADINGS, TURN_LEFT, TURN_RIGHT, WALL_CONTACT_TOLERANCE_M
 from envs.scenes import House, build_house
 from envs.specs import NUM_DEMO_ACTIONS
 
@@ -75,10 +77,6 @@ logger = logging.getLogger(__name__)
 ACTION_LETTERS: dict[str, int] = {"F": FORWARD, "L": TURN_LEFT, "R": TURN_RIGHT}
 #: The letter and the name of each demonstration action, for messages.
 ACTION_LABELS = {FORWARD: "F, forward", TURN_LEFT: "L, turn left", TURN_RIGHT: "R, turn right"}
-#: A forward step may lose this much of its length to the collision model (a glancing
-#: contact that slides along a wall), metres; a step shortened more runs into a wall.
-#: Half a step: the planner's own routes slide along walls by up to 0.13 m.
-WALL_CONTACT_TOLERANCE_M = FORWARD_STEP_M / 2
 #: A waypoint counts as reached when the planned route comes this close to it
 #: (geodesic, metres): one forward step, the planner's resolution.
 WAYPOINT_RADIUS_M = FORWARD_STEP_M
@@ -93,8 +91,37 @@ POSE_FIELDS = 3
 
 
 class RouteError(ValueError):
-    """A route that cannot be a demonstration; the message names the step or waypoint and why."""
+    """A route that cannot be a demonstration; the message names the step or waypoint and why.
 
+    Examples:
+        >>> try:
+        ...     demonstration_from_actions(0, (7.5, 1.5, 0.0), "FFX")
+        ... except RouteError as err:
+        ...     print(type(err).__name__, isinstance(err, ValueError))
+        RouteError True
+    """
+
+
+
+def check_exact_length(steps: int, length: int | None) -> None:
+    """Refuse a route of ``steps`` steps where ``length`` (the policy's ``demo_length``) are required.
+
+    Raises:
+        RouteError: naming both, unless ``length`` is ``None`` or equal to ``steps``.
+
+    Examples:
+        >>> check_exact_length(24, None), check_exact_length(30, 30)
+        (None, None)
+        >>> check_exact_length(24, 30)
+        Traceback (most recent call last):
+        ...
+        envs.user_demos.RouteError: the route has 24 steps; demonstrations must have exactly 30 steps here (length=30): give 30 actions.
+    """
+    if length is not None and steps != length:
+        raise RouteError(
+            f"the route has {steps} steps; demonstrations must have exactly {length} steps here "
+            f"(length={length}): give {length} actions."
+        )
 
 def house_of(house: House | int) -> House:
     """``house`` itself, or the house of a seed (:func:`~envs.scenes.build_house`)."""
@@ -111,8 +138,7 @@ def pose_from_degrees(start: Sequence[float]) -> np.ndarray:
     values = np.asarray(start, dtype=np.float64).reshape(-1)
     if values.shape != (POSE_FIELDS,) or not np.isfinite(values).all():
         raise RouteError(f"start must be three finite numbers (x m, y m, heading deg), got {list(start)!r}.")
-    # the wrap of apply_motion: [-pi, pi)
-    return np.array([values[0], values[1], np.mod(math.radians(values[2]) + np.pi, 2 * np.pi) - np.pi])
+    return np.array([values[0], values[1], wrap_angle(math.radians(values[2]))])
 
 
 def default_start(house: House | int) -> tuple[float, float, float]:
@@ -252,7 +278,7 @@ class RouteRecorder:
         start: ``(x m, y m, heading deg)``.
         max_steps: the most actions the route may hold (``None``: no limit).
         contact_tolerance_m: a forward step may lose this much of its length to a glancing
-            contact (metres; default :data:`WALL_CONTACT_TOLERANCE_M`); a step shortened
+            contact (metres; default :data:`~envs.expert.WALL_CONTACT_TOLERANCE_M`); a step shortened
             more runs into a wall.
 
     Raises:
@@ -358,11 +384,7 @@ class RouteRecorder:
         Raises:
             RouteError: a route of another length than ``length``, or too short.
         """
-        if length is not None and self.length != length:
-            raise RouteError(
-                f"the route has {self.length} steps; demonstrations must have exactly {length} steps here "
-                f"(length={length}): give {length} actions."
-            )
+        check_exact_length(self.length, length)
         demo = demonstration_from_route(self.house, self.poses, self.actions)
         _check_length(demo.shortest_length_m, demo.length, min_route_length_m)
         return demo
@@ -395,11 +417,7 @@ def demonstration_from_actions(
         ([0, 0, 0, 0, 0, 0], 2.0)
     """
     actions = parse_actions(actions)
-    if length is not None and len(actions) != length:
-        raise RouteError(
-            f"the route has {len(actions)} steps; demonstrations must have exactly {length} steps here "
-            f"(length={length}): give {length} actions."
-        )
+    check_exact_length(len(actions), length)
     recorder = RouteRecorder(house, start)
     for action in actions.tolist():
         recorder.step(action, total=len(actions))

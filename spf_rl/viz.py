@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from envs.atomic_io import atomic_write, atomic_write_path
+
 logger = logging.getLogger(__name__)
 
 #: Resolution of the figures written by this module, dots per inch.
@@ -40,15 +42,28 @@ def plot_if_available(plot, *args, **kwargs):
         return None
 
 
-def save_figure(fig, path: str | Path, title: str, dpi: int = FIGURE_DPI) -> Path:
-    """Title ``fig``, lay it out, write it to ``path`` (a PNG; folders created) and close it."""
+def write_figure(fig, path: str | Path, dpi: int = FIGURE_DPI) -> Path:
+    """Write ``fig`` to ``path`` atomically (:func:`~envs.atomic_io.atomic_write`; the format from its
+    suffix, folders created) and close it.
+
+    Examples:
+        >>> import tempfile, os
+        >>> fig = pyplot().figure()
+        >>> write_figure(fig, os.path.join(tempfile.mkdtemp(), "f.png")).exists()
+        True
+    """
     path = Path(path)
-    fig.suptitle(title)
-    fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi)
+    atomic_write(path, lambda handle: fig.savefig(handle, dpi=dpi, format=path.suffix[1:]), binary=True)
     pyplot().close(fig)
     return path
+
+
+def save_figure(fig, path: str | Path, title: str, dpi: int = FIGURE_DPI) -> Path:
+    """Title ``fig``, lay it out, write it to ``path`` (a PNG; folders created) and close it."""
+    fig.suptitle(title)
+    fig.tight_layout()
+    return write_figure(fig, path, dpi)
 
 
 def plot_training_curves(history: list[dict], path: str | Path, title: str = "training") -> Path:
@@ -164,7 +179,7 @@ def write_gif(frames: list[np.ndarray], path: str | Path, fps: int = 5) -> Path:
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    imageio.mimsave(path, frames, duration=1.0 / fps, loop=0)
+    atomic_write_path(path, lambda tmp: imageio.mimsave(tmp, frames, duration=1.0 / fps, loop=0))
     return path
 
 
@@ -204,7 +219,7 @@ def write_video(frames: list[np.ndarray], path: str | Path, fps: int = 5) -> Pat
     import imageio.v2 as imageio
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    imageio.mimsave(path, frames, fps=fps)
+    atomic_write_path(path, lambda tmp: imageio.mimsave(tmp, frames, fps=fps))
     return path
 
 
@@ -280,14 +295,12 @@ def watch(
         points={"memory frames": demo[indices]} if len(indices) else None,
         title=f"{label}: {outcome}",
     )
-    ax.figure.savefig(out / f"map_{index}.png", dpi=120)
-    plt.close(ax.figure)
+    write_figure(ax.figure, out / f"map_{index}.png", dpi=120)
     if "eta" in record:
         nearest = np.argmin(np.linalg.norm(followed[:-1, None] - demo[None, :-1], axis=-1), axis=1)
         ax = plot_pointer(record["eta"], nearest, indices, title=f"{label}: pointer vs position")
         ax.figure.tight_layout()
-        ax.figure.savefig(out / f"pointer_{index}.png", dpi=120)
-        plt.close(ax.figure)
+        write_figure(ax.figure, out / f"pointer_{index}.png", dpi=120)
     if gif:
         fig, (left, right) = plt.subplots(1, 2, figsize=(7, 3.5))
         view = left.imshow(record["frames"][0])

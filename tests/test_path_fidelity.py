@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from envs.demos import apply_motion, nominal_motion
-from envs.expert import FORWARD, FORWARD_STEP_M
+from envs.expert import FORWARD, FORWARD_STEP_M, WALL_CONTACT_TOLERANCE_M
 from envs.path_fidelity import (
     MIN_REFERENCE_LENGTH_M,
     PATH_FIDELITY_KEYS,
@@ -22,7 +22,6 @@ from envs.path_fidelity import (
     wall_hits,
 )
 from envs.scenes import build_house
-from envs.user_demos import WALL_CONTACT_TOLERANCE_M
 
 #: The follow protocol's success radius (envs.follow.SUCCESS_RADIUS_M), the threshold callers pass.
 THRESHOLD_M = 0.6

@@ -11,7 +11,7 @@ from torchrl.envs import TransformedEnv
 import envs.route_styles as route_styles
 from envs.demos import apply_motion, default_min_route_length_m, drive_expert, nominal_motion, sample_demonstration
 from envs.episodes import run_episodes
-from envs.expert import FORWARD, FORWARD_STEP_M, TURN_LEFT, TURN_RIGHT
+from envs.expert import FORWARD, FORWARD_STEP_M, TURN_LEFT, TURN_RIGHT, WALL_CONTACT_TOLERANCE_M
 from envs.follow import SUCCESS_RADIUS_M, default_max_steps
 from envs.house_grid import MAX_DEMO_LENGTH, default_grid_size_cells
 from envs.nav_env import PathFollowEnv
@@ -29,7 +29,7 @@ from envs.route_styles import (
 from envs.scenes import build_house, split_seeds
 from envs.scripted import ExpertPolicy
 from envs.transforms import ActuationNoise
-from envs.user_demos import MIN_USER_ROUTE_M, WALL_CONTACT_TOLERANCE_M, demonstration_from_actions
+from envs.user_demos import MIN_USER_ROUTE_M, demonstration_from_actions
 
 STYLES = tuple(ROUTE_STYLES)
 LENGTHS = (10, 30, 100)

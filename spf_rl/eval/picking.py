@@ -12,7 +12,6 @@ from pathlib import Path
 
 from scipy import stats as scipy_stats
 
-from envs.atomic_io import atomic_write
 from spf_rl.checkpoint import load_checkpoint
 from spf_rl.train.run import EPOCHS_DIR
 
@@ -57,7 +56,7 @@ def summarize_study(epochs: list[int], val: list[float], test: list[float]) -> d
 
 def plot_study(path: Path, study: dict) -> None:
     """Validation and test success per epoch, the epoch validation picks marked."""
-    from spf_rl.viz import pyplot
+    from spf_rl.viz import pyplot, write_figure
 
     plt = pyplot()
     rows = study["epochs"]
@@ -73,5 +72,4 @@ def plot_study(path: Path, study: dict) -> None:
     ax.set_title("Spearman rho " + ("undefined (constant scores)" if rho is None else f"{rho:.2f}"), fontsize=9)
     ax.legend(fontsize=7)
     fig.tight_layout()
-    atomic_write(path, lambda handle: fig.savefig(handle, dpi=120, format=path.suffix[1:]), binary=True)
-    plt.close(fig)
+    write_figure(fig, path, dpi=120)

@@ -211,7 +211,7 @@ def summarize_traces(traces: list[Trace], window: int) -> dict:
 
 def plot_traces(traces_by_style: dict[str, list[Trace]], path: str | Path) -> Path:
     """Pointer (solid) and route step (dashed) over time: a row per style, a column per outcome."""
-    from spf_rl.viz import pyplot
+    from spf_rl.viz import pyplot, write_figure
 
     plt = pyplot()
     styles = list(traces_by_style)
@@ -231,8 +231,4 @@ def plot_traces(traces_by_style: dict[str, list[Trace]], path: str | Path) -> Pa
             ax.set_ylabel("demonstration step")
     fig.suptitle("pointer (solid) vs the agent's place on the route (dashed); dotted: left the path", fontsize=9)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return write_figure(fig, path, dpi=100)

@@ -41,6 +41,7 @@ import numpy as np
 from envs.atomic_io import atomic_write_json
 from envs.route_styles import ROUTE_STYLES
 from envs.transforms import DEFAULT_NOISE
+from spf_rl.eval.by_length import label_of
 from spf_rl.stats import DEFAULT_CONFIDENCE, DEFAULT_NUM_RESAMPLES, hierarchical_bootstrap_ci, paired_bootstrap
 from spf_rl.train.evaluation import TEST_SEED
 
@@ -185,18 +186,6 @@ def bucket_name(bucket: Sequence[int]) -> str:
     return f"{bucket[0]}-{bucket[1]}"
 
 
-def model_label(model: str) -> str:
-    """How the JSON, table and figure name a model: a shipped name, or ``<run dir>/<file>`` for a ``.pt`` path.
-
-    Examples:
-        >>> model_label("spf-s0.8"), model_label("runs/bc/spf-seed0/best.pt")
-        ('spf-s0.8', 'spf-seed0/best')
-    """
-    from spf_rl.eval.by_length import label_of
-
-    return label_of(model)
-
-
 def default_models() -> tuple[str, ...]:
     """Every shipped checkpoint but ``homing-*`` (trained to return to a route's start, not to
     follow it) and ``ppo-*`` (trained and scored under the older ``paper_symmetric`` noise):
@@ -219,7 +208,7 @@ def check_models(models: Sequence[str]) -> tuple[str, ...]:
     unknown = [m for m in models if m not in shipped and not (m.endswith(".pt") and Path(m).is_file())]
     if unknown:
         raise ValueError(f"argument --models: unknown {unknown} (shipped names or .pt files); shipped: {', '.join(shipped)}")
-    labels = [model_label(m) for m in models]
+    labels = [label_of(m) for m in models]
     if len(set(labels)) != len(labels) or OPEN_LOOP in labels:
         raise ValueError(f"argument --models: two models would have one label: {labels}")
     return models
@@ -364,7 +353,13 @@ def cell_identity(config) -> dict:
 
 @dataclass
 class BenchModel:
-    """A model of the benchmark: its label, policy (``None`` for open-loop replay, made per cell) and identity."""
+    """A model of the benchmark: its label, policy (``None`` for open-loop replay, made per cell) and identity.
+
+    Examples:
+        >>> replay = BenchModel(OPEN_LOOP, None, {"checkpoint_sha256": None, "sparsity": None}, {"checkpoint": None})
+        >>> type(replay.at_length(40)).__name__
+        'OpenLoopPolicy'
+    """
 
     label: str
     policy: object | None
@@ -407,7 +402,7 @@ def load_models(options: BenchOptions) -> list[BenchModel]:
         sparsity = (float(options.random_sparsity) if options.random_sparsity is not None else float(config.sparsity)) if random else None
         info = {"checkpoint": str(path), "model_type": payload["model_type"], "demo_length": config.demo_length,
                 "sparsity": float(config.sparsity), "sparsity_range": list(config.sparsity_range) if random else None}
-        models.append(BenchModel(model_label(name), policy, {"checkpoint_sha256": file_sha256(path), "sparsity": sparsity}, info))
+        models.append(BenchModel(label_of(name), policy, {"checkpoint_sha256": file_sha256(path), "sparsity": sparsity}, info))
     return models
 
 

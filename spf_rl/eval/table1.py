@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from envs.atomic_io import atomic_write, atomic_write_json, atomic_write_text
+from envs.atomic_io import atomic_write_json, atomic_write_text
 from spf_rl.stats import hierarchical_bootstrap_ci, paired_bootstrap, seed_summary
 
 logger = logging.getLogger("table1")
@@ -369,11 +369,9 @@ def summary_markdown(table: dict) -> str:
 def plot(table: dict, path: Path) -> None:
     """Success and SPL per line: ours on both sets and DAgger with house-level intervals, the seeds'
     means as small dots, the paper's numbers as stars; the series are side by side within each line."""
-    import matplotlib
+    from spf_rl.viz import pyplot, write_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     lines = [row for row in table["rows"] if not row["dagger_of"]]
     dagger = {row["dagger_of"]: row for row in table["rows"] if row["dagger_of"]}
     series = [
@@ -408,8 +406,7 @@ def plot(table: dict, path: Path) -> None:
     handles, labels = axes[0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="upper center", ncol=len(labels), fontsize=8, frameon=False)
     fig.tight_layout(rect=(0, 0, 1, 0.93))
-    atomic_write(path, lambda handle: fig.savefig(handle, dpi=120, format=path.suffix[1:]), binary=True)
-    plt.close(fig)
+    write_figure(fig, path, dpi=120)
 
 
 def write_reports(table: dict, out: Path) -> None:

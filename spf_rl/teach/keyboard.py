@@ -59,6 +59,11 @@ class KeyOutcome:
         message: a line for the user ("" when there is nothing to say).
         demonstration: the finished demonstration (Enter on a valid route), else ``None``.
         cancelled: the user quit.
+
+    Examples:
+        >>> outcome = handle_key(RouteRecorder(0, (7.5, 1.5, 0.0), max_steps=3), ord("q"), 3)
+        >>> outcome.cancelled, outcome.demonstration is None, outcome.message
+        (True, True, 'cancelled')
     """
 
     message: str = ""

@@ -33,7 +33,7 @@ from tqdm.auto import tqdm
 from envs.atomic_io import atomic_write_json
 from envs.demos import Demonstration
 from envs.episodes import episode_record
-from envs.follow import SUCCESS_FRACTION, SUCCESS_RADIUS_M, default_max_steps
+from envs.follow import default_max_steps, success_radius
 from envs.homing import FOLLOW, HOMING
 from envs.nav_env import PathFollowEnv
 from envs.render import draw_top_down_map
@@ -43,7 +43,7 @@ from envs.user_demos import ACTION_LETTERS
 from spf_rl.metrics import summarize
 from spf_rl.train.evaluation import greedy_on_device
 from spf_rl.train.lengths import policy_for_length
-from spf_rl.viz import figure_to_array, pyplot
+from spf_rl.viz import figure_to_array, pyplot, write_figure
 from spf_rl.viz import write_video as write_frames
 
 logger = logging.getLogger(__name__)
@@ -145,6 +145,11 @@ class Repeat:
             (``success``, ``spl``, ``goal_distance``, ``path_length``, ``steps``, ...; metres).
         poses: ``(T + 1, 3)`` poses (x m, y m, heading rad): the start, then after each step.
         frames: ``(T + 1, H, W, 3)`` uint8 first-person frames at those poses.
+
+    Examples:
+        >>> repeat = Repeat({"repeat": 1, "success": True}, np.zeros((3, 3)), np.zeros((3, 64, 64, 3), np.uint8))
+        >>> repeat.record["repeat"], repeat.poses.shape[0] == repeat.frames.shape[0]
+        (1, True)
     """
 
     record: dict
@@ -234,7 +239,7 @@ def route_letters(demo: Demonstration) -> str:
 
 def success_radius_m(demo: Demonstration) -> float:
     """The follow protocol's success radius around the end of the demonstration played, metres."""
-    return max(SUCCESS_RADIUS_M, SUCCESS_FRACTION * demo.shortest_length_m)
+    return float(success_radius(demo.shortest_length_m))
 
 
 def demo_label(demo: Demonstration) -> str:
@@ -244,7 +249,7 @@ def demo_label(demo: Demonstration) -> str:
 
 def write_map(demo: Demonstration, repeats: list[Repeat], path: Path, title: str) -> Path:
     """The top-down map with the demonstration played, every repeat and the success radius, as a PNG."""
-    plt = pyplot()
+    pyplot()  # matplotlib, or an ImportError that says how to install it
     from matplotlib.patches import Circle
 
     paths = {demo_label(demo): demo.poses[:, :2]}
@@ -256,10 +261,7 @@ def write_map(demo: Demonstration, repeats: list[Repeat], path: Path, title: str
     ax.title.set_fontsize(TITLE_FONTSIZE)
     ax.add_patch(Circle(demo.end_xy, success_radius_m(demo), fill=False, linestyle="--", color="black"))
     ax.figure.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    ax.figure.savefig(path, dpi=MAP_DPI)
-    plt.close(ax.figure)
-    return path
+    return write_figure(ax.figure, path, dpi=MAP_DPI)
 
 
 def write_video(demo: Demonstration, demo_frames: np.ndarray, repeat: Repeat, path: Path, noise: str) -> Path:

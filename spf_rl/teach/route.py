@@ -42,12 +42,10 @@ logger = logging.getLogger(__name__)
 
 #: The longest route that can be taught, steps (the env's longest demonstration).
 MAX_TAUGHT_STEPS = MAX_DEMO_LENGTH
-#: How a route is given: typed actions, typed waypoints, or recorded with the keyboard.
-ROUTE_SOURCES = ("actions", "waypoints", "keyboard")
 
 
 def route_source(actions: Sequence[int] | None, waypoints: Sequence[Sequence[float]] | None) -> str:
-    """Which of :data:`ROUTE_SOURCES` :func:`teach_route` uses: actions first, then waypoints, else the keyboard.
+    """How :func:`teach_route` takes the route: ``"actions"`` (typed) first, then ``"waypoints"``, else ``"keyboard"``.
 
     Examples:
         >>> route_source(None, [(7.5, 1.5), (9.5, 1.5)]), route_source(None, None)

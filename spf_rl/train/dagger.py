@@ -86,7 +86,7 @@ from spf_rl.train.evaluation import (
 )
 from spf_rl.train.run import OptimConfig, trim_csv_logs
 from spf_rl.train.run_config import DAGGER_RESUME_FREE, write_run_config
-from spf_rl.viz import plot_if_available, pyplot
+from spf_rl.viz import plot_if_available, pyplot, write_figure
 
 logger = logging.getLogger(__name__)
 
@@ -575,8 +575,7 @@ def plot_rounds(history: list[dict], path: Path, title: str = "DAgger") -> None:
     ax.set_title(title)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    write_figure(fig, path, dpi=120)
 
 
 __all__ = ["DAggerConfig", "ExpertMixturePolicy", "behaviour_statistics", "episode_seed_of_round", "plot_rounds", "train_dagger"]

@@ -81,7 +81,7 @@ from spf_rl.train.ppo_loss import (
     make_ppo_modules,
 )
 from spf_rl.train.run_config import write_run_config
-from spf_rl.viz import plot_if_available, pyplot
+from spf_rl.viz import plot_if_available, pyplot, write_figure
 
 logger = logging.getLogger(__name__)
 
@@ -439,6 +439,4 @@ def plot_ppo(val_history: list[dict], start: dict, path: str | Path, title: str 
     ax.set_title(title)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return write_figure(fig, path, dpi=120)
