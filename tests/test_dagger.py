@@ -420,3 +420,19 @@ def test_round_0_reuses_the_start_checkpoints_own_test_records(tmp_path, monkeyp
     played.clear()
     train_dagger(dataclasses.replace(config, output_dir=str(tmp_path / "again")))
     assert [c.split for c in played] == ["val", "test"]
+
+
+def test_random_sparsity_rounds_do_not_depend_on_the_global_rng(tmp_path):
+    # a model that draws a memory sparsity per training episode: its draws come from the round
+    # and step, not from whatever the process did before (a dataset built or loaded, a resume)
+    torch.manual_seed(0)
+    config = SPFConfig(demo_length=5, sparsity=0.4, sparsity_range=(0.2, 1.0), feature_dim=8, hidden_size=8, image_size=(32, 32))
+    checkpoint = tmp_path / "random.pt"
+    save_checkpoint(checkpoint, "spf_random", config, {"model": build_policy("spf_random", config).state_dict()})
+    train_dagger(tiny_config(tmp_path / "a", checkpoint))
+    train_dagger(tiny_config(tmp_path / "b", checkpoint, rounds=1))  # "interrupted" after round 1
+    torch.rand(1000)  # other work in the process
+    train_dagger(tiny_config(tmp_path / "b", checkpoint))
+    a = load_checkpoint(tmp_path / "a" / "dagger" / "last.pt")["model"]
+    b = load_checkpoint(tmp_path / "b" / "dagger" / "last.pt")["model"]
+    assert all(torch.equal(a[k], b[k]) for k in a)

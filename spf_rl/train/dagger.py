@@ -92,6 +92,8 @@ logger = logging.getLogger(__name__)
 
 #: Mixed into the episode seed so the mixing coin is independent of the actuation noise.
 MIXING_STREAM_SALT = 0x5DA66E4
+#: Mixed into a retraining step's seed (:func:`retraining_seed`): a stream of its own.
+RETRAINING_STREAM = 0x7E7A1
 DAGGER_VAL_SEED = 3  # not the BC val seed (1), on which the starting checkpoint was picked
 
 
@@ -477,6 +479,21 @@ def _test_fields(summary: dict) -> dict:
     return {f"test_{key}": summary[key] for key in ("success", "spl", "success_ci", "spl_ci")}
 
 
+def retraining_seed(config: DAggerConfig, round_index: int, step: int) -> int:
+    """The seed of the random draws in gradient step ``step`` of round ``round_index`` (a
+    random-sparsity model's per-episode sparsities): from ``(config.seed, round_index +
+    config.round_seed_offset, step)`` alone, so that a resumed run, or one whose data were built
+    in the same process, draws what an uninterrupted run draws.
+
+    Examples:
+        >>> config = DAggerConfig()
+        >>> retraining_seed(config, 1, 0) == retraining_seed(config, 1, 0) != retraining_seed(config, 1, 1)
+        True
+    """
+    entropy = [config.seed, round_index + config.round_seed_offset, step, RETRAINING_STREAM]
+    return int(np.random.SeedSequence(entropy).generate_state(1)[0])
+
+
 def _collect_round(policy: TensorDictModuleBase, config: DAggerConfig, round_config: RoundConfig, round_dir: Path) -> TensorDict:
     """The round's episodes: numbered episodes ``0 .. E - 1`` of its seed, their demonstrations
     rendered first into ``round-XX-demos``, played by the beta-mixture through the run's
@@ -544,7 +561,9 @@ def _train_round(
         ]
         batch = torch.cat(parts, 0)
         parts: dict[str, float] = {}
-        loss, accuracy = bc_loss(policy, batch, amp=config.optim.amp, pointer_coef=config.optim.pointer_coef, parts=parts)
+        with torch.random.fork_rng(devices=[]):  # a random-sparsity model's draws: from the seed, round and step alone
+            torch.manual_seed(retraining_seed(config, round_index, step))
+            loss, accuracy = bc_loss(policy, batch, amp=config.optim.amp, pointer_coef=config.optim.pointer_coef, parts=parts)
         optimizer.zero_grad(set_to_none=True)
         loss_value, _ = backward_on_shard(loss, accuracy, batch, ranks, device)
         torch.nn.utils.clip_grad_norm_(policy.parameters(), config.optim.max_grad_norm)
@@ -578,4 +597,4 @@ def plot_rounds(history: list[dict], path: Path, title: str = "DAgger") -> None:
     write_figure(fig, path, dpi=120)
 
 
-__all__ = ["DAggerConfig", "ExpertMixturePolicy", "behaviour_statistics", "episode_seed_of_round", "plot_rounds", "train_dagger"]
+__all__ = ["DAggerConfig", "ExpertMixturePolicy", "behaviour_statistics", "episode_seed_of_round", "plot_rounds", "retraining_seed", "train_dagger"]
