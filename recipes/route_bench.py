@@ -26,8 +26,16 @@ from envs.transforms import DEFAULT_NOISE
 from spf_rl.checkpoint import CheckpointError
 from spf_rl.cli import ArgumentParser
 from spf_rl.eval.route_bench import (
+    DEFAULT_BUCKETS,
     DEFAULT_EPISODES,
+    DEFAULT_OUT,
+    EXCLUDED_PREFIXES,
+    EXTENDED_HOUSES,
+    QUICK_BUCKETS,
     QUICK_EPISODES,
+    QUICK_MODELS,
+    QUICK_OUT,
+    QUICK_SETS,
     STYLES,
     BenchOptions,
     load_models,
@@ -41,12 +49,18 @@ from spf_rl.train.evaluation import TEST_SEED
 DEFAULTS = {option.name: option.default for option in dataclasses.fields(BenchOptions)}
 
 
+def bucket_text(buckets: tuple[tuple[int, int], ...]) -> str:
+    """``((10, 30), (31, 60))`` as ``10-30,31-60``, the form ``--buckets`` takes."""
+    return ",".join(f"{lo}-{hi}" for lo, hi in buckets)
+
+
 def build_parser() -> ArgumentParser:
     parser = ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--models", help="comma-separated shipped names or .pt paths (default: all shipped but homing-*, ppo-*)")
+    parser.add_argument("--models", help="comma-separated shipped names or .pt paths (default: all shipped but "
+                        + ", ".join(f"{prefix}*" for prefix in EXCLUDED_PREFIXES) + ")")
     parser.add_argument("--styles", help=f"route styles (default {','.join(STYLES)})")
-    parser.add_argument("--buckets", help="length buckets lo-hi, steps (default 10-30,31-60,61-100)")
-    parser.add_argument("--sets", help="episode sets: test, extended (100 houses) (default both)")
+    parser.add_argument("--buckets", help=f"length buckets lo-hi, steps (default {bucket_text(DEFAULT_BUCKETS)})")
+    parser.add_argument("--sets", help=f"episode sets: test, extended ({EXTENDED_HOUSES} houses) (default both)")
     parser.add_argument("--episodes", type=int, help=f"episodes per cell (default {DEFAULT_EPISODES}; --quick {QUICK_EPISODES})")
     parser.add_argument("--seed", type=int, default=TEST_SEED, help=f"seed of the episodes (default {TEST_SEED}, the test seed)")
     parser.add_argument("--noise", default=DEFAULT_NOISE, help=f"actuation noise preset (default {DEFAULT_NOISE})")
@@ -56,9 +70,10 @@ def build_parser() -> ArgumentParser:
     parser.add_argument("--device", default=DEFAULTS["device"], help="where the policies run: cpu, auto, cuda, cuda:N (default %(default)s)")
     parser.add_argument("--num-collectors", type=int, default=DEFAULTS["num_collectors"],
                         help="processes playing a cell's episodes (default %(default)s)")
-    parser.add_argument("--out", help="the JSON (default results/route_bench.json; --quick: results/route_bench_quick.json)")
+    parser.add_argument("--out", help=f"the JSON (default {DEFAULT_OUT}; --quick: {QUICK_OUT})")
     parser.add_argument("--quick", action="store_true",
-                        help="smoke run: spf-s0.8, rpf_original-s1 and open-loop, 8 episodes, test set, buckets 10-30, 31-60")
+                        help=f"smoke run: {', '.join(QUICK_MODELS)} and open-loop, {QUICK_EPISODES} episodes, "
+                             f"{', '.join(QUICK_SETS)} set, buckets {bucket_text(QUICK_BUCKETS)}")
     parser.add_argument("--progress", action="store_true", help="progress bars")
     return parser
 
