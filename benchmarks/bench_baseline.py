@@ -6,7 +6,7 @@ whose ``PYTHONPATH`` is the tree (:func:`run_json_child`), the baseline from a
 ``git worktree`` of its commit (:func:`baseline_worktree`). Figures are taken over
 repeats interleaved between the trees (:func:`interleaved_runs`: old, new, old,
 new, ...), so drifts in the machine's speed hit both. Used by
-``benchmarks/bench_pipeline.py`` (the training baseline).
+``benchmarks/bench_pipeline.py`` (the training baseline) and ``benchmarks/bench_main_job.py --baseline``.
 """
 from __future__ import annotations
 
@@ -23,6 +23,11 @@ from typing import Callable, Iterator, Sequence, TypeVar
 logger = logging.getLogger(__name__)
 
 T = TypeVar("T")
+#: main when issue #30 (collection and training speed) was filed: the speed baseline of
+#: ``bench_pipeline.py`` (training) and ``bench_main_job.py --baseline`` (the main job).
+BASELINE_COMMIT = "a5a7302"
+#: Where the baseline's worktree is made (and reused by later runs; ignored by git).
+BASELINE_DIR = Path(__file__).resolve().parents[1] / "runs" / "bench_pipeline" / "baseline"
 #: The two trees of a comparison, in the order each repeat runs them.
 SIDES = ("old", "new")
 #: Characters of a failed child's stderr quoted in the error.
@@ -143,6 +148,8 @@ def interleaved_runs(run: Callable[[str, int], T], repeats: int, sides: Sequence
 
 
 __all__ = [
+    "BASELINE_COMMIT",
+    "BASELINE_DIR",
     "SIDES",
     "baseline_worktree",
     "ensure_worktree",

@@ -50,14 +50,10 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Sequence
 
-from bench_baseline import baseline_worktree, resolve_commit, run_json_child
+from bench_baseline import BASELINE_COMMIT, BASELINE_DIR, baseline_worktree, resolve_commit, run_json_child
 
 ROOT = Path(__file__).resolve().parents[1]
-#: main when issue #30 (collection and training speed) was filed: the training baseline.
-BASELINE_COMMIT = "a5a7302"
 RESULTS = ROOT / "benchmarks" / "results" / "pipeline.json"
-#: Where the baseline's worktree is made (and reused by later runs; ignored by git).
-BASELINE_DIR = ROOT / "runs" / "bench_pipeline" / "baseline"
 WORKER = Path(__file__).resolve().parent / "bench_pipeline_worker.py"
 #: Repeats: each figure is the median of at least this many.
 MIN_REPEATS = 3

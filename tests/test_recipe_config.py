@@ -148,6 +148,39 @@ def test_main_job_benchmark_compares_the_previous_and_current_budgets(tmp_path):
     assert current["validation_episodes"] == 4 * 4  # epochs 3, 6, 9 and 12
 
 
+def test_main_job_benchmark_against_a_baseline_runs_both_trees_and_pairs_their_test_episodes(tmp_path, monkeypatch):
+    """--baseline runs each tree's recipes/bc.py in a child process (here the working tree stands in for the
+    baseline's worktree) and pairs the two jobs' test episodes."""
+    import contextlib
+
+    import bench_main_job
+
+    @contextlib.contextmanager
+    def this_tree(repo, sha, path):
+        yield bench_main_job.ROOT
+
+    monkeypatch.setattr(bench_main_job, "baseline_worktree", this_tree)
+    out = tmp_path / "main_job_baseline.json"
+    report = bench_main_job.main(["--baseline", "HEAD", "--quick", "--output", str(out), "--workdir", str(tmp_path / "work")])
+    assert json.loads(out.read_text()) == json.loads(json.dumps(report))
+    baseline, current = report["jobs"]["baseline"], report["jobs"]["current"]
+    assert report["speedup_current_over_baseline"] == baseline["wall_seconds"] / current["wall_seconds"] > 0
+    success = report["paired_current_minus_baseline"]["metrics"]["success"]
+    assert (success["a"], success["b"]) == (current["test_success"], baseline["test_success"])
+    # the same code, seed and episodes on both sides: the same scores
+    assert success["difference"] == 0.0 and current["test_spl"] == baseline["test_spl"]
+    assert (tmp_path / "work" / "baseline" / "run" / "results.json").is_file()
+
+
+def test_main_job_benchmark_refuses_an_unknown_baseline_before_any_work(tmp_path, capsys):
+    import bench_main_job
+
+    with pytest.raises(SystemExit) as exit_info:
+        bench_main_job.main(["--baseline", "no-such-commit", "--workdir", str(tmp_path / "work")])
+    assert exit_info.value.code == 2
+    assert "--baseline" in capsys.readouterr().err and not (tmp_path / "work").exists()
+
+
 @pytest.mark.parametrize("recipe", ["bc", "dagger"])
 def test_every_documented_preset_is_accepted(recipe):
     """Each ``recipes/<recipe>.py --preset X`` in the README, docs/, recipes/ or a preset's own YAML is in the
