@@ -27,10 +27,11 @@ import argparse
 import copy
 import json
 import os
-import platform
 import statistics
 import time
 from pathlib import Path
+
+from bench_env_report import machine_info
 
 from envs.atomic_io import atomic_write_json
 
@@ -139,12 +140,7 @@ def main(argv: list[str] | None = None) -> dict:
         },
         "compile_warm_up_seconds": compile_seconds,
         "bf16_supported": bool(torch.ops.mkldnn._is_mkldnn_bf16_supported()),
-        "machine": {
-            "cpus": os.cpu_count(),
-            "torch_threads": torch.get_num_threads(),
-            "python": platform.python_version(),
-            "torch": torch.__version__,
-        },
+        "machine": {**machine_info(), "cpus": os.cpu_count(), "torch_threads": torch.get_num_threads()},
     }
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
