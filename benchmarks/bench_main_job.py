@@ -127,6 +127,43 @@ def run_child_job(tree: Path, workdir: Path, overrides: list[str]) -> dict:
     }
 
 
+def against_previous(args: argparse.Namespace, extra: list[str]) -> dict:
+    """The previous main job's budget and today's, in this process, one after the other."""
+    import torch
+
+    import envs  # noqa: F401  (selects the headless GL back-end first)
+    from spf_rl.train.bc import BCConfig
+
+    workdir = Path(args.workdir)
+    configs = {
+        name: dataclasses.replace(
+            load_config(BCConfig, "bc", [*overrides, *extra]),
+            output_dir=str(workdir / name / "run"),
+            data_dir=str(workdir / name / "data"),
+            progress=False,
+        )
+        for name, overrides in (("previous", PREVIOUS_MAIN_JOB), ("current", []))
+    }
+    if workdir.exists():
+        shutil.rmtree(workdir)
+    jobs = {}
+    for name, config in configs.items():
+        logger.info("%s main job: %s", name, budget(config))
+        jobs[name] = run_job(config)
+        logger.info("%s: %.0f s, test success %.3f", name, jobs[name]["wall_seconds"], jobs[name]["test_success"])
+    report = {
+        "quick": args.quick,
+        "command": "python benchmarks/bench_main_job.py" + (" --quick" if args.quick else ""),
+        "cpu_count": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(),
+        "jobs": jobs,
+        "wall_ratio_current_to_previous": jobs["current"]["wall_seconds"] / jobs["previous"]["wall_seconds"],
+        "gradient_step_ratio": jobs["current"]["gradient_steps"] / jobs["previous"]["gradient_steps"],
+    }
+    logger.info("wall ratio current/previous %.2f", report["wall_ratio_current_to_previous"])
+    return report
+
+
 def against_baseline(args: argparse.Namespace, extra: list[str]) -> dict:
     """Today's main job against the baseline commit's, one child process each (baseline first)."""
     from spf_rl.eval.paired import compare
@@ -140,6 +177,11 @@ def against_baseline(args: argparse.Namespace, extra: list[str]) -> dict:
             "current": run_child_job(ROOT, workdir / "current", extra),
         }
     paired = compare(jobs["current"].pop("test_episodes_file"), jobs["baseline"].pop("test_episodes_file"), PAIRED_RESAMPLES, 0)
+    logger.info(
+        "main job x%.2f the baseline's speed; test success %.3f vs %.3f",
+        jobs["baseline"]["wall_seconds"] / jobs["current"]["wall_seconds"],
+        jobs["current"]["test_success"], jobs["baseline"]["test_success"],
+    )
     return {
         "quick": args.quick,
         "command": "python benchmarks/bench_main_job.py --baseline" + (" --quick" if args.quick else ""),
@@ -168,55 +210,12 @@ def main(argv: list[str] | None = None) -> dict:
         except ValueError as err:
             parser.error(f"--baseline: {err}")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    if args.baseline is not None:
-        report = against_baseline(args, QUICK if args.quick else [])
-        output = Path(args.output or BASELINE_RESULTS)
-        output.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write_json(output, report)
-        logger.info(
-            "main job x%.2f the baseline's speed; test success %.3f vs %.3f",
-            report["speedup_current_over_baseline"], report["jobs"]["current"]["test_success"], report["jobs"]["baseline"]["test_success"],
-        )
-        return report
-
-    import torch
-
-    import envs  # noqa: F401  (selects the headless GL back-end first)
-    from spf_rl.train.bc import BCConfig
-
-    workdir = Path(args.workdir)
     extra = QUICK if args.quick else []
-    configs = {
-        name: dataclasses.replace(
-            load_config(BCConfig, "bc", [*overrides, *extra]),
-            output_dir=str(workdir / name / "run"),
-            data_dir=str(workdir / name / "data"),
-            progress=False,
-        )
-        for name, overrides in (("previous", PREVIOUS_MAIN_JOB), ("current", []))
-    }
-    if workdir.exists():
-        shutil.rmtree(workdir)
-    jobs = {}
-    for name, config in configs.items():
-        logger.info("%s main job: %s", name, budget(config))
-        jobs[name] = run_job(config)
-        logger.info("%s: %.0f s, test success %.3f", name, jobs[name]["wall_seconds"], jobs[name]["test_success"])
-    report = {
-        "quick": args.quick,
-        "command": "python benchmarks/bench_main_job.py" + (" --quick" if args.quick else ""),
-        "cpu_count": os.cpu_count(),
-        "torch_threads": torch.get_num_threads(),
-        "jobs": jobs,
-        "wall_ratio_current_to_previous": jobs["current"]["wall_seconds"] / jobs["previous"]["wall_seconds"],
-        "gradient_step_ratio": jobs["current"]["gradient_steps"] / jobs["previous"]["gradient_steps"],
-    }
-    output = Path(args.output or RESULTS)
+    report = against_baseline(args, extra) if args.baseline is not None else against_previous(args, extra)
+    output = Path(args.output or (BASELINE_RESULTS if args.baseline is not None else RESULTS))
     output.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_json(output, report)
-    logger.info("wall ratio current/previous %.2f", report["wall_ratio_current_to_previous"])
     return report
-
 
 if __name__ == "__main__":
     main()
