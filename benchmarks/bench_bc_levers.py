@@ -31,9 +31,8 @@ import statistics
 import time
 from pathlib import Path
 
-from bench_env_report import machine_info
-
 from envs.atomic_io import atomic_write_json
+from spf_rl.device import machine_info
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "bc_levers.json"

@@ -42,7 +42,7 @@ from typing import Callable
 import numpy as np
 import torch
 from bench_env_paths import median_fps
-from bench_env_report import machine_info, other_processes_cpu_seconds
+from bench_env_report import other_processes_cpu_seconds
 from torchrl.envs import DMControlWrapper
 
 from envs.atomic_io import atomic_write_json
@@ -53,6 +53,7 @@ from envs.house_mesh import house_model
 from envs.nav_env import DEFAULT_MAX_STEPS, PathFollowEnv
 from envs.render import FirstPersonRenderer
 from envs.scenes import build_house, split_seeds
+from spf_rl.device import machine_info
 
 logger = logging.getLogger("bench_dmc")
 

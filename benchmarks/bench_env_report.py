@@ -9,15 +9,13 @@ records what else used the CPUs while the benchmark ran, since the figures depen
 from __future__ import annotations
 
 import os
-import platform
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import torch
-
 from envs.atomic_io import atomic_write_json
+from spf_rl.device import machine_info
 
 if TYPE_CHECKING:
     from bench_env_paths import BenchConfig
@@ -43,35 +41,6 @@ def other_processes_cpu_seconds() -> dict[int, tuple[str, float]]:
         fields = stat[stat.rindex(")") + 2 :].split()
         usage[int(entry.name)] = (command[:80], (int(fields[11]) + int(fields[12])) / ticks)
     return usage
-
-
-def machine_info() -> dict:
-    """CPU, library versions, GL back-end and thread settings, and the load average now."""
-    import mujoco
-    import tensordict
-    import torchrl
-
-    cpu_model = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu_model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {
-        "cpu_count": os.cpu_count(),
-        "cpu_model": cpu_model,
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-        "torchrl": torchrl.__version__,
-        "tensordict": tensordict.__version__,
-        "mujoco": mujoco.__version__,
-        "MUJOCO_GL": os.environ.get("MUJOCO_GL"),
-        "LP_NUM_THREADS": os.environ.get("LP_NUM_THREADS"),
-        "torch_num_threads": torch.get_num_threads(),
-        "load_average_1_5_15": [round(x, 2) for x in os.getloadavg()],
-    }
 
 
 @dataclass

@@ -34,8 +34,11 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
+import platform
 import re
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import torch
 from tensordict import TensorDictBase
@@ -59,6 +62,7 @@ __all__ = [
     "autocast",
     "check_device",
     "exact_float32",
+    "machine_info",
     "module_device",
     "resolve_device",
     "to_device",
@@ -262,3 +266,42 @@ def act_on_device(
 
     return act
 
+
+def machine_info() -> dict:
+    """The machine a run or benchmark ran on: CPU model and count, library versions, GL back-end, thread settings
+    and the load average now.
+
+    A seed's training result is bit-identical on one CPU model but not across them (float32 kernels accumulate in
+    another order), so every run's ``results.json`` records this beside its numbers (``machine_this_run``).
+
+    Examples:
+        >>> info = machine_info()
+        >>> info["cpu_count"] == os.cpu_count() and info["torch"] == torch.__version__
+        True
+    """
+    import mujoco
+    import tensordict
+    import torchrl
+
+    cpu_model = platform.processor()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu_model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {
+        "cpu_count": os.cpu_count(),
+        "cpu_model": cpu_model,
+        "cuda_device": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "torchrl": torchrl.__version__,
+        "tensordict": tensordict.__version__,
+        "mujoco": mujoco.__version__,
+        "MUJOCO_GL": os.environ.get("MUJOCO_GL"),
+        "LP_NUM_THREADS": os.environ.get("LP_NUM_THREADS"),
+        "torch_num_threads": torch.get_num_threads(),
+        "load_average_1_5_15": [round(x, 2) for x in os.getloadavg()],
+    }

@@ -61,6 +61,7 @@ def test_train_resume_and_results(tmp_path):
     low, high = results["test"]["success_ci"]
     assert low <= results["test"]["success"] <= high
     assert results["memory_bytes"] == 2 * 3 * 32 * 32 + 5  # l = round(0.4 * 5) = 2 frames + 5 actions
+    assert results["machine_this_run"]["cpu_count"] >= 1 and results["machine_this_run"]["cpu_model"]  # results depend on the CPU
     assert (run / "training_curves.png").stat().st_size > 1000
     assert (run / "best.pt").exists() and (run / "last.pt").exists()
     # the test records say what they are of, so a DAgger run from best.pt reuses them (tests/test_dagger.py)

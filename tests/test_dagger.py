@@ -166,6 +166,7 @@ def test_rounds_aggregate_retrain_and_report(two_rounds, shared_checkpoint):
     assert all("test_success" in r and 0.0 <= r["val_spl"] <= r["val_success"] + 1e-6 for r in history)
     written = json.loads((output / "results.json").read_text())
     assert written["best_round_by_val"] == results["best_round_by_val"] == results["best"]["round"]
+    assert written["machine_this_run"]["cpu_count"] >= 1 and written["machine_this_run"]["cpu_model"]  # results depend on the CPU
     shipped = json.loads((output / "test_episodes.json").read_text())  # the best round's own test records
     successes = [float(r["success"]) for r in shipped["episodes"]]
     assert shipped["round"] == results["best"]["round"] and sum(successes) / len(successes) == pytest.approx(results["best"]["test_success"])

@@ -34,7 +34,7 @@ from envs.atomic_io import atomic_write_json
 from envs.checks import check_positive_ints
 from envs.homing import FOLLOW
 from spf_rl.data import ROUTE_STEP_KEY, DatasetConfig, EpisodeDataset, format_tag
-from spf_rl.device import DEFAULT_DEVICE, autocast, check_device, module_device, to_device
+from spf_rl.device import DEFAULT_DEVICE, autocast, check_device, machine_info, module_device, to_device
 from spf_rl.modules.memory import memory_bytes
 from spf_rl.modules.policy import SPFPolicy
 from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
@@ -353,6 +353,7 @@ def _train_bc(config: BCConfig, device: torch.device) -> dict:
         "dataset": dataset.statistics(),
         "seed": config.seed,
         "wall_seconds_this_run": time.time() - start_time,
+        "machine_this_run": machine_info(),
         "config": asdict(config),
     }
     atomic_write_json(output / "results.json", results, default=str)

@@ -60,7 +60,7 @@ from envs.episodes import STEPS_PER_BATCH, gather_episode_steps
 from envs.scripted import behaviour_coins
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.data import DatasetConfig, EpisodeDataset, demos_root, step_keys
-from spf_rl.device import DEFAULT_DEVICE, check_device, exact_float32, module_device
+from spf_rl.device import DEFAULT_DEVICE, check_device, exact_float32, machine_info, module_device
 from spf_rl.hub import DEFAULT_START_CHECKPOINT, checked_checkpoint
 from spf_rl.modules.registry import build_policy
 from spf_rl.train.bc import BCConfig, bc_loss, check_pointer_labels, default_test_config, default_val_config
@@ -461,6 +461,7 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
         "best_round_by_val": best["round"],
         "history": history,
         "wall_seconds_this_run": time.time() - start_time,
+        "machine_this_run": machine_info(),
         "config": asdict(config),
     }
     atomic_write_json(output / "results.json", results, default=str)

@@ -32,7 +32,7 @@ from envs.checks import check_positive_int
 from envs.follow import default_max_steps
 from envs.house_grid import check_demo_length, default_grid_size_cells
 from spf_rl.data import DatasetConfig, EpisodeDataset, format_tag
-from spf_rl.device import DEFAULT_DEVICE, check_device
+from spf_rl.device import DEFAULT_DEVICE, check_device, machine_info
 from spf_rl.modules.policy import SPFPolicy
 from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
 from spf_rl.train.bc import bc_loss, check_pointer_labels, default_test_config, default_val_config, model_memory_bytes
@@ -276,6 +276,7 @@ def _train_mixed(config: MixedLengthConfig, device: torch.device) -> dict:
         "datasets": [dataset.statistics() for dataset in datasets],
         "seed": config.seed,
         "wall_seconds_this_run": time.time() - start_time,
+        "machine_this_run": machine_info(),
         "config": asdict(config),
     }
     atomic_write_json(output / "results.json", results, default=str)

@@ -62,7 +62,7 @@ from tqdm.auto import tqdm
 
 from envs.atomic_io import atomic_write_json
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
-from spf_rl.device import autocast, exact_float32
+from spf_rl.device import autocast, exact_float32, machine_info
 from spf_rl.hub import checked_checkpoint
 from spf_rl.modules.registry import build_policy
 from spf_rl.train.collection import collection_device, make_collector
@@ -376,6 +376,7 @@ class _PPORun:
             "history": self.history,
             "seed": self.config.seed,
             "wall_seconds_this_run": seconds,
+            "machine_this_run": machine_info(),
             "config": asdict(self.config),
         }
         atomic_write_json(self.output / "results.json", results, default=str)
