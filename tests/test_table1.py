@@ -219,13 +219,17 @@ def test_a_finished_run_replaces_an_earlier_runs_file_and_the_rest_stay_marked(t
     run = Path("runs/table1/spf-s0.4-seed0")
     run.mkdir(parents=True)
     (run / "best.pt").write_text("this recipe's seed 0")
-    (run / "results.json").write_text(json.dumps({"val_best": {"success": 0.9, "spl": 0.9, "epoch": 30}}))
+    machine = {"cpu_model": "Some CPU", "cpu_count": 2}
+    (run / "results.json").write_text(json.dumps({"val_best": {"success": 0.9, "spl": 0.9, "epoch": 30}, "machine_this_run": machine}))
     row = table1_rows.ROW_BY_NAME["spf-s0.4"]
     assert table1_rows.train_missing([row], [0, 1, 2], [], checkpoints, False, train=False) == {}
     assert (checkpoints / "table1" / "spf-s0.4-seed0.pt").read_text() == "this recipe's seed 0"
     assert shipped_file(checkpoints, "spf-s0.4").read_text() == "earlier 2"  # not every seed is this recipe's yet
     lines = table1_rows.table_lines([row], 30, 64)
-    assert table1_rows.seed_sources(lines, [0, 1, 2], checkpoints, False) == {"spf-s0.4": {"this_recipe": [0], "earlier": [1, 2]}}
+    sources = table1_rows.seed_sources(lines, [0, 1, 2], checkpoints, False)
+    assert sources == {"spf-s0.4": {"this_recipe": [0], "earlier": [1, 2], "trained_on": {"0": "Some CPU"}}}
+    (run / "results.json").write_text(json.dumps({"val_best": {"success": 0.9, "spl": 0.9, "epoch": 30}}))  # an older run
+    assert table1_rows.seed_sources(lines, [0, 1, 2], checkpoints, False)["spf-s0.4"]["trained_on"] == {"0": None}
 
 
 def test_every_row_trains_on_one_budget_and_every_dagger_column_by_one_rule():

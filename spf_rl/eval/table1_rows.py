@@ -292,21 +292,26 @@ def train_missing(
 
 
 def seed_sources(lines: Sequence[Line], seeds: Sequence[int], checkpoints: Path, quick: bool) -> dict:
-    """``{line: {"this_recipe": [seeds], "earlier": [seeds]}}`` for the trained lines: whether each seed's
-    per-seed checkpoint is the best of this recipe's finished run, or an earlier run's file (another budget or
-    older code: the table says so)."""
+    """``{line: {"this_recipe": [seeds], "earlier": [seeds], "trained_on": {seed: CPU}}}`` for the trained lines:
+    whether each seed's per-seed checkpoint is the best of this recipe's finished run, or an earlier run's file
+    (another budget or older code: the table says so), and for this recipe's runs the CPU model that trained them
+    (``machine_this_run`` of their ``results.json``; ``None`` where the run did not record it). A seed's result
+    depends on the CPU model, so a rerun elsewhere matches the table only on the same model."""
     sources: dict = {}
     for line in lines:
         if line.model == "open_loop" or line.checkpoint_stem in sources:
             continue
-        entry = sources.setdefault(line.checkpoint_stem, {"this_recipe": [], "earlier": []})
+        entry = sources.setdefault(line.checkpoint_stem, {"this_recipe": [], "earlier": [], "trained_on": {}})
         for seed in seeds:
             target = seed_checkpoint(checkpoints, line.checkpoint_stem, seed)
             if not target.exists():
                 continue
             best = run_dir(line.checkpoint_stem, seed, quick) / "best.pt"
-            ours = (best.parent / "results.json").exists() and best.read_bytes() == target.read_bytes()
+            results = best.parent / "results.json"
+            ours = results.exists() and best.read_bytes() == target.read_bytes()
             entry["this_recipe" if ours else "earlier"].append(seed)
+            if ours:
+                entry["trained_on"][str(seed)] = json.loads(results.read_text()).get("machine_this_run", {}).get("cpu_model")
     return sources
 
 
@@ -473,7 +478,8 @@ def reproduce(options: Table1Options) -> dict:
     Returns:
         The table (:func:`spf_rl.eval.table1.build_table`), with ``shipped`` (line -> the seed shipped and
         its validation scores), ``budget`` (:func:`budgets`; ``bc_quick`` with ``--quick``) and each line's
-        ``earlier_seeds`` (seeds whose checkpoint is an earlier run's, not this recipe's: :func:`seed_sources`).
+        ``earlier_seeds`` (seeds whose checkpoint is an earlier run's, not this recipe's) and ``trained_on``
+        (seed -> the CPU model of this recipe's run: :func:`seed_sources`).
     """
     from spf_rl.device import resolve_device
     from spf_rl.train.bc import BCConfig
@@ -492,5 +498,6 @@ def reproduce(options: Table1Options) -> dict:
     sources = seed_sources(lines, seeds, options.checkpoints, options.quick)
     for row in table["rows"]:
         row["earlier_seeds"] = sources.get(row["checkpoint_stem"], {}).get("earlier", [])
+        row["trained_on"] = sources.get(row["checkpoint_stem"], {}).get("trained_on", {})
     write_reports(table, options.out)
     return table
