@@ -232,6 +232,33 @@ def test_a_finished_run_replaces_an_earlier_runs_file_and_the_rest_stay_marked(t
     assert table1_rows.seed_sources(lines, [0, 1, 2], checkpoints, False)["spf-s0.4"]["trained_on"] == {"0": None}
 
 
+def test_a_clean_clone_finds_a_finished_runs_weights_in_its_per_seed_checkpoint(tmp_path, monkeypatch):
+    """A finished run is committed without its ``.pt`` files: its weights are the per-seed checkpoint, which its
+    test records name by SHA-256. A clone gets ``best.pt`` back from there (its DAgger column starts from it),
+    counts the seed as this recipe's, and refuses, naming both files, where the per-seed file is another."""
+    from spf_rl.hub import file_sha256
+
+    monkeypatch.chdir(tmp_path)
+    checkpoints = tmp_path / "checkpoints"
+    (checkpoints / "table1").mkdir(parents=True)
+    target = checkpoints / "table1" / "spf-s0.8-seed0.pt"
+    target.write_text("the run's weights")
+    run = Path("runs/table1/spf-s0.8-seed0")
+    run.mkdir(parents=True)
+    (run / "results.json").write_text(json.dumps({"val_best": {"success": 0.8, "spl": 0.7, "epoch": 30}}))
+    (run / "test_episodes.json").write_text(json.dumps({"checkpoint_sha256": file_sha256(target), "episodes": []}))
+    assert table1_rows.keep_run(checkpoints, "spf-s0.8", 0, run, "val_best") == (0.8, 0.7)
+    assert (run / "best.pt").read_text() == "the run's weights" and target.read_text() == "the run's weights"
+    lines = table1_rows.table_lines([table1_rows.ROW_BY_NAME["spf-s0.8"]], 30, 64)
+    (run / "best.pt").unlink()
+    assert table1_rows.seed_sources(lines, [0], checkpoints, False)["spf-s0.8"]["this_recipe"] == [0]
+    target.write_text("an earlier run's weights")
+    assert table1_rows.seed_sources(lines, [0], checkpoints, False)["spf-s0.8"]["earlier"] == [0]
+    with pytest.raises(FileNotFoundError, match=r"spf-s0\.8-seed0 finished, but its weights are neither in .*best\.pt nor in .*spf-s0\.8-seed0\.pt"):
+        table1_rows.keep_run(checkpoints, "spf-s0.8", 0, run, "val_best")
+    assert target.read_text() == "an earlier run's weights" and not (run / "best.pt").exists()  # nothing overwritten
+
+
 def test_every_row_trains_on_one_budget_and_every_dagger_column_by_one_rule():
     from spf_rl.train.dagger import DAGGER_VAL_SEED
 

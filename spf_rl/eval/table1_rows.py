@@ -229,14 +229,40 @@ def ship_best(checkpoints: Path, line: str, scores: dict) -> dict | None:
     return {"seed": seed, "val_success": scores[seed][0], "val_spl": scores[seed][1]}
 
 
+def run_weights_sha256(directory: Path) -> str | None:
+    """The SHA-256 of a finished run's best weights: of its ``best.pt``, or, where a clone holds the run without
+    it (a finished run's ``.pt`` files are not committed: its weights are the per-seed checkpoint), the one its
+    test records name (``test_episodes.json``); ``None`` where neither is there."""
+    from spf_rl.hub import file_sha256
+    from spf_rl.train.evaluation import TEST_EPISODES_FILE
+
+    if (directory / "best.pt").exists():
+        return file_sha256(directory / "best.pt")
+    records = directory / TEST_EPISODES_FILE
+    return json.loads(records.read_text()).get("checkpoint_sha256") if records.exists() else None
+
+
 def keep_run(checkpoints: Path, line: str, seed: int, directory: Path, best_key: str) -> tuple[float, float] | None:
     """A finished run's validation ``(success, spl)`` (``None``: not finished), its ``best.pt`` copied to the
-    line's per-seed checkpoint where that file is missing or another (an earlier run's: this run supersedes it)."""
+    line's per-seed checkpoint where that file is missing or another (an earlier run's: this run supersedes it).
+
+    A finished run without its ``best.pt`` (a clean clone) gets it back from the per-seed checkpoint when that
+    file holds the run's weights (:func:`run_weights_sha256`), so that its DAgger column can start from it;
+    otherwise the run's weights are lost, and a ``FileNotFoundError`` names both files."""
+    from spf_rl.hub import file_sha256
+
     results = directory / "results.json"
     if not results.exists():
         return None
     target, best = seed_checkpoint(checkpoints, line, seed), directory / "best.pt"
-    if not target.exists() or target.read_bytes() != best.read_bytes():
+    if not best.exists():
+        if not target.exists() or file_sha256(target) != run_weights_sha256(directory):
+            raise FileNotFoundError(
+                f"{directory} finished, but its weights are neither in {best} nor in {target}: restore one of them "
+                f"(git history keeps the checkpoint), or delete {results} to train the run again"
+            )
+        copy_atomic(target, best)
+    elif not target.exists() or target.read_bytes() != best.read_bytes():
         copy_atomic(best, target)
     record = json.loads(results.read_text())[best_key]
     prefix = "val_" if best_key == "best" else ""
@@ -297,6 +323,8 @@ def seed_sources(lines: Sequence[Line], seeds: Sequence[int], checkpoints: Path,
     (another budget or older code: the table says so), and for this recipe's runs the CPU model that trained them
     (``machine_this_run`` of their ``results.json``; ``None`` where the run did not record it). A seed's result
     depends on the CPU model, so a rerun elsewhere matches the table only on the same model."""
+    from spf_rl.hub import file_sha256
+
     sources: dict = {}
     for line in lines:
         if line.model == "open_loop" or line.checkpoint_stem in sources:
@@ -306,9 +334,8 @@ def seed_sources(lines: Sequence[Line], seeds: Sequence[int], checkpoints: Path,
             target = seed_checkpoint(checkpoints, line.checkpoint_stem, seed)
             if not target.exists():
                 continue
-            best = run_dir(line.checkpoint_stem, seed, quick) / "best.pt"
-            results = best.parent / "results.json"
-            ours = results.exists() and best.read_bytes() == target.read_bytes()
+            results = run_dir(line.checkpoint_stem, seed, quick) / "results.json"
+            ours = results.exists() and file_sha256(target) == run_weights_sha256(results.parent)
             entry["this_recipe" if ours else "earlier"].append(seed)
             if ours:
                 entry["trained_on"][str(seed)] = json.loads(results.read_text()).get("machine_this_run", {}).get("cpu_model")
