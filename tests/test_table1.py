@@ -222,6 +222,12 @@ def test_a_finished_run_replaces_an_earlier_runs_file_and_the_rest_stay_marked(t
     machine = {"cpu_model": "Some CPU", "cpu_count": 2}
     (run / "results.json").write_text(json.dumps({"val_best": {"success": 0.9, "spl": 0.9, "epoch": 30}, "machine_this_run": machine}))
     row = table1_rows.ROW_BY_NAME["spf-s0.4"]
+    assert table1_rows.keep_run(checkpoints, "spf-s0.4", 0, run, "val_best") == (0.9, 0.9)
+    from spf_rl.hub import file_sha256, read_manifest
+
+    manifest = read_manifest(checkpoints)  # lists the copy's hash at once, shipping nothing new
+    assert manifest["files"]["table1/spf-s0.4-seed0.pt"] == file_sha256(run / "best.pt")
+    assert manifest["names"] == {"spf-s0.4": "table1/spf-s0.4-seed2.pt"}
     assert table1_rows.train_missing([row], [0, 1, 2], [], checkpoints, False, train=False) == {}
     assert (checkpoints / "table1" / "spf-s0.4-seed0.pt").read_text() == "this recipe's seed 0"
     assert shipped_file(checkpoints, "spf-s0.4").read_text() == "earlier 2"  # not every seed is this recipe's yet

@@ -244,7 +244,8 @@ def run_weights_sha256(directory: Path) -> str | None:
 
 def keep_run(checkpoints: Path, line: str, seed: int, directory: Path, best_key: str) -> tuple[float, float] | None:
     """A finished run's validation ``(success, spl)`` (``None``: not finished), its ``best.pt`` copied to the
-    line's per-seed checkpoint where that file is missing or another (an earlier run's: this run supersedes it).
+    line's per-seed checkpoint where that file is missing or another (an earlier run's: this run supersedes it),
+    and the manifest rewritten to list that file's hash (the names it ships stay as they are).
 
     A finished run without its ``best.pt`` (a clean clone) gets it back from the per-seed checkpoint when that
     file holds the run's weights (:func:`run_weights_sha256`), so that its DAgger column can start from it;
@@ -263,7 +264,10 @@ def keep_run(checkpoints: Path, line: str, seed: int, directory: Path, best_key:
             )
         copy_atomic(target, best)
     elif not target.exists() or target.read_bytes() != best.read_bytes():
+        from spf_rl.hub import write_manifest
+
         copy_atomic(best, target)
+        write_manifest(checkpoints, shipped_names(checkpoints))  # the new file's hash, now, not after every run
     record = json.loads(results.read_text())[best_key]
     prefix = "val_" if best_key == "best" else ""
     return record[f"{prefix}success"], record[f"{prefix}spl"]
