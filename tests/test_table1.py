@@ -137,6 +137,39 @@ def test_the_cache_is_used_only_for_the_same_evaluation(tmp_path):
     assert not list(path.parent.glob(".*"))  # no temporary file left behind
 
 
+def test_a_runs_own_test_records_of_the_same_checkpoint_and_episodes_are_reused(tmp_path, monkeypatch):
+    """A finished run tested its best weights on the table's test episodes: the table takes those records
+    (and caches them) instead of playing the episodes again, but not for another checkpoint, other episodes,
+    or a random-sparsity line (which plays the checkpoint at a set sparsity)."""
+    from spf_rl.train.evaluation import TEST_EPISODES_FILE, write_test_episodes
+
+    monkeypatch.chdir(tmp_path)
+    sets = table1_rows.eval_sets([], quick=True)
+    checkpoints = tmp_path / "ckpt"
+    lines = {line.name: line for line in table1_rows.table_lines(list(table1_rows.ROWS), 30, 64)}
+    for stem in ("spf-s0.8", "spf_random-s0.2-1"):
+        checkpoint = table1_rows.seed_checkpoint(checkpoints, stem, 0)
+        checkpoint.parent.mkdir(parents=True, exist_ok=True)
+        checkpoint.write_bytes(f"weights of {stem}".encode())
+        run = table1_rows.run_dir(stem, 0)
+        run.mkdir(parents=True)
+        records = [{**record, "goal_distance": 0.4} for record in fake_records(0.7, 0)]  # a run's records hold more keys
+        write_test_episodes(run / TEST_EPISODES_FILE, records, sets["test"], checkpoint)
+    played = []
+    monkeypatch.setattr(table1_rows, "evaluate_line", lambda line, *a: played.append(line.name) or fake_records(0.5, 1))
+    chosen = [lines["spf-s0.8"], lines["spf_random-s0.2-1@0.4"]]
+    evaluations, missing = table1_rows.evaluate_all(chosen, [0], {"test": sets["test"]}, checkpoints, tmp_path / "eval", "cpu")
+    assert missing == [] and played == ["spf_random-s0.2-1@0.4"]
+    reused = evaluations["spf-s0.8"]["test"][0]
+    assert [{key: r[key] for key in table1_report.RECORD_KEYS} for r in reused] == fake_records(0.7, 0)  # now cached too
+    path, meta = table1_rows.cache_entry("spf-s0.8", 0, "test", sets["test"], checkpoints / "table1" / "spf-s0.8-seed0.pt", tmp_path / "eval")
+    assert load_cached(path, meta) == fake_records(0.7, 0)
+    path.unlink()
+    table1_rows.seed_checkpoint(checkpoints, "spf-s0.8", 0).write_bytes(b"other weights")  # not what the run tested
+    evaluations, _ = table1_rows.evaluate_all(chosen[:1], [0], {"test": sets["test"]}, checkpoints, tmp_path / "eval", "cpu")
+    assert played[-1] == "spf-s0.8" and evaluations["spf-s0.8"]["test"][0] == fake_records(0.5, 1)
+
+
 def test_evaluations_of_other_episodes_cannot_be_compared(tmp_path):
     line = table1_rows.table_lines([table1_rows.ROW_BY_NAME["spf-s0.8"]], 30, 64)[0]
     shifted = [{**r, "episode_seed": r["episode_seed"] + 1} for r in fake_records(0.5, 1)]

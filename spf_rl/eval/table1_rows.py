@@ -367,6 +367,24 @@ def evaluate_line(line: Line, checkpoint: Path | None, config, device: str) -> l
     return evaluate_policy(policy, config, progress=False)[1]
 
 
+def run_test_records(line: Line, seed: int | None, config, checkpoint: Path | None) -> list[dict] | None:
+    """The per-episode records a run left of this very checkpoint on these very episodes (its
+    ``test_episodes.json``: a finished run tests its best weights on ``bc_table1``'s test set), or ``None``.
+
+    Only lines that play the checkpoint as trained: the random-sparsity lines set a sparsity first, and
+    open-loop replay has no run. Evaluation is deterministic, so the records are the ones evaluating again
+    would give (checked on the first runs: identical, episode by episode)."""
+    from spf_rl.train.evaluation import TEST_EPISODES_FILE, read_test_episodes
+
+    if checkpoint is None or seed is None or line.model in (RANDOM_MODEL, "open_loop"):
+        return None
+    found = read_test_episodes(run_dir(line.checkpoint_stem, seed) / TEST_EPISODES_FILE, config, checkpoint)
+    if found is None:
+        return None
+    logger.info("%s seed %d: reusing its run's test records of this checkpoint on these episodes", line.name, seed)
+    return found[1]
+
+
 def evaluate_all(
     lines: list[Line], seeds: list[int], sets: dict, checkpoints: Path, eval_dir: Path, device: str
 ) -> tuple[dict, list[dict]]:
@@ -385,6 +403,8 @@ def evaluate_all(
             for set_name, config in sets.items():
                 config = eval_config(config, line)
                 def evaluate(line=line, seed=seed, set_name=set_name, config=config, checkpoint=checkpoint):
+                    if (records := run_test_records(line, seed, config, checkpoint)) is not None:
+                        return records
                     logger.info("evaluating %s seed %s on the %s set (%d episodes)", line.name, seed, set_name,
                                 config.num_episodes)
                     return evaluate_line(line, checkpoint, config, device)
