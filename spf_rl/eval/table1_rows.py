@@ -250,7 +250,7 @@ def keep_run(checkpoints: Path, line: str, seed: int, directory: Path, best_key:
     A finished run without its ``best.pt`` (a clean clone) gets it back from the per-seed checkpoint when that
     file holds the run's weights (:func:`run_weights_sha256`), so that its DAgger column can start from it;
     otherwise the run's weights are lost, and a ``FileNotFoundError`` names both files."""
-    from spf_rl.hub import file_sha256
+    from spf_rl.hub import file_sha256, write_manifest
 
     results = directory / "results.json"
     if not results.exists():
@@ -264,8 +264,6 @@ def keep_run(checkpoints: Path, line: str, seed: int, directory: Path, best_key:
             )
         copy_atomic(target, best)
     elif not target.exists() or target.read_bytes() != best.read_bytes():
-        from spf_rl.hub import write_manifest
-
         copy_atomic(best, target)
         write_manifest(checkpoints, shipped_names(checkpoints))  # the new file's hash, now, not after every run
     record = json.loads(results.read_text())[best_key]
