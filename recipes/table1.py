@@ -32,7 +32,9 @@ without a checkpoint are listed as missing, never silently dropped.
 
 Writes ``results/table1.json``, ``results/table1.md`` and ``results/table1.png`` (:mod:`spf_rl.eval.table1`):
 mean +- sd over seeds, house-level bootstrap intervals, paired bootstrap tests of the ordering claims
-(:data:`~spf_rl.eval.table1_rows.CLAIMS`), both success criteria.
+(:data:`~spf_rl.eval.table1_rows.CLAIMS`), both success criteria, and each checkpoint's pointer pace (its
+pointer's mean step on 64 validation episodes, teacher-forced: :mod:`spf_rl.eval.pointer_pace`); a line with a seed
+whose pointer runs backwards is marked.
 
 Usage::
 

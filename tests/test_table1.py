@@ -66,6 +66,8 @@ def test_table_from_cached_records_counts_seeds_and_tests_the_claims(tmp_path, m
         "dagger-spf-s0.8": (0.9, [0]),
     })
     monkeypatch.setattr(table1_rows, "evaluate_line", lambda *a: pytest.fail("everything is cached: nothing to evaluate"))
+    paces = {"spf-s0.8": {"0": 0.9, "1": 0.85, "2": -0.8}, "action_only-s0": {"0": 0.99, "1": 0.98}}
+    monkeypatch.setattr(table1_rows, "pointer_paces", lambda lines, seeds, *a: (paces, {"episodes": 8}))
     table = table1.main(options(tmp_path, "--from-checkpoints", "--rows", ROWS, "--sets", "test"))
     # the checkpoints are no finished runs of this recipe: scored and marked as earlier runs', nothing re-shipped
     assert table["shipped"] == {}
@@ -97,7 +99,9 @@ def test_table_from_cached_records_counts_seeds_and_tests_the_claims(tmp_path, m
     assert {c["metric"] for c in saved["claims"] if "metric" in c} == {"success", "spl", "success_lab"}
 
     text = (tmp_path / "out" / "table1.md").read_text()
-    assert "| SPF sparsity 0.8 † | 3 of 3 |" in text and table1_report.EARLIER_NOTE in text
+    assert "| SPF sparsity 0.8 † ‡ | 3 of 3 |" in text and table1_report.EARLIER_NOTE in text
+    assert "‡ pointer runs backwards (SPF sparsity 0.8: seed 2)" in text  # its pace below 0
+    assert rows["spf-s0.8"]["pointer_pace"]["2"] == -0.8 and saved["pointer_pace"] == {"episodes": 8}
     assert "| RPF action only † | 2 of 3 (missing: 2) |" in text
     assert "| open-loop replay | - (not trained) |" in text
     assert "(1 of 3 (missing: 1, 2) seeds)" in text  # the DAgger column

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from envs.atomic_io import atomic_write_json, atomic_write_text
+from spf_rl.eval.pointer_pace import BACKWARD_PACE
 from spf_rl.stats import hierarchical_bootstrap_ci, paired_bootstrap, seed_summary
 
 logger = logging.getLogger("table1")
@@ -265,7 +266,7 @@ def markdown(table: dict) -> str:
             dagger_text = cell(dagger_row["sets"].get("test"), "success") + f" ({seeds_cell(dagger_row)} seeds)"
         paper = ["-" if v is None else f"{v:.3f}" for v in (row["paper_success"], row["paper_spl"])]
         out.append(
-            f"| {row['label']}{f' {EARLIER_MARK}' if earlier(row, dagger_row) else ''} | {seeds_cell(row)} | {row['memory_bytes']:,} | {cell(on_test, 'success')} | {cell(on_test, 'spl')} "
+            f"| {row['label']}{marks(row, dagger_row)} | {seeds_cell(row)} | {row['memory_bytes']:,} | {cell(on_test, 'success')} | {cell(on_test, 'spl')} "
             f"| {cell(on_test, 'success_lab')} | {cell(on_extended, 'success')} | {cell(on_extended, 'spl')} | {dagger_text} "
             f"| {paper[0]} | {paper[1]} |"
         )
@@ -275,8 +276,7 @@ def markdown(table: dict) -> str:
                 f"episodes (`--preset {budget['bc']['preset']}`); every DAgger column: {budget['dagger']['rounds']} "
                 f"learner-driven rounds, {budget['dagger']['gradient_steps']:,} gradient steps (`--preset "
                 f"{budget['dagger']['preset']}`)."]
-    if any(earlier(row) for row in table["rows"]):
-        out += ["", f"{EARLIER_MARK} {EARLIER_NOTE}"]
+    out += footnotes(table)
     out += ["", "## Ordering claims (paired bootstrap on the shared episodes, pooled over seeds)", "",
             "| claim | set | metric | a - b [95% CI] | p (a > b) | p (two-sided) | holds (p < 0.05) | seeds a / b |",
             "|---|---|---|---|---|---|---|---|"]
@@ -305,13 +305,51 @@ def earlier(*rows: dict | None) -> bool:
     return any(row and row.get("earlier_seeds") for row in rows)
 
 
+#: Marks a line with a seed whose pointer runs backwards (its ``pointer_pace`` below ``BACKWARD_PACE``).
+BACKWARD_MARK = "‡"
+#: What ``pointer_pace`` in ``results/table1.json`` is.
+PACE_NOTE = (
+    "each seed's checkpoint's mean pointer increment per step (demonstration steps), teacher-forced on the "
+    "validation episodes of `dataset` (spf_rl.eval.pointer_pace); below 0 the pointer runs backwards"
+)
+
+
+def backward_seeds(row: dict | None) -> list[int]:
+    """Seeds of a table line whose pointer runs backwards (``pointer_pace`` below ``BACKWARD_PACE``)."""
+    paces = (row or {}).get("pointer_pace") or {}
+    return sorted(int(seed) for seed, pace in paces.items() if pace < BACKWARD_PACE)
+
+
+def marks(*rows: dict | None) -> str:
+    """The footnote marks of a line (``rows``: the line and its DAgger column): earlier runs, backward pointers."""
+    text = f" {EARLIER_MARK}" if earlier(*rows) else ""
+    return text + (f" {BACKWARD_MARK}" if any(backward_seeds(row) for row in rows) else "")
+
+
+def footnotes(table: dict) -> list[str]:
+    """The notes of the marks that some line carries (:func:`marks`), one paragraph each."""
+    out = []
+    if any(earlier(row) for row in table["rows"]):
+        out += ["", f"{EARLIER_MARK} {EARLIER_NOTE}"]
+    found: dict[str, list[int]] = {}
+    for row in table["rows"]:
+        if backward_seeds(row):
+            found.setdefault(row["label"].split(",")[0] + (" + DAgger" if row["dagger_of"] else ""), backward_seeds(row))
+    if found:
+        named = "; ".join(f"{label}: seed {', '.join(map(str, seeds))}" for label, seeds in found.items())
+        out += ["", f"{BACKWARD_MARK} pointer runs backwards ({named}): the paper's rule eta + tanh(b) let training "
+                "drive tanh(b) to -1 in the first epochs, so the memory no longer reaches the policy; these seeds "
+                "are in the means (`pointer_pace` in `results/table1.json`)."]
+    return out
+
+
 def _sparsities_line(rows: list[dict]) -> str:
     """One summary line for a model scored at several sparsities: means side by side."""
     def means(metric: str) -> str:
         return " / ".join(f"{r['sets']['test'][metric]['mean']:.3f}" for r in rows)
 
     sparsities = " / ".join(f"{r['sparsity']:g}" for r in rows)
-    label = f"{rows[0]['label'].split(',')[0]}, at {sparsities}" + (f" {EARLIER_MARK}" if earlier(*rows) else "")
+    label = f"{rows[0]['label'].split(',')[0]}, at {sparsities}" + marks(*rows)
     return (
         f"| {label} | `{rows[0]['checkpoint_stem']}` | {seed_count(rows[0])} | {means('success')} | {means('spl')} "
         f"| - | - |"
@@ -354,15 +392,14 @@ def summary_markdown(table: dict) -> str:
             dagger_text = f"{cell(dagger_row['sets']['test'], 'success', with_ci=False)} ({seed_count(dagger_row)})"
         paper = "-" if row["paper_success"] is None else f"{row['paper_success']:.3f} / {row['paper_spl']:.3f}"
         checkpoint = "-" if row["model"] == "open_loop" else f"`{row['checkpoint_stem']}`"
-        label = row["label"] + (f" {EARLIER_MARK}" if earlier(row, dagger_row) else "")
+        label = row["label"] + marks(row, dagger_row)
         out.append(
             f"| {label} | {checkpoint} | {seeds} | {cell(test, 'success', with_ci=False)} | {cell(test, 'spl', with_ci=False)} "
             f"| {dagger_text} | {paper} |"
         )
     if untrained:
         out += ["", f"Not scored yet (no checkpoint of this noise model): {', '.join(untrained.values())}."]
-    if any(earlier(row) for row in table["rows"]):
-        out += ["", f"{EARLIER_MARK} {EARLIER_NOTE}"]
+    out += footnotes(table)
     return "\n".join(out) + "\n"
 
 

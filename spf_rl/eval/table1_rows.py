@@ -16,7 +16,7 @@ from pathlib import Path
 
 from envs.atomic_io import atomic_write
 from spf_rl.config import load_config
-from spf_rl.eval.table1 import Line, build_table, cache_entry, cached_records, write_reports
+from spf_rl.eval.table1 import PACE_NOTE, Line, build_table, cache_entry, cached_records, write_reports
 
 logger = logging.getLogger(__name__)
 
@@ -99,6 +99,8 @@ EXTENDED_HOUSES = 100
 #: --quick: episodes per set, and where everything goes.
 QUICK_EPISODES = 8
 QUICK_DIR = Path("runs/table1_quick")
+#: Validation episodes (teacher-forced) each checkpoint's pointer pace is measured on (:func:`pace_episodes`).
+PACE_EPISODES = 64
 
 
 def checkpoint_name(model: str, sparsity) -> str:
@@ -169,6 +171,50 @@ def eval_sets(overrides: list[str], quick: bool) -> dict:
     if quick:
         test = dataclasses.replace(test, num_episodes=QUICK_EPISODES, num_agents=QUICK_EPISODES)
     return {"test": test, "extended": dataclasses.replace(test, num_houses=EXTENDED_HOUSES)}
+
+
+def pace_episodes(overrides: Sequence[str], quick: bool):
+    """The episodes every checkpoint's pointer pace is measured on (:func:`pointer_paces`): the training
+    data's config on the validation split, :data:`PACE_EPISODES` episodes (:data:`QUICK_EPISODES` with
+    ``--quick``) of seed ``VAL_SEED``, built once under ``data/`` like a training dataset."""
+    from spf_rl.data import EpisodeDataset
+    from spf_rl.train.bc import BCConfig
+    from spf_rl.train.evaluation import VAL_SEED
+
+    base = load_config(BCConfig, "bc", list(overrides), preset=TABLE1_PRESET)
+    count = QUICK_EPISODES if quick else PACE_EPISODES
+    data = dataclasses.replace(base.data, split="val", num_episodes=count, seed=VAL_SEED, chunk_size=min(count, base.data.chunk_size))
+    root = dataclasses.replace(base, data=data, data_dir=None).resolved_data_dir()
+    dataset = EpisodeDataset.build(root, data, base.num_workers, progress=False)
+    return dataset[list(range(len(dataset)))], root
+
+
+def pointer_paces(
+    lines: Sequence[Line], seeds: Sequence[int], checkpoints: Path, overrides: Sequence[str], quick: bool, device: str
+) -> tuple[dict, dict | None]:
+    """``{checkpoint stem: {seed: pace}}``: :func:`~spf_rl.eval.pointer_pace.pointer_pace` of every per-seed
+    checkpoint there is (a pace below :data:`~spf_rl.eval.pointer_pace.BACKWARD_PACE`: the pointer runs
+    backwards), and what it was measured on (``None`` when there was no checkpoint): the episodes of
+    :func:`pace_episodes`, built at the first checkpoint."""
+    from spf_rl.eval.pointer_pace import pointer_pace
+    from spf_rl.hub import policy_from_checkpoint
+
+    paces: dict = {}
+    episodes = root = None
+    for line in lines:
+        if line.model == "open_loop" or line.checkpoint_stem in paces:
+            continue
+        stem = paces.setdefault(line.checkpoint_stem, {})
+        for seed in seeds:
+            checkpoint = seed_checkpoint(checkpoints, line.checkpoint_stem, seed)
+            if not checkpoint.exists():
+                continue
+            if episodes is None:
+                episodes, root = pace_episodes(overrides, quick)
+            policy = policy_from_checkpoint(checkpoint, expected_model_type=line.model, device=device)[0]
+            stem[str(seed)] = pointer_pace(policy, episodes)
+    info = None if root is None else {"episodes": len(episodes), "dataset": root.as_posix(), "description": PACE_NOTE}
+    return paces, info
 
 
 def dagger_config(row: RowSpec, seed: int, overrides: Sequence[str] = ()):
@@ -528,7 +574,8 @@ def reproduce(options: Table1Options) -> dict:
         The table (:func:`spf_rl.eval.table1.build_table`), with ``shipped`` (line -> the seed shipped and
         its validation scores), ``budget`` (:func:`budgets`; ``bc_quick`` with ``--quick``) and each line's
         ``earlier_seeds`` (seeds whose checkpoint is an earlier run's, not this recipe's) and ``trained_on``
-        (seed -> the CPU model of this recipe's run: :func:`seed_sources`).
+        (seed -> the CPU model of this recipe's run: :func:`seed_sources`); each line's ``pointer_pace`` (seed ->
+        its checkpoint's pointer pace) and the table's ``pointer_pace`` (what it was measured on): :func:`pointer_paces`.
     """
     from spf_rl.device import resolve_device
     from spf_rl.train.bc import BCConfig
@@ -542,11 +589,13 @@ def reproduce(options: Table1Options) -> dict:
     lines = table_lines(rows, base.data.demo_length, base.data.image_size)
     evaluations, missing = evaluate_all(lines, seeds, sets, options.checkpoints, options.eval_dir, device)
     table = build_table(lines, evaluations, sets, seeds, CLAIMS, missing, options.num_resamples)
+    paces, table["pointer_pace"] = pointer_paces(lines, seeds, options.checkpoints, overrides, options.quick, device)
     table["shipped"] = shipped
     table["budget"] = {"preset": "bc_quick"} if options.quick else budgets(overrides)
     sources = seed_sources(lines, seeds, options.checkpoints, options.quick)
     for row in table["rows"]:
         row["earlier_seeds"] = sources.get(row["checkpoint_stem"], {}).get("earlier", [])
         row["trained_on"] = sources.get(row["checkpoint_stem"], {}).get("trained_on", {})
+        row["pointer_pace"] = paces.get(row["checkpoint_stem"], {})
     write_reports(table, options.out)
     return table
