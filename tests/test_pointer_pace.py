@@ -116,5 +116,5 @@ def test_a_line_with_a_backward_seed_is_marked_and_named():
     healthy = {**row, "name": "spf-s0.6", "row": "spf-s0.6", "label": "SPF sparsity 0.6", "pointer_pace": {"0": 0.9}}
     text = table1_report.summary_markdown({"rows": [row, healthy], "claims": []})
     assert f"| SPF sparsity 0.4 {table1_report.BACKWARD_MARK} |" in text and "| SPF sparsity 0.6 |" in text
-    assert "pointer runs backwards (SPF sparsity 0.4: seed 2)" in text
+    assert "pointer runs backwards (SPF sparsity 0.4: seed 2; `pointer_pace`)" in text
     assert table1_report.backward_seeds(row) == [2] and table1_report.backward_seeds(healthy) == []

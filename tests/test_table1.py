@@ -100,7 +100,7 @@ def test_table_from_cached_records_counts_seeds_and_tests_the_claims(tmp_path, m
 
     text = (tmp_path / "out" / "table1.md").read_text()
     assert "| SPF sparsity 0.8 † ‡ | 3 of 3 |" in text and table1_report.EARLIER_NOTE in text
-    assert "‡ pointer runs backwards (SPF sparsity 0.8: seed 2)" in text  # its pace below 0
+    assert "‡ pointer runs backwards (SPF sparsity 0.8: seed 2; `pointer_pace`)" in text  # its pace below 0
     assert rows["spf-s0.8"]["pointer_pace"]["2"] == -0.8 and saved["pointer_pace"] == {"episodes": 8}
     assert "| RPF action only † | 2 of 3 (missing: 2) |" in text
     assert "| open-loop replay | - (not trained) |" in text

@@ -337,9 +337,8 @@ def footnotes(table: dict) -> list[str]:
             found.setdefault(row["label"].split(",")[0] + (" + DAgger" if row["dagger_of"] else ""), backward_seeds(row))
     if found:
         named = "; ".join(f"{label}: seed {', '.join(map(str, seeds))}" for label, seeds in found.items())
-        out += ["", f"{BACKWARD_MARK} pointer runs backwards ({named}): the paper's rule eta + tanh(b) let training "
-                "drive tanh(b) to -1 in the first epochs, so the memory no longer reaches the policy; these seeds "
-                "are in the means (`pointer_pace` in `results/table1.json`)."]
+        out += ["", f"{BACKWARD_MARK} pointer runs backwards ({named}; `pointer_pace`): training drove the paper's "
+                "tanh(b) to -1, cutting off the memory; kept in the means."]
     return out
 
 
