@@ -268,8 +268,8 @@ def act_on_device(
 
 
 def machine_info() -> dict:
-    """The machine a run or benchmark ran on: CPU model and count, library versions, GL back-end, thread settings
-    and the load average now.
+    """The machine a run or benchmark ran on: CPU model (with its family/model/stepping) and count, the SIMD level
+    torch's CPU kernels dispatch to, library versions, GL back-end, thread settings and the load average now.
 
     A seed's training result is bit-identical on one CPU model but not across them (float32 kernels accumulate in
     another order), so every run's ``results.json`` records this beside its numbers (``machine_this_run``).
@@ -278,22 +278,28 @@ def machine_info() -> dict:
         >>> info = machine_info()
         >>> info["cpu_count"] == os.cpu_count() and info["torch"] == torch.__version__
         True
+        >>> info["torch_cpu_capability"] == torch.backends.cpu.get_cpu_capability()  # e.g. "AVX2" or "AVX512"
+        True
     """
     import mujoco
     import tensordict
     import torchrl
 
-    cpu_model = platform.processor()
+    cpu_model, cpuinfo = platform.processor(), {}
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu_model = line.split(":", 1)[1].strip()
-                break
+            key, _, value = line.partition(":")
+            cpuinfo.setdefault(key.strip(), value.strip())
     except OSError:
         pass
+    cpu_model = cpuinfo.get("model name", cpu_model)
+    # one model name ("AMD EPYC") covers several generations: family/model/stepping tell them apart
+    cpu_id = "/".join(cpuinfo.get(key, "?") for key in ("cpu family", "model", "stepping")) if cpuinfo else None
     return {
         "cpu_count": os.cpu_count(),
         "cpu_model": cpu_model,
+        "cpu_family_model_stepping": cpu_id,
+        "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
         "cuda_device": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
         "python": platform.python_version(),
         "torch": torch.__version__,

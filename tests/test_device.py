@@ -401,3 +401,15 @@ def test_ppo_runs_under_amp_on_the_cpu(tmp_path, checkpoint):
     assert update["log_ratio_first"] < AMP_RATIO_SYNC_TOLERANCE
     best = load_checkpoint(tmp_path / "run" / "best.pt")
     assert all(t.dtype == torch.float32 for t in best["model"].values() if t.is_floating_point())
+
+
+# ---------------------------------------------------------------------- the machine a run records
+def test_machine_info_tells_cpu_generations_of_one_model_name_apart(monkeypatch):
+    from spf_rl import device
+
+    cpuinfo = "processor\t: 0\nvendor_id\t: AuthenticAMD\ncpu family\t: 25\nmodel\t\t: 1\nmodel name\t: AMD EPYC\nstepping\t: 1\n"
+    original = Path.read_text
+    monkeypatch.setattr(Path, "read_text", lambda self, *a, **k: cpuinfo if str(self) == "/proc/cpuinfo" else original(self, *a, **k))
+    info = device.machine_info()
+    assert info["cpu_model"] == "AMD EPYC" and info["cpu_family_model_stepping"] == "25/1/1"
+    assert info["torch_cpu_capability"] == torch.backends.cpu.get_cpu_capability()
