@@ -17,7 +17,8 @@ then get one DAgger rule, ``--preset dagger_table1`` (10 learner-driven rounds, 
 validation episodes), from their own BC run. Seed 0 of every row comes first, then seed 1, then seed 2. Run
 directories ``runs/table1/<row>-seed<S>`` and ``runs/table1/dagger-<row>-seed<S>``; an interrupted run resumes.
 A finished run's ``best.pt`` is copied to ``checkpoints/table1/<line>-seed<S>.pt`` (replacing an earlier run's
-file there), and once every seed of a line has finished, the seed with the best validation success becomes the
+file there), and once every seed of a line has finished (seeds 0, 1 and 2, and any other ``--seeds``: a run of
+``--seeds 2`` alone still ships the best of the three), the seed with the best validation success becomes the
 line's shipped name (``checkpoints/manifest.json`` maps the name to that file). Per-seed files that are not this
 recipe's runs (earlier runs, on other budgets or code) are still scored, and the table marks their lines.
 ``--from-checkpoints`` trains nothing, but still copies and ships what finished runs left. ``key=value``
@@ -52,7 +53,17 @@ from collections.abc import Callable
 from pathlib import Path
 
 from spf_rl.cli import ArgumentParser
-from spf_rl.eval.table1_rows import QUICK_DIR, QUICK_EPISODES, ROW_BY_NAME, SETS, Table1Options, parse_names, parse_seeds, reproduce
+from spf_rl.eval.table1_rows import (
+    DEFAULT_SEEDS,
+    QUICK_DIR,
+    QUICK_EPISODES,
+    ROW_BY_NAME,
+    SETS,
+    Table1Options,
+    parse_names,
+    parse_seeds,
+    reproduce,
+)
 
 
 def arg_type(parse: Callable, *params) -> Callable[[str], object]:
@@ -74,7 +85,7 @@ def parse_args(argv: list[str] | None) -> Table1Options:
         help="train nothing: score the checkpoints there are (finished runs are still copied and shipped)",
     )
     parser.add_argument("--rows", type=arg_type(parse_names, tuple(ROW_BY_NAME), "row"), default=list(ROW_BY_NAME))
-    parser.add_argument("--seeds", type=arg_type(parse_seeds), default=[0, 1, 2])
+    parser.add_argument("--seeds", type=arg_type(parse_seeds), default=list(DEFAULT_SEEDS))
     parser.add_argument("--sets", type=arg_type(parse_names, SETS, "set"), default=list(SETS))
     parser.add_argument(
         "--quick", action="store_true",

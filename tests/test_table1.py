@@ -3,6 +3,7 @@ per-episode records (no env, no policy), bad options, the cache, and a real open
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -240,6 +241,21 @@ def test_training_runs_seed_0_of_every_row_first_each_dagger_after_its_row_and_s
     calls.clear()
     assert table1_rows.train_missing(rows, [0, 1, 2], [], checkpoints, False) == shipped
     assert calls == []  # finished runs are not trained again
+
+
+def test_training_one_seed_ships_the_best_of_every_seed_not_that_seed_alone(tmp_path, monkeypatch):
+    """``--seeds 2`` trains seed 2 only; the name ships from seeds 0, 1 and 2 once all three are finished runs."""
+    monkeypatch.chdir(tmp_path)
+    calls = fake_runs(monkeypatch, val={0: 0.70, 1: 0.76, 2: 0.73}, dagger_val={})
+    row = table1_rows.ROW_BY_NAME["action_only-s0"]
+    checkpoints = tmp_path / "checkpoints"
+    assert table1_rows.train_missing([row], [2], [], checkpoints, False) == {}  # seeds 0 and 1 have not run
+    assert [config.seed for _, config in calls] == [2] and not table1_rows.shipped_names(checkpoints)
+    assert table1_rows.train_missing([row], [0, 1], [], checkpoints, False)["action_only-s0"]["seed"] == 1
+    shutil.rmtree("runs/table1/action_only-s0-seed2")  # seed 2 trained again, better: it ships from a --seeds 2 run
+    fake_runs(monkeypatch, val={2: 0.9}, dagger_val={})
+    assert table1_rows.train_missing([row], [2], [], checkpoints, False)["action_only-s0"]["seed"] == 2
+    assert shipped_file(checkpoints, "action_only-s0").read_text() == "bc action_only-s0-seed2"
 
 
 def test_a_finished_run_replaces_an_earlier_runs_file_and_the_rest_stay_marked(tmp_path, monkeypatch):

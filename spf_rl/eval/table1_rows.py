@@ -27,6 +27,8 @@ TABLE1_PRESET = "bc_table1"
 TABLE1_DAGGER_PRESET = "dagger_table1"
 #: The table's run directories: ``<RUNS_DIR>/<line>-seed<S>``, a line being a row or ``dagger-<row>``.
 RUNS_DIR = Path("runs/table1")
+#: The table's training seeds; a line's name ships the best of these (and of any others asked for) by validation.
+DEFAULT_SEEDS = (0, 1, 2)
 #: Overrides of ``recipes/table1.py`` that reach the DAgger runs too (the others are BC keys).
 DAGGER_OVERRIDE_KEYS = ("device", "optim.amp")
 
@@ -325,18 +327,22 @@ def train_missing(
     name, and ship each line's best seed by validation once every seed of the line has a finished run;
     returns ``{line: shipped}``. ``--quick`` trains no DAgger.
 
-    A line whose seeds are not all finished runs of this recipe keeps its shipped name as it is (its per-seed
-    files may be earlier runs', see :func:`seed_sources`)."""
+    The seeds a name ships from are ``seeds`` and :data:`DEFAULT_SEEDS` together: ``--seeds 2`` trains seed 2
+    only, yet ships the best of seeds 0, 1 and 2, never seed 2 alone. A line whose ship seeds are not all
+    finished runs of this recipe keeps its shipped name as it is (its per-seed files may be earlier runs', see
+    :func:`seed_sources`)."""
     from spf_rl.train.bc import train_bc
     from spf_rl.train.dagger import train_dagger
 
     trained = [row for row in rows if row.trained]
     scores: dict[str, dict[int, tuple[float, float]]] = {}
-    for seed in seeds:
+    ship_seeds = sorted({*seeds, *DEFAULT_SEEDS})
+    for seed in ship_seeds:
+        train_seed = train and seed in seeds
         for row in trained:
             config = row_config(row, seed, overrides, quick)
             bc_dir = Path(config.output_dir)
-            if train and not (bc_dir / "results.json").exists():
+            if train_seed and not (bc_dir / "results.json").exists():
                 logger.info("training %s seed %d in %s (preset %s)", row.name, seed, bc_dir, preset_of(row, quick))
                 train_bc(config)
             if (bc_score := keep_run(checkpoints, row.name, seed, bc_dir, "val_best")) is not None:
@@ -345,7 +351,7 @@ def train_missing(
                 continue
             dagger = dagger_config(row, seed, overrides)
             dagger_dir = Path(dagger.output_dir)
-            if train and bc_score is not None and not (dagger_dir / "results.json").exists():
+            if train_seed and bc_score is not None and not (dagger_dir / "results.json").exists():
                 logger.info("DAgger from %s seed %d in %s", row.name, seed, dagger_dir)
                 train_dagger(dagger)
             if (score := keep_run(checkpoints, f"dagger-{row.name}", seed, dagger_dir, "best")) is not None:
@@ -353,9 +359,9 @@ def train_missing(
     shipped = {}
     for line in (name for row in trained for name in (row.name, *([f"dagger-{row.name}"] if row.dagger and not quick else []))):
         line_scores = scores.get(line, {})
-        if set(line_scores) != set(seeds):
+        if set(line_scores) != set(ship_seeds):
             logger.info("%s: seeds %s have no finished run here yet: the name %s is left as it is", line,
-                        sorted(set(seeds) - set(line_scores)), line)
+                        sorted(set(ship_seeds) - set(line_scores)), line)
             continue
         shipped[line] = ship_best(checkpoints, line, line_scores)
     if checkpoints.is_dir():  # per-seed files copied above are listed too
@@ -531,7 +537,7 @@ class Table1Options:
     """
 
     rows: tuple[str, ...] = tuple(ROW_BY_NAME)
-    seeds: tuple[int, ...] = (0, 1, 2)
+    seeds: tuple[int, ...] = DEFAULT_SEEDS
     sets: tuple[str, ...] = SETS
     overrides: tuple[str, ...] = ()
     quick: bool = False
