@@ -184,8 +184,8 @@ def test_homing_datasets_and_evaluations_play_homing_episodes(tmp_path):
 
 
 #: The 4,000-episode dataset of the bc_row runs, made by the hand-written loop before the
-#: collectors (its statistics as runs/bc_row/spf-s0.8-seed0/results.json recorded them; the
-#: run directory's weights are in git history only), and the dataset settings that made it.
+#: collectors (its statistics as runs/bc_row/spf-s0.8-seed0/results.json recorded them; that
+#: run directory is in git history only), and the dataset settings that made it.
 HAND_LOOP_DATASET = {"episodes": 4000, "behaviour_success": 0.99, "mean_length": 33.5905}
 def test_two_workers_build_both_stores_in_one_pool_and_the_same_bytes(built, tmp_path, monkeypatch):
     """The demonstrations and the episodes are built in one pool of worker processes, which
