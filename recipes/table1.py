@@ -31,7 +31,9 @@ config and the checkpoint's SHA-256, so a rerun evaluates only what is missing o
 test records of the same checkpoint on the same episodes (its ``test_episodes.json``) are taken as they are. Seeds
 without a checkpoint are listed as missing, never silently dropped.
 
-Writes ``results/table1.json``, ``results/table1.md`` and ``results/table1.png`` (:mod:`spf_rl.eval.table1`):
+Writes ``results/table1.json``, ``results/table1.md`` and ``results/table1.png`` (:mod:`spf_rl.eval.table1`); a
+part of the table (``--rows``, ``--seeds`` or ``--sets`` leaving some out) goes to ``runs/table1_part/`` instead
+(or ``--out``), so that it never overwrites the whole table. The table holds:
 mean +- sd over seeds, house-level bootstrap intervals, paired bootstrap tests of the ordering claims
 (:data:`~spf_rl.eval.table1_rows.CLAIMS`), both success criteria, and each checkpoint's pointer pace (its
 pointer's mean step on 64 validation episodes, teacher-forced: :mod:`spf_rl.eval.pointer_pace`); a line with a seed
@@ -41,7 +43,7 @@ Usage::
 
     python recipes/table1.py --from-checkpoints          # score checkpoints/table1/ and finished runs (no training)
     python recipes/table1.py                             # train what is missing, then score
-    python recipes/table1.py --rows spf-s0.8,action_only-s0 --seeds 0,1 --sets test
+    python recipes/table1.py --rows spf-s0.8,action_only-s0 --seeds 0,1 --sets test   # a part, in runs/table1_part/
     python recipes/table1.py --quick --from-checkpoints --rows open_loop   # smoke run under runs/table1_quick/
     python recipes/table1.py device=cuda optim.amp=true   # key=value overrides reach every training run
 """
@@ -93,7 +95,10 @@ def parse_args(argv: list[str] | None) -> Table1Options:
     )
     parser.add_argument("--checkpoints", type=Path, default=None, help="default checkpoints/ (quick: under runs/table1_quick/)")
     parser.add_argument("--eval-dir", type=Path, default=None, help="per-episode cache, default results/eval/table1/")
-    parser.add_argument("--out", type=Path, default=None, help="where table1.{json,md,png} go, default results/")
+    parser.add_argument(
+        "--out", type=Path, default=None,
+        help="where table1.{json,md,png} go, default results/ (a part of the table: runs/table1_part/)",
+    )
     parser.add_argument("--num-resamples", type=int, default=10_000, help="bootstrap resamples")
     parser.add_argument("overrides", nargs="*", help="key=value overrides for every training run (as for bc.py)")
     args = parser.parse_args(argv)

@@ -421,3 +421,40 @@ def test_summary_marks_lines_holding_earlier_runs():
     assert lines[-1] == f"{EARLIER_MARK} {EARLIER_NOTE}"
     rows[2]["earlier_seeds"] = []
     assert EARLIER_MARK not in summary_markdown({"rows": rows, "claims": []})
+
+
+def test_seed_by_seed_gives_each_seeds_success_pace_and_the_shipped_seed():
+    from spf_rl.eval.table1 import seed_by_seed
+
+    def row(name: str, label: str, per_seed: dict, paces: dict, model: str = "spf") -> dict:
+        sets = {"test": {"per_seed": {str(s): {"success": v} for s, v in per_seed.items()}}}
+        return {"name": name, "label": label, "model": model, "sets": sets, "pointer_pace": paces}
+
+    table = {
+        "seeds": [0, 1, 2], "sets": {"test": {}},
+        "rows": [
+            row("spf-s0.4", "SPF 0.4", {0: 0.78, 1: 0.76}, {"0": 0.9, "1": -0.7}),
+            row("r@0.4", "Random, at 0.4", {0: 0.7, 1: 0.4, 2: 0.71}, {}),
+            row("open_loop", "open-loop", {"None": 0.5}, {}, model="open_loop"),
+        ],
+        "shipped": {"spf-s0.4": {"seed": 0, "val_success": 0.8}, "r": {"seed": 2, "val_success": 0.75}},
+    }
+    lines = seed_by_seed(table)
+    assert "| line | test: seed 0 | test: seed 1 | test: seed 2 | pointer pace | ships |" in lines
+    assert "| SPF 0.4 | 0.780 | 0.760 | - | +0.90 / -0.70 / - | seed 0 (0.800) |" in lines  # seed 2 not scored
+    assert "| Random, at 0.4 | 0.700 | 0.400 | 0.710 | - | seed 2 (0.750) |" in lines  # its model's shipped seed
+    assert not any("open-loop" in line for line in lines)  # not trained: no seeds
+    table.pop("shipped")
+    assert seed_by_seed(table)[-2].endswith("| +0.90 / -0.70 / - | - |")
+
+
+@pytest.mark.parametrize(
+    "kwargs, part",
+    [({}, False), ({"seeds": (0, 1, 2, 3)}, False), ({"seeds": (2,)}, True), ({"rows": ("spf-s0.8",)}, True),
+     ({"sets": ("test",)}, True)],
+)
+def test_a_part_of_the_table_never_overwrites_the_whole_one(kwargs, part):
+    options = table1_rows.Table1Options(from_checkpoints=True, **kwargs)
+    assert options.part is part
+    assert options.out == (table1_rows.PART_DIR if part else Path("results"))
+    assert table1_rows.Table1Options(from_checkpoints=True, out=Path("elsewhere"), **kwargs).out == Path("elsewhere")

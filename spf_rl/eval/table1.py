@@ -277,6 +277,7 @@ def markdown(table: dict) -> str:
                 f"learner-driven rounds, {budget['dagger']['gradient_steps']:,} gradient steps (`--preset "
                 f"{budget['dagger']['preset']}`)."]
     out += footnotes(table)
+    out += seed_by_seed(table)
     out += ["", "## Ordering claims (paired bootstrap on the shared episodes, pooled over seeds)", "",
             "| claim | set | metric | a - b [95% CI] | p (a > b) | p (two-sided) | holds (p < 0.05) | seeds a / b |",
             "|---|---|---|---|---|---|---|---|"]
@@ -339,6 +340,29 @@ def footnotes(table: dict) -> list[str]:
         named = "; ".join(f"{label}: seed {', '.join(map(str, seeds))}" for label, seeds in found.items())
         out += ["", f"{BACKWARD_MARK} pointer runs backwards ({named}; `pointer_pace`): training drove the paper's "
                 "tanh(b) to -1, cutting off the memory; kept in the means."]
+    return out
+
+
+def seed_by_seed(table: dict) -> list[str]:
+    """Each trained line's success per training seed on every set, its pointer pace per seed, and the seed its
+    shipped name holds (``table["shipped"]``, where the table has it), as a markdown section."""
+    seeds, set_names = table["seeds"], list(table["sets"])
+    shipped = table.get("shipped") or {}
+    header = [f"{name}: seed {seed}" for name in set_names for seed in seeds]
+    out = ["", "## Seed by seed", "",
+           "Success per training seed; pointer pace per seed (below 0: runs backwards); the seed the line's name ships "
+           "(best validation success).", "",
+           "| line | " + " | ".join(header) + " | pointer pace | ships |", "|---" * (len(header) + 3) + "|"]
+    for row in (r for r in table["rows"] if r["model"] != "open_loop"):
+        cells = []
+        for name in set_names:
+            per_seed = (row["sets"].get(name) or {}).get("per_seed", {})
+            cells += [f"{per_seed[str(seed)]['success']:.3f}" if str(seed) in per_seed else "-" for seed in seeds]
+        paces = row.get("pointer_pace") or {}
+        pace = " / ".join(f"{paces[str(seed)]:+.2f}" if str(seed) in paces else "-" for seed in seeds) if paces else "-"
+        ship = shipped.get(row["name"].split("@")[0])
+        ship_text = f"seed {ship['seed']} ({ship['val_success']:.3f})" if ship else "-"
+        out.append(f"| {row['label']} | " + " | ".join(cells) + f" | {pace} | {ship_text} |")
     return out
 
 

@@ -101,6 +101,9 @@ EXTENDED_HOUSES = 100
 #: --quick: episodes per set, and where everything goes.
 QUICK_EPISODES = 8
 QUICK_DIR = Path("runs/table1_quick")
+#: Where a part of the table (fewer rows, seeds or sets than the defaults) is written unless ``out`` is given, so
+#: that it never overwrites the whole table in ``results/``.
+PART_DIR = Path("runs/table1_part")
 #: Validation episodes (teacher-forced) each checkpoint's pointer pace is measured on (:func:`pace_episodes`).
 PACE_EPISODES = 64
 
@@ -518,7 +521,8 @@ class Table1Options:
         from_checkpoints: train nothing: score the checkpoints there are (finished runs are still copied and shipped).
         checkpoints: the checkpoint directory; ``None``: ``checkpoints/`` (quick: under :data:`QUICK_DIR`).
         eval_dir: the per-episode cache; ``None``: ``results/eval/table1/`` (quick: under :data:`QUICK_DIR`).
-        out: where ``table1.{json,md,png}`` go; ``None``: ``results/`` (quick: under :data:`QUICK_DIR`).
+        out: where ``table1.{json,md,png}`` go; ``None``: ``results/`` for the whole table, :data:`PART_DIR` for a
+            part of it (:attr:`part`), under :data:`QUICK_DIR` with ``quick``.
         num_resamples: bootstrap resamples.
         eval_sets: (made from the others) the evaluation configs of :data:`SETS` (:func:`eval_sets`).
 
@@ -530,6 +534,8 @@ class Table1Options:
         >>> options = Table1Options(rows=("open_loop",), quick=True)
         >>> options.checkpoints.as_posix(), options.eval_dir.as_posix(), options.out.as_posix()
         ('runs/table1_quick/checkpoints', 'runs/table1_quick/eval', 'runs/table1_quick/results')
+        >>> Table1Options(rows=("spf-s0.8",), seeds=(2,), from_checkpoints=True).out.as_posix()  # a part
+        'runs/table1_part'
         >>> Table1Options(overrides=("seed=3",))
         Traceback (most recent call last):
         ...
@@ -561,7 +567,8 @@ class Table1Options:
         root = QUICK_DIR if self.quick else Path(".")
         put("checkpoints", Path(self.checkpoints) if self.checkpoints else root / "checkpoints")
         put("eval_dir", Path(self.eval_dir) if self.eval_dir else (root / "eval" if self.quick else Path("results/eval/table1")))
-        put("out", Path(self.out) if self.out else (root / "results" if self.quick else Path("results")))
+        default_out = root / "results" if self.quick else (PART_DIR if self.part else Path("results"))
+        put("out", Path(self.out) if self.out else default_out)
         try:  # bad overrides are refused here, before any work
             put("eval_sets", eval_sets(list(self.overrides), self.quick))
             for row in (ROW_BY_NAME[name] for name in self.rows if ROW_BY_NAME[name].trained):
@@ -570,6 +577,14 @@ class Table1Options:
                     dagger_config(row, self.seeds[0], self.overrides)
         except ValueError as err:
             raise ValueError(f"overrides: {err}") from err
+
+
+    @property
+    def part(self) -> bool:
+        """Whether this run covers a part of the table: fewer rows, seeds or sets than the defaults."""
+        return (
+            set(self.rows) != set(ROW_BY_NAME) or not set(DEFAULT_SEEDS) <= set(self.seeds) or set(self.sets) != set(SETS)
+        )
 
 
 def reproduce(options: Table1Options) -> dict:
@@ -604,4 +619,6 @@ def reproduce(options: Table1Options) -> dict:
         row["trained_on"] = sources.get(row["checkpoint_stem"], {}).get("trained_on", {})
         row["pointer_pace"] = paces.get(row["checkpoint_stem"], {})
     write_reports(table, options.out)
+    logger.info("wrote %s/table1.{json,md,png}%s", options.out.as_posix(),
+                " (a part of the table: rows, seeds or sets left out)" if options.part else "")
     return table
