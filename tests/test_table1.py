@@ -428,7 +428,8 @@ def test_seed_by_seed_gives_each_seeds_success_pace_and_the_shipped_seed():
 
     def row(name: str, label: str, per_seed: dict, paces: dict, model: str = "spf") -> dict:
         sets = {"test": {"per_seed": {str(s): {"success": v} for s, v in per_seed.items()}}}
-        return {"name": name, "label": label, "model": model, "sets": sets, "pointer_pace": paces}
+        return {"name": name, "checkpoint_stem": name.split("@")[0], "label": label, "model": model, "sets": sets,
+                "pointer_pace": paces}
 
     table = {
         "seeds": [0, 1, 2], "sets": {"test": {}},

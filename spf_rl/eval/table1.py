@@ -360,7 +360,7 @@ def seed_by_seed(table: dict) -> list[str]:
             cells += [f"{per_seed[str(seed)]['success']:.3f}" if str(seed) in per_seed else "-" for seed in seeds]
         paces = row.get("pointer_pace") or {}
         pace = " / ".join(f"{paces[str(seed)]:+.2f}" if str(seed) in paces else "-" for seed in seeds) if paces else "-"
-        ship = shipped.get(row["name"].split("@")[0])
+        ship = shipped.get(row["checkpoint_stem"])
         ship_text = f"seed {ship['seed']} ({ship['val_success']:.3f})" if ship else "-"
         out.append(f"| {row['label']} | " + " | ".join(cells) + f" | {pace} | {ship_text} |")
     return out

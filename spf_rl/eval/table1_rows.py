@@ -578,7 +578,6 @@ class Table1Options:
         except ValueError as err:
             raise ValueError(f"overrides: {err}") from err
 
-
     @property
     def part(self) -> bool:
         """Whether this run covers a part of the table: fewer rows, seeds or sets than the defaults."""
