@@ -32,6 +32,7 @@ import time
 from pathlib import Path
 
 from envs.atomic_io import atomic_write_json
+from envs.episode_spec import EpisodeSpec
 from spf_rl.device import machine_info
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -82,7 +83,7 @@ def main(argv: list[str] | None = None) -> dict:
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     dataset = EpisodeDataset.build(
-        args.data_dir, DatasetConfig(num_episodes=64, num_houses=4, chunk_size=16, seed=123), num_workers=1
+        args.data_dir, DatasetConfig(EpisodeSpec(num_houses=4, max_steps=50, seed=123), num_episodes=64, chunk_size=16), num_workers=1
     )
     pairs = 2 if args.quick else 4
     small = [dataset.replay_buffer(16, seed=seed).sample() for seed in range(2 * pairs)]

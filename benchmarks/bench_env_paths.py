@@ -23,6 +23,7 @@ import torch
 
 from envs.demo_store import DemoStore, DemoStoreConfig
 from envs.demos import apply_motion, nominal_motion
+from envs.episode_spec import EpisodeSpec
 from envs.factory import make_path_follow_env
 from envs.house_mesh import house_model
 from envs.render import FirstPersonRenderer
@@ -384,11 +385,9 @@ class BenchPaths:
             start = time.perf_counter()
             existed = (root / "meta.json").exists()
             store_config = DemoStoreConfig(
+                EpisodeSpec(split="train", num_houses=self.config.num_houses, demo_length=self.config.demo_length,
+                            image_size=self.config.image_size),
                 num_demos=BENCH_STORE_DEMOS,
-                split="train",
-                num_houses=self.config.num_houses,
-                demo_length=self.config.demo_length,
-                image_size=self.config.image_size,
             )
             DemoStore.build(root, store_config, progress=True)
             try:

@@ -81,12 +81,11 @@ def build_learner(sizes: Sizes):
 
 
 def _dataset_config(sizes: Sizes):
+    from envs.episode_spec import EpisodeSpec
     from spf_rl.data import DatasetConfig
 
-    return dataclasses.replace(
-        DatasetConfig(), num_episodes=sizes.dataset_episodes, split="train", num_houses=sizes.num_houses,
-        noise="paper", seed=sizes.seed, **_episode_sizes(sizes),
-    )
+    episodes = EpisodeSpec(split="train", num_houses=sizes.num_houses, noise="paper", seed=sizes.seed, **_episode_sizes(sizes))
+    return dataclasses.replace(DatasetConfig(), num_episodes=sizes.dataset_episodes, episodes=episodes)
 
 
 def measure_raw(sizes: Sizes, scratch: Path) -> dict:
@@ -144,14 +143,15 @@ def measure_dagger_collection(sizes: Sizes, scratch: Path) -> dict:
         default, episodes_per_round=sizes.dagger_episodes, progress=False, output_dir=str(scratch / "dagger"),
         seed=sizes.seed, device="cpu",
         env=dataclasses.replace(default.env, **_collection_env_values(sizes)),
+        val=_sized(default.val, sizes),
+        test=_sized(default.test, sizes),
         collector=dataclasses.replace(
             default.collector, **_given(num_collectors=sizes.collectors, num_agents=sizes.num_agents)
         ),
     )
     env = config.env
     round_config = dagger_rounds.RoundConfig(
-        round_index=1, seed=sizes.seed, beta=0.0, num_episodes=config.episodes_per_round, demo_length=env.demo_length,
-        max_steps=env.max_steps, image_size=env.image_size, split=env.split, num_houses=env.num_houses, noise=env.noise,
+        round_index=1, beta=0.0, num_episodes=config.episodes_per_round, episodes=env.episodes.replace(seed=sizes.seed),
     )
     round_dir = Path(tempfile.mkdtemp(dir=scratch)) / "round-01"
     policy = build_learner(sizes)
@@ -170,11 +170,12 @@ def measure_dagger_collection(sizes: Sizes, scratch: Path) -> dict:
 def measure_evaluation(sizes: Sizes, scratch: Path) -> dict:
     """Frames/s of ``evaluate_policy`` of the learner (greedy) on the test split, as ``EvalConfig()``
     runs it (its default collectors): its demonstrations rendered, then its episodes."""
+    from envs.episode_spec import EpisodeSpec
     from spf_rl.train.evaluation import EvalConfig, evaluate_policy
 
+    episodes = EpisodeSpec(split="test", noise="paper", seed=sizes.seed, num_houses=sizes.num_houses, **_episode_sizes(sizes))
     config = dataclasses.replace(
-        EvalConfig(), split="test", num_episodes=sizes.eval_episodes, noise="paper", seed=sizes.seed,
-        num_houses=sizes.num_houses, **_given(num_agents=sizes.eval_agents), **_episode_sizes(sizes),
+        EvalConfig(), episodes=episodes, num_episodes=sizes.eval_episodes, **_given(num_agents=sizes.eval_agents),
     )
     policy = build_learner(sizes)
     start = time.perf_counter()
@@ -239,8 +240,15 @@ def measure_training(sizes: Sizes, scratch: Path) -> dict:
     }
 
 
+def _sized(evaluation, sizes: Sizes):
+    """An evaluation config of the benchmark's episode sizes (as its training episodes)."""
+    return dataclasses.replace(evaluation, episodes=evaluation.episodes.replace(**_episode_sizes(sizes)))
+
+
 def _collection_env_values(sizes: Sizes) -> dict:
-    return dict(split="train", noise="paper", num_houses=sizes.num_houses, with_expert=True, **_episode_sizes(sizes))
+    from envs.episode_spec import EpisodeSpec
+
+    return dict(episodes=EpisodeSpec(split="train", noise="paper", num_houses=sizes.num_houses, **_episode_sizes(sizes)), with_expert=True)
 
 
 MEASURE_FUNCTIONS: dict[str, Callable[[Sizes, Path], dict]] = {

@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from envs.atomic_io import atomic_write_json
+from envs.episode_spec import EpisodeSpec
 from spf_rl.device import DEFAULT_DEVICE, DEVICE_CHOICES, exact_float32, resolve_device
 
 #: (model name, sparsity) of the benchmarked models.
@@ -112,7 +113,7 @@ def main(argv: list[str] | None = None) -> dict:
     from spf_rl.data import DatasetConfig, EpisodeDataset
     from spf_rl.train.bc import model_memory_bytes
 
-    data_config = DatasetConfig(num_episodes=64, num_houses=4, chunk_size=16, seed=123)
+    data_config = DatasetConfig(EpisodeSpec(num_houses=4, max_steps=50, seed=123), num_episodes=64, chunk_size=16)
     dataset = EpisodeDataset.build(args.data_dir, data_config, num_workers=2, progress=True)
     batch_size, steps = 16, (3 if args.quick else 8)
     cpu = torch.device("cpu")

@@ -13,7 +13,8 @@ Examples:
 from __future__ import annotations
 
 from envs.demo_store import DemoStore, DemoStoreConfig
-from envs.factory import make_parallel_path_follow_env, make_path_follow_env
+from envs.episode_spec import EpisodeSpec
+from envs.factory import make_env, make_parallel_path_follow_env, make_path_follow_env
 from envs.nav_env import PathFollowEnv
 from envs.playlist import DemonstrationPlaylist
 from envs.specs import PRIVILEGED_KEYS, HidePrivileged
@@ -29,6 +30,7 @@ __all__ = [
     "DemoStore",
     "DemoStoreConfig",
     "DemonstrationPlaylist",
+    "EpisodeSpec",
     "HidePrivileged",
     "NoiseModel",
     "PathFollowEnv",
@@ -36,6 +38,7 @@ __all__ = [
     "RouteRecorder",
     "demonstration_from_actions",
     "demonstration_from_waypoints",
+    "make_env",
     "make_parallel_path_follow_env",
     "make_path_follow_env",
 ]

@@ -41,12 +41,13 @@ from tensordict.nn import TensorDictModule
 
 from envs.demos import Demonstration, default_min_route_length_m, sample_demonstration
 from envs.episode_numbering import episode_seed, seed_entropy
+from envs.episode_spec import EpisodeSpec, flat_dict, from_flat
 from envs.follow import episode_for_seed
 from envs.geodesic import DistanceField
-from envs.homing import FOLLOW, check_task, task_demonstration
-from envs.house_grid import check_demo_length, check_grid_size, default_grid_size_cells
+from envs.homing import FOLLOW, task_demonstration
+from envs.house_grid import check_grid_size, default_grid_size_cells
 from envs.render import FirstPersonRenderer
-from envs.route_styles import RouteMixture, route_mixture_for
+from envs.route_styles import RouteMixture
 from envs.scenes import build_house, split_seeds
 from envs.specs import NUM_RGB_CHANNELS
 from envs.tensor_store import StoreError, TensorStore
@@ -55,6 +56,8 @@ logger = logging.getLogger(__name__)
 
 #: Version of the on-disk layout; bumped when it changes.
 DEMO_STORE_FORMAT_VERSION = 3
+#: The noise preset of a store's :class:`~envs.episode_spec.EpisodeSpec`: demonstrations are driven without noise.
+STORE_NOISE = "none"
 #: Demonstrations rendered per chunk of a build (the unit an interrupted build resumes from).
 DEMO_CHUNK_ROWS = 32
 
@@ -63,131 +66,132 @@ class DemoStoreError(StoreError):
     """A demo-store directory is missing, corrupt, stale, or of another configuration."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class DemoStoreConfig:
     """Which demonstrations a store holds.
 
     Args:
+        episodes: the episodes whose demonstrations it holds (:class:`~envs.episode_spec.EpisodeSpec`:
+            split or houses, ``demo_length``, ``image_size``, task, routes and seed).
+            Demonstrations have neither actuation noise nor a step limit, so the store's spec
+            keeps neither (they are set to ``"none"`` and ``None``): any noise and limit
+            may play them.
         num_demos: number of demonstrations K.
-        split: house split (``"train"``, ``"val"`` or ``"test"``).
-        num_houses: houses of the split (``None``: the split's default).
-        demo_length: demonstration length n, steps.
-        image_size: frame side, pixels.
-        min_route_length_m: routes must end farther than this (geodesic, metres) from
-            their start; ``None`` uses the env's default for ``demo_length``.
-        seed: store seed; demonstration ``k`` depends only on ``(seed, k)`` (unused
-            when ``episodes_seed`` is set).
-        task: ``"follow"`` or ``"homing"``: a homing store holds the homing
-            demonstrations of its sampled routes (:mod:`envs.homing`), frames rendered
-            looking back along the route; envs of the same task only may draw from it.
-        grid_size_cells: the houses' labmaze grid, cells (``None``: the env's default
-            for ``demo_length``, :func:`~envs.house_grid.default_grid_size_cells`).
-        episodes_seed: ``None`` (a pool of demonstrations, drawn uniformly by the env)
-            or an env seed: then demonstration ``k`` is the one episode ``k`` of an env
-            seeded with it plays (:func:`~envs.follow.episode_for_seed`), and an env
-            seeded with it plays demonstration ``k`` in episode ``k``: the same
-            episodes as without the store, frames rendered once (evaluation sets).
+        numbered: ``False`` (a pool of demonstrations, drawn uniformly by the env:
+            demonstration ``k`` depends only on ``(episodes.seed, k)``) or ``True`` (an
+            episode store: demonstration ``k`` is the one episode ``k`` of an env seeded
+            with ``episodes.seed`` plays, :func:`~envs.follow.episode_for_seed`, and an
+            env seeded with it plays demonstration ``k`` in episode ``k``: the same
+            episodes as without the store, frames rendered once; evaluation sets).
             Episodes numbered ``K`` and beyond replay demonstration ``number mod K``
             with their own noise: not the rendering path's episodes, so size the
             store to the episodes kept (evaluation keeps ``0 .. K - 1`` only). Envs
             that share a numbering (``episode_offset``/``episode_stride``) must all
             get the same seed: ``set_seed(seed, static_seed=True)``.
-        route_style: the style of the routes (:mod:`envs.route_styles`: a style name or
-            ``"style=weight,..."``), ``None``: the planner's routes as the paper samples them.
-        route_lengths: ``(shortest, longest)`` steps of routes with ``route_style``
-            (``None``: ``demo_length``); shorter routes are padded to ``demo_length``.
+        min_route_length_m: routes must end farther than this (geodesic, metres) from
+            their start; ``None`` uses the env's default for ``demo_length``.
+        grid_size_cells: the houses' labmaze grid, cells (``None``: the env's default
+            for ``demo_length``, :func:`~envs.house_grid.default_grid_size_cells`).
+
+    A homing store (``episodes.task="homing"``) holds the homing demonstrations of its
+    sampled routes (:mod:`envs.homing`), frames rendered looking back along the route;
+    envs of the same task only may draw from it.
+
+    Examples:
+        >>> config = DemoStoreConfig.of(EpisodeSpec(split="val", seed=7), num_demos=3)
+        >>> config.episodes_seed, config.episodes.noise, config.min_route_length_m > 0
+        (7, 'none', True)
     """
 
+    episodes: EpisodeSpec = EpisodeSpec()
     num_demos: int = 1000
-    split: str = "train"
-    num_houses: int | None = None
-    demo_length: int = 30
-    image_size: int = 64
+    numbered: bool = False
     min_route_length_m: float | None = None
-    seed: int = 0
-    task: str = FOLLOW
     grid_size_cells: int | None = None
-    episodes_seed: int | None = None
-    route_style: str | None = None
-    route_lengths: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
-        check_task(self.task, "DemoStoreConfig.task")
-        if self.route_lengths is not None and isinstance(self.route_lengths, Sequence):
-            self.route_lengths = tuple(self.route_lengths)  # a list when read back from meta.json
-        mixture = route_mixture_for(self.route_style, self.route_lengths, self.demo_length)
-        if mixture is not None:  # one spelling of each mixture, as meta.json and store names write it
-            self.route_style, self.route_lengths = mixture.spec, (mixture.min_length, mixture.max_length)
+        if not isinstance(self.episodes, EpisodeSpec):
+            raise ValueError(f"episodes must be an EpisodeSpec, got {type(self.episodes).__name__}.")
+        if self.episodes.noise != STORE_NOISE or self.episodes.max_steps is not None:
+            object.__setattr__(self, "episodes", self.episodes.replace(noise=STORE_NOISE, max_steps=None))
         if self.grid_size_cells is not None:
             check_grid_size(self.grid_size_cells, "DemoStoreConfig.grid_size_cells")
-        check_demo_length(self.demo_length)
-        for name in ("num_demos", "image_size"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
-                raise ValueError(f"{name} must be a positive int, got {value!r}.")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise ValueError(f"seed must be a non-negative int, got {self.seed!r}.")
-        if self.episodes_seed is not None and (
-            isinstance(self.episodes_seed, bool) or not isinstance(self.episodes_seed, int) or self.episodes_seed < 0
-        ):
-            raise ValueError(f"episodes_seed must be None or a non-negative int (an env seed), got {self.episodes_seed!r}.")
-        split_seeds(self.split, self.num_houses)  # validates split and num_houses
+        if isinstance(self.num_demos, bool) or not isinstance(self.num_demos, int) or self.num_demos <= 0:
+            raise ValueError(f"num_demos must be a positive int, got {self.num_demos!r}.")
+        if not isinstance(self.numbered, bool):
+            raise ValueError(f"numbered must be a bool, got {self.numbered!r}.")
         if self.min_route_length_m is None:
-            self.min_route_length_m = default_min_route_length_m(self.demo_length)
+            object.__setattr__(self, "min_route_length_m", default_min_route_length_m(self.episodes.demo_length))
         elif not isinstance(self.min_route_length_m, (int, float)) or not self.min_route_length_m >= 0:
             raise ValueError(f"min_route_length_m must be a number >= 0 (metres) or None, got {self.min_route_length_m!r}.")
 
     @classmethod
-    def of_episodes(cls, episodes) -> DemoStoreConfig:
-        """The episode store of a set of numbered episodes: ``episodes`` has ``num_episodes``,
-        ``seed`` (the env seed), ``split``, ``num_houses``, ``demo_length``, ``image_size`` and
-        ``task`` (an evaluation's or a dataset's configuration)."""
-        return cls(
-            num_demos=episodes.num_episodes,
-            split=episodes.split,
-            num_houses=episodes.num_houses,
-            demo_length=episodes.demo_length,
-            image_size=episodes.image_size,
-            task=episodes.task,
-            episodes_seed=episodes.seed,
-            route_style=getattr(episodes, "route_style", None),
-            route_lengths=getattr(episodes, "route_lengths", None),
-        )
+    def of(cls, episodes: EpisodeSpec, num_demos: int) -> DemoStoreConfig:
+        """The episode store of episodes ``0 .. num_demos - 1`` of ``episodes`` (``numbered``)."""
+        return cls(episodes=episodes, num_demos=num_demos, numbered=True)
+
+    @property
+    def episodes_seed(self) -> int | None:
+        """The env seed whose episodes a numbered store holds (``None``: a pool)."""
+        return self.episodes.seed if self.numbered else None
 
     @property
     def grid(self) -> int:
         """The houses' grid, cells (``grid_size_cells``, or the default for ``demo_length``)."""
-        return default_grid_size_cells(self.demo_length) if self.grid_size_cells is None else self.grid_size_cells
+        return default_grid_size_cells(self.episodes.demo_length) if self.grid_size_cells is None else self.grid_size_cells
 
     @property
     def house_seeds(self) -> list[int]:
-        return split_seeds(self.split, self.num_houses, self.grid)
+        if self.episodes.house_seeds is not None:
+            return list(self.episodes.house_seeds)
+        return split_seeds(self.episodes.split, self.episodes.num_houses, self.grid)
 
-    @property
-    def mixture(self) -> RouteMixture | None:
-        """The routes' :class:`~envs.route_styles.RouteMixture` (``None``: the planner's, of ``demo_length`` steps)."""
-        return route_mixture_for(self.route_style, self.route_lengths, self.demo_length)
+    def to_dict(self) -> dict:
+        """The store's ``meta.json`` form: flat, in the keys of stores written before the
+        episode description (``seed`` and ``episodes_seed`` as they were)."""
+        out = flat_dict(self)
+        for key in ("noise", "max_steps", "numbered"):
+            out.pop(key)
+        out["seed"], out["episodes_seed"] = (0, self.episodes.seed) if self.numbered else (self.episodes.seed, None)
+        return out
+
+    @classmethod
+    def from_dict(cls, values: dict) -> DemoStoreConfig:
+        """The configuration of a ``meta.json`` (:meth:`to_dict`'s form).
+
+        Examples:
+            >>> config = DemoStoreConfig.of(EpisodeSpec(split="val", seed=7, route_style="tour"), num_demos=3)
+            >>> DemoStoreConfig.from_dict(config.to_dict()) == config
+            True
+        """
+        values = dict(values)
+        episodes_seed = values.pop("episodes_seed", None)
+        numbered = episodes_seed is not None
+        if numbered:
+            values["seed"] = episodes_seed
+        return from_flat(cls, {**values, "numbered": numbered})
 
 
 def sample_store_demonstration(config: DemoStoreConfig, index: int) -> Demonstration:
-    """Demonstration ``index`` of a store, for its task: a pure function of ``(config.seed, index)``,
-    or of the seed of episode ``index`` under ``config.episodes_seed`` when that is set."""
-    if config.episodes_seed is not None:
-        seed = episode_seed(seed_entropy(config.episodes_seed), index)
+    """Demonstration ``index`` of a store, for its task: a pure function of ``(episodes.seed, index)``,
+    or, for a numbered store, of the seed of episode ``index`` of that env seed."""
+    episodes = config.episodes
+    if config.numbered:
+        seed = episode_seed(seed_entropy(episodes.seed), index)
         return episode_for_seed(
-            seed, config.house_seeds, config.demo_length, config.min_route_length_m, config.task, config.mixture
+            seed, config.house_seeds, episodes.demo_length, config.min_route_length_m, episodes.task, episodes.mixture
         )[1]
-    rng = np.random.default_rng([config.seed, index])
+    rng = np.random.default_rng([episodes.seed, index])
     house = build_house(int(rng.choice(config.house_seeds)))
-    if config.route_style is None:
-        route = sample_demonstration(house, rng, config.demo_length, min_route_length_m=config.min_route_length_m)
+    if episodes.route_style is None:
+        route = sample_demonstration(house, rng, episodes.demo_length, min_route_length_m=config.min_route_length_m)
     else:
-        _, route = config.mixture.sample(house, rng)
-    return task_demonstration(route, config.task, house)
+        _, route = episodes.mixture.sample(house, rng)
+    return task_demonstration(route, episodes.task, house)
 
 
 def _empty(config: DemoStoreConfig) -> TensorDict:
-    k, n, s = config.num_demos, config.demo_length, config.image_size
+    k, n, s = config.num_demos, config.episodes.demo_length, config.episodes.image_size
     tensors = {
         "frames": torch.zeros(k, n, s, s, NUM_RGB_CHANNELS, dtype=torch.uint8),
         "actions": torch.zeros(k, n, dtype=torch.int64),
@@ -195,7 +199,7 @@ def _empty(config: DemoStoreConfig) -> TensorDict:
         "house_seed": torch.zeros(k, dtype=torch.int64),
         "shortest_length_m": torch.zeros(k, dtype=torch.float64),
     }
-    if config.route_style is not None:  # routes of several lengths (stores without it: all n long)
+    if config.episodes.route_style is not None:  # routes of several lengths (stores without it: all n long)
         tensors["steps"] = torch.zeros(k, dtype=torch.int64)
     return TensorDict(tensors, batch_size=[k])
 
@@ -205,7 +209,7 @@ def make_demo_chunk(config: DemoStoreConfig, chunk: int) -> TensorDict:
     first = chunk * DEMO_CHUNK_ROWS
     indices = range(first, min(first + DEMO_CHUNK_ROWS, config.num_demos))
     out = _empty(dataclasses.replace(config, num_demos=len(indices)))
-    renderer = _chunk_renderer(config.image_size)
+    renderer = _chunk_renderer(config.episodes.image_size)
     for row, index in enumerate(indices):
         demo = sample_store_demonstration(config, index)
         house = build_house(demo.house_seed)
@@ -254,7 +258,7 @@ class DemoStore(TensorStore):
 
     Examples:
         >>> import tempfile
-        >>> config = DemoStoreConfig(num_demos=2, num_houses=1, demo_length=5, image_size=32)
+        >>> config = DemoStoreConfig(episodes=EpisodeSpec(num_houses=1, demo_length=5, image_size=32), num_demos=2)
         >>> store = DemoStore.build(tempfile.mkdtemp() + "/store", config, progress=False)
         >>> len(store), store.frames.shape
         (2, torch.Size([2, 5, 32, 32, 3]))
@@ -269,7 +273,11 @@ class DemoStore(TensorStore):
 
     @staticmethod
     def config_from_dict(config: dict) -> DemoStoreConfig:
-        return DemoStoreConfig(**config)
+        return DemoStoreConfig.from_dict(config)
+
+    @staticmethod
+    def config_to_dict(config: DemoStoreConfig) -> dict:
+        return config.to_dict()
 
     @staticmethod
     def empty(config: DemoStoreConfig) -> TensorDict:
@@ -318,7 +326,7 @@ class DemoStore(TensorStore):
         """``[K]`` int64 length of each demonstration, steps (all ``n`` in a store without a route style)."""
         if "steps" in self.data.keys():
             return self.data.get("steps")
-        return torch.full((len(self),), self.config.demo_length, dtype=torch.int64)
+        return torch.full((len(self),), self.config.episodes.demo_length, dtype=torch.int64)
 
     @property
     def house_seeds(self) -> torch.Tensor:
@@ -405,7 +413,7 @@ class DemoStore(TensorStore):
             actions=self.actions[demo_id, :steps].numpy().copy(),
             end_field=end_field,
             shortest_length_m=float(self.shortest_lengths_m[demo_id]),
-            task=self.config.task,
+            task=self.config.episodes.task,
         )
 
 
@@ -427,25 +435,26 @@ def check_store_matches(
     ``route_style`` the env's routes (``None``: the planner's).
     """
     config = store.config
+    spec = config.episodes
     if house_seeds is not None:
         raise ValueError("house_seeds cannot be combined with demo_store (the store fixes the houses).")
     mismatches = []
-    if split != config.split:
-        mismatches.append(f"split={split!r} (store: {config.split!r})")
+    if split != spec.split:
+        mismatches.append(f"split={split!r} (store: {spec.split!r})")
     if num_houses is not None and len(split_seeds(split, num_houses)) != len(config.house_seeds):
         mismatches.append(f"num_houses={num_houses} (store: {len(config.house_seeds)})")
     grid = default_grid_size_cells(demo_length) if grid_size_cells is None else grid_size_cells
     if grid != config.grid:
         mismatches.append(f"grid_size_cells={grid} (store: {config.grid})")
-    if task != config.task:
-        mismatches.append(f"task={task!r} (store: {config.task!r})")
-    if demo_length != config.demo_length:
-        mismatches.append(f"demo_length={demo_length} (store: {config.demo_length})")
-    if image_size != config.image_size:
-        mismatches.append(f"image_size={image_size} (store: {config.image_size})")
-    if route_style != config.mixture:
+    if task != spec.task:
+        mismatches.append(f"task={task!r} (store: {spec.task!r})")
+    if demo_length != spec.demo_length:
+        mismatches.append(f"demo_length={demo_length} (store: {spec.demo_length})")
+    if image_size != spec.image_size:
+        mismatches.append(f"image_size={image_size} (store: {spec.image_size})")
+    if route_style != spec.mixture:
         ours = None if route_style is None else f"{route_style.spec!r} of {route_style.min_length}-{route_style.max_length} steps"
-        theirs = None if config.route_style is None else f"{config.route_style!r} of {config.route_lengths[0]}-{config.route_lengths[1]} steps"
+        theirs = None if spec.route_style is None else f"{spec.route_style!r} of {spec.route_lengths[0]}-{spec.route_lengths[1]} steps"
         mismatches.append(f"route_style={ours} (store: {theirs})")
     needed = default_min_route_length_m(demo_length, success_radius_m)
     if config.min_route_length_m < needed - 1e-9:

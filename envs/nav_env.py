@@ -53,6 +53,7 @@ from envs.checks import check_action, check_actuation_noise, check_positive_int,
 from envs.demo_store import DemoStore
 from envs.demos import DEFAULT_DEMO_LENGTH, Demonstration, default_min_route_length_m, move_agents, nominal_motion
 from envs.episode_numbering import EpisodeNumbering
+from envs.episode_spec import EpisodeSpec
 from envs.expert import WALL_CONTACT_TOLERANCE_M, GeodesicExpert
 from envs.follow import (
     EXCURSION_REACH_M,
@@ -294,6 +295,38 @@ class PathFollowEnv(EnvBase):
         self._demo_actions = torch.zeros((count, n), dtype=torch.int64)
         self._pixels = torch.zeros((count, size, size, NUM_RGB_CHANNELS), dtype=torch.uint8)
         self._zero_noise = torch.zeros((*self.batch_size, 3), dtype=torch.float32)
+
+    @classmethod
+    def from_spec(cls, episodes: EpisodeSpec, num_agents: int | None = None, **options) -> PathFollowEnv:
+        """The env that plays ``episodes`` (an :class:`~envs.episode_spec.EpisodeSpec`): its houses,
+        lengths, step limit, frame size, task and routes. The spec's noise is applied by
+        :class:`~envs.transforms.ActuationNoise` around the env (:func:`envs.factory.make_env`
+        builds the whole stack), and its seed by ``set_seed``.
+
+        Args:
+            episodes: the episodes.
+            num_agents: ``None`` (unbatched) or the number of agents.
+            **options: the env's other keyword arguments (``render``, ``with_expert``,
+                ``demo_store``, ``episode_offset``, ...), never one the spec holds.
+
+        Examples:
+            >>> env = PathFollowEnv.from_spec(EpisodeSpec(num_houses=1, demo_length=5), num_agents=2, render=False)
+            >>> env.batch_size, env.max_steps
+            (torch.Size([2]), 9)
+        """
+        return cls(
+            episodes.split,
+            num_houses=episodes.num_houses,
+            house_seeds=episodes.house_seeds,
+            num_agents=num_agents,
+            demo_length=episodes.demo_length,
+            max_steps=episodes.max_steps,
+            image_size=episodes.image_size,
+            task=episodes.task,
+            route_style=episodes.route_style,
+            route_lengths=episodes.route_lengths,
+            **options,
+        )
 
     # ---------------------------------------------------------------- seeding
     def _set_seed(self, seed: int | None) -> None:

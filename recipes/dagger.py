@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+from pathlib import Path
 
 from spf_rl.cli import ArgumentParser
 from spf_rl.config import config_or_exit, load_config
@@ -36,6 +37,16 @@ PRESETS = (
     "dagger_quick", "dagger_control", "dagger_long", "dagger_rpf", "dagger_rpf_original", "dagger_spf_rpf_pointer",
     "dagger_pointer_long", "dagger_table1", "dagger_routes", "dagger_routes_pointer", "dagger_routes_pointer_more",
 )
+
+
+def check_start(config) -> None:
+    """Refuse, before any work, a starting checkpoint that is missing, unreadable, not a checkpoint or an
+    unknown shipped name (``ValueError``, one line naming the key). A resumed run (``output_dir/last.pt``)
+    needs only its own state, not the starting checkpoint."""
+    from spf_rl.hub import checkpoint_argument
+
+    if not (Path(config.output_dir) / "last.pt").exists():
+        checkpoint_argument(config.checkpoint, "invalid configuration: checkpoint")
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -62,6 +73,7 @@ def main(argv: list[str] | None = None) -> dict:
     if args.quick and args.preset not in (None, "dagger_quick"):
         parser.error(f"--quick is --preset dagger_quick; it cannot be combined with --preset {args.preset}")
     config = config_or_exit(parser, load_config, DAggerConfig, "dagger", args.overrides, preset="dagger_quick" if args.quick else args.preset)
+    config_or_exit(parser, check_start, config)
     results = train_dagger(config)
     if "model" not in results:  # a rank other than 0 of a torchrun run: rank 0 reports
         return results

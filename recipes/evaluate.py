@@ -27,10 +27,25 @@ from envs.scenes import SPLIT_SEED_OFFSETS
 from envs.transforms import DEFAULT_NOISE, NOISE_PRESETS
 from spf_rl.cli import ArgumentParser
 from spf_rl.device import DEFAULT_DEVICE, DEVICE_CHOICES, resolve_device
-from spf_rl.eval.checkpoints import EvalOptions, evaluate_checkpoints, expand_targets
+from spf_rl.eval.checkpoints import OPEN_LOOP, EvalOptions, evaluate_checkpoints, expand_targets
+from spf_rl.modules.registry import MODEL_NAMES
 from spf_rl.train.evaluation import TEST_SEED
 
 SPLITS = tuple(SPLIT_SEED_OFFSETS)
+
+
+def check_target(target: str, model_type: str | None, sparsity: float | None) -> None:
+    """Refuse a checkpoint that is missing, unreadable, of another ``--model-type``, or of a fixed
+    sparsity with ``--sparsity`` (``ValueError``, one line naming the argument)."""
+    from spf_rl.hub import checkpoint_argument
+
+    payload = checkpoint_argument(target, "argument paths", model_type=model_type).payload
+    config = payload["model_config"]
+    if sparsity is not None and config.sparsity_range is None:
+        raise ValueError(
+            f"argument --sparsity: applies to random-sparsity models (model type 'spf_random') only; {target} holds a "
+            f"{payload['model_type']!r} model with a fixed sparsity {config.effective_sparsity:g}."
+        )
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
@@ -77,9 +92,19 @@ def main(argv: list[str] | None = None) -> list[dict]:
     for name, value in (("--demo-length", args.demo_length), ("--max-steps", args.max_steps)):
         if value is not None and value <= 0:
             parser.error(f"{name} must be a positive number of steps, got {value}")
+    for name, value in (("--num-agents", args.num_agents), ("--image-size", args.image_size)):
+        if value <= 0:
+            parser.error(f"{name} must be a positive int, got {value}")
+    if args.model_type is not None and args.model_type not in MODEL_NAMES:
+        parser.error(f"argument --model-type: must be one of {', '.join(MODEL_NAMES)}, got {args.model_type!r}")
+    if args.sparsity is not None and not 0.0 < args.sparsity <= 1.0:
+        parser.error(f"--sparsity must be in (0, 1] (the fraction of the demonstration's frames kept), got {args.sparsity}")
     try:
         device = resolve_device(args.device, name="--device")
         targets = expand_targets(args.paths)
+        for target in targets:  # every checkpoint loads, before any episode is played or file written
+            if target != OPEN_LOOP:
+                check_target(target, args.model_type, args.sparsity)
     except ValueError as err:
         parser.error(str(err))
     options = EvalOptions(

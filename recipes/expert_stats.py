@@ -67,6 +67,9 @@ def main() -> None:
     args = parser.parse_args()
     if args.demo_length is not None and args.demo_length <= 0:
         parser.error(f"--demo-length must be a positive int, got {args.demo_length}")
+    for name, value in (("--episodes", args.episodes), ("--num-agents", args.num_agents), ("--resamples", args.resamples), ("--jobs", args.jobs)):
+        if value <= 0:
+            parser.error(f"{name} must be a positive int, got {value}")
     output = args.output or default_output(RESULTS_PATH, args.task, args.demo_length)
     try:  # the whole config first, before any episode is played
         runs = parse_runs(args.runs)

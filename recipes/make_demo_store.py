@@ -45,9 +45,9 @@ class MakeDemoStoreConfig:
     def resolved_root(self) -> Path:
         if self.root:
             return Path(self.root)
-        c = self.store
-        houses = "default" if c.num_houses is None else c.num_houses
-        name = f"{c.split}-k{c.num_demos}-h{houses}-n{c.demo_length}-s{c.image_size}-seed{c.seed}"
+        c, e = self.store, self.store.episodes
+        houses = "default" if e.num_houses is None else e.num_houses
+        name = f"{e.split}-k{c.num_demos}-h{houses}-n{e.demo_length}-s{e.image_size}-seed{e.seed}"
         return REPO_ROOT / "data" / "demo_stores" / name
 
 

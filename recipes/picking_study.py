@@ -18,7 +18,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import logging
 from pathlib import Path
@@ -50,23 +49,35 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error(f"run {run} keeps {len(files)} epoch checkpoints; train it with keep_epochs=true for at least 3 epochs")
 
     import envs  # noqa: F401  (selects the headless GL back-end first)
-    from spf_rl.hub import policy_from_checkpoint
-    from spf_rl.train.evaluation import EvalConfig, evaluate_policy
+    from envs.episode_spec import from_flat
+    from spf_rl.checkpoint import CheckpointError
+    from spf_rl.hub import checkpoint_argument, policy_from_checkpoint
+    from spf_rl.train.evaluation import EvalConfig, config_dict, evaluate_policy
 
     config = json.loads((run / "config.json").read_text())
     data, test_fields = config["data"], dict(config["test"])
     if args.episodes is not None:
         test_fields["num_episodes"] = args.episodes
-    test = EvalConfig(**{**test_fields, "demo_length": data["demo_length"], "max_steps": data["max_steps"], "image_size": data["image_size"]})
-    val = validation_history(run)
+    sizes = {key: data[key] for key in ("demo_length", "max_steps", "image_size")}  # the policy's episodes
+    test = from_flat(EvalConfig, {**test_fields, **sizes})
+    try:  # the run's checkpoints load, before any episode is played or file written
+        val = validation_history(run)
+        for epoch in set(files) & set(val):
+            checkpoint_argument(files[epoch], f"run {run}")
+    except CheckpointError as err:  # last.pt unreadable
+        parser.error(f"run {run}: {err}")
+    except KeyError:
+        parser.error(f"run {run}: its last.pt holds no validation history: give a BC run directory")
+    except ValueError as err:  # an epoch's checkpoint, named by checkpoint_argument
+        parser.error(str(err))
     if len(set(files) & set(val)) < 3:
         parser.error(f"run {run} validated {len(set(files) & set(val))} of its kept epochs; train it with val_every=1")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     path = out / f"{run.parent.name}-{run.name}.json"
     study = json.loads(path.read_text()) if path.exists() else {}
-    if study.get("test") != dataclasses.asdict(test):
-        study = {"run": str(run), "test": dataclasses.asdict(test), "epochs": []}
+    if study.get("test") != config_dict(test):
+        study = {"run": str(run), "test": config_dict(test), "epochs": []}
     done = {row["epoch"] for row in study["epochs"]}
     for epoch, weights in files.items():
         if epoch in done or epoch not in val:

@@ -50,7 +50,7 @@ def main(argv: list[str] | None = None) -> dict:
     from envs.scenes import SPLIT_SEED_OFFSETS
     from spf_rl.eval.pointer_trace import check_rpf_pointer, plot_traces, summarize_traces, trace_routes
     from spf_rl.eval.route_bench import STYLES, parse_list
-    from spf_rl.hub import checked_checkpoint, policy_from_checkpoint
+    from spf_rl.hub import checkpoint_argument
 
     try:  # everything is checked before any episode is played
         styles = parse_list(args.styles, STYLES, "--styles")
@@ -60,10 +60,14 @@ def main(argv: list[str] | None = None) -> dict:
             raise ValueError(f"--noise must be one of {', '.join(sorted(NOISE_PRESETS))}, got {args.noise!r}.")
         if args.split not in SPLIT_SEED_OFFSETS:
             raise ValueError(f"--split must be one of {sorted(SPLIT_SEED_OFFSETS)}, got {args.split!r}.")
+        if args.sparsity is not None and not 0.0 < args.sparsity <= 1.0:
+            raise ValueError(f"--sparsity must be in (0, 1] (the fraction of the demonstration's frames kept), got {args.sparsity}.")
         lengths = tuple(args.route_lengths)
-        path = checked_checkpoint(args.checkpoint)
-        policy, _ = policy_from_checkpoint(path)
-        check_rpf_pointer(policy)
+        policy = checkpoint_argument(args.checkpoint, "argument --checkpoint").policy
+        try:
+            check_rpf_pointer(policy)
+        except ValueError as err:
+            raise ValueError(f"argument --checkpoint: {args.checkpoint}: {err}") from None
         for style in styles:
             route_mixture_for(style, lengths, policy.config.demo_length)
         random = policy.config.sparsity_range is not None
@@ -72,7 +76,7 @@ def main(argv: list[str] | None = None) -> dict:
         sparsity = (args.sparsity if args.sparsity is not None else policy.config.sparsity) if random else policy.config.sparsity
         if random:
             policy.set_sparsity(sparsity)
-    except (ValueError, FileNotFoundError) as err:
+    except ValueError as err:
         parser.error(str(err))
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
 

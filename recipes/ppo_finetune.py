@@ -45,6 +45,19 @@ def expand_shorthands(overrides: list[str]) -> list[str]:
     return expanded
 
 
+def check_start(config) -> None:
+    """Refuse, before any work, a starting checkpoint that is missing, unreadable, not a checkpoint or an
+    unknown shipped name, or whose sizes differ from ``env``'s (``ValueError``, one line naming the key)."""
+    from spf_rl.hub import checkpoint_argument
+    from spf_rl.train.ppo_config import checked_env_config
+
+    start = checkpoint_argument(config.checkpoint, "invalid configuration: checkpoint").payload["model_config"]
+    try:
+        checked_env_config(config, start)
+    except ValueError as err:
+        raise ValueError(f"invalid configuration: {err}") from None
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="small preset that runs in a few minutes")
@@ -57,6 +70,7 @@ def main(argv: list[str] | None = None) -> dict:
     from spf_rl.train.ppo_config import PPOConfig
 
     config = config_or_exit(parser, load_config, PPOConfig, "ppo", expand_shorthands(args.overrides), preset="ppo_quick" if args.quick else None)
+    config_or_exit(parser, check_start, config)
     results = train_ppo(config)
 
     def scores(split_summary: dict) -> dict:

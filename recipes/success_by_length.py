@@ -53,18 +53,21 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error(f"--lengths must be distinct positive ints (steps), got {args.lengths}.")
     if args.episodes <= 0 or args.num_agents <= 0:
         parser.error(f"--episodes and --num-agents must be positive ints, got {args.episodes}, {args.num_agents}.")
-    from spf_rl.checkpoint import CheckpointError
+    from envs.episode_spec import EpisodeSpec
+    from spf_rl.device import resolve_device
     from spf_rl.eval.by_length import load_policies, success_by_length
+    from spf_rl.hub import checkpoint_argument
     from spf_rl.train.evaluation import EvalConfig
 
-    try:
-        config = EvalConfig(
-            split=args.split, num_episodes=args.episodes, noise=args.noise, seed=args.seed,
-            num_agents=args.num_agents, num_houses=args.num_houses, render=not args.no_render,
-        )
-        policies = load_policies(args.checkpoints, device=args.device)
-    except (ValueError, FileNotFoundError, CheckpointError) as err:
+    try:  # every argument, and every checkpoint's loading, before any episode is played
+        episodes = EpisodeSpec(split=args.split, noise=args.noise, seed=args.seed, num_houses=args.num_houses, max_steps=50)
+        config = EvalConfig(episodes, num_episodes=args.episodes, num_agents=args.num_agents, render=not args.no_render)
+        device = resolve_device(args.device, name="--device")
+        for checkpoint in args.checkpoints:
+            checkpoint_argument(checkpoint, "argument checkpoints")
+    except ValueError as err:
         parser.error(str(err))
+    policies = load_policies(args.checkpoints, device=device)
 
     content = success_by_length(policies, args.lengths, config, Path(args.out), progress=not args.quiet)
     for label, rows in content["results"].items():

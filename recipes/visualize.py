@@ -38,14 +38,17 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"--episodes must be > 0, got {args.episodes}")
 
     import envs  # noqa: F401
-    from spf_rl.hub import policy_from_checkpoint, resolve_checkpoint
+    from spf_rl.hub import checkpoint_argument
     from spf_rl.modules.open_loop import OpenLoopPolicy
     from spf_rl.viz import watch
 
     if args.checkpoint == "open_loop":
         policy, label = OpenLoopPolicy(), "open loop"
     else:
-        policy, payload = policy_from_checkpoint(resolve_checkpoint(args.checkpoint))
+        try:  # a missing, unreadable or unknown checkpoint: one line, before any episode is played
+            _, policy, payload = checkpoint_argument(args.checkpoint, "argument checkpoint")
+        except ValueError as err:
+            parser.error(str(err))
         label = f"{payload['model_type']} (sparsity {policy.sparsity:g})"
     for episode in range(args.episodes):
         record = watch(

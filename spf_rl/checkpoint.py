@@ -53,6 +53,22 @@ def cpu_copy(value: Any) -> Any:
     return value
 
 
+def first_sentence(err: BaseException) -> str:
+    """The first line of an error's message, cut to its first sentence if long: torch's unpickling
+    errors run over many lines, and a refused checkpoint is reported on one.
+
+    Examples:
+        >>> first_sentence(RuntimeError("Weights only load failed. In PyTorch 2.6, we changed the default value of the "
+        ...                             "`weights_only` argument in torch.load from False to True." + chr(10) + "Please file an issue."))
+        'Weights only load failed'
+        >>> first_sentence(KeyError("model_config"))
+        "'model_config'"
+    """
+    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+    first = lines[0] if lines else ""
+    return first.split(". ")[0] if len(first) > 100 else first
+
+
 def save_checkpoint(path: str | os.PathLike, model_type: str, config: SPFConfig, state: dict[str, Any]) -> None:
     """Write ``state`` (``model`` state dict plus anything weights-only-safe) atomically.
 
@@ -105,7 +121,7 @@ def load_checkpoint(
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as err:  # any unpickling failure means a bad file
-        raise CheckpointError(f"checkpoint {path} is corrupt or not a checkpoint ({type(err).__name__}: {err}).") from err
+        raise CheckpointError(f"checkpoint {path} is corrupt or not a checkpoint ({type(err).__name__}: {first_sentence(err)}).") from err
     if not isinstance(payload, dict) or payload.get("format_version") != CHECKPOINT_FORMAT_VERSION:
         raise CheckpointError(f"checkpoint {path} has an unknown format (expected version {CHECKPOINT_FORMAT_VERSION}).")
     model_type = payload.get("model_type")
@@ -115,7 +131,10 @@ def load_checkpoint(
         raise CheckpointError(
             f"checkpoint {path} holds a {model_type!r} model, but a {expected_model_type!r} model was asked for."
         )
-    config = dict(payload["model_config"])
-    config["image_size"] = tuple(config["image_size"])
-    payload["model_config"] = SPFConfig(**config)
+    try:
+        config = dict(payload["model_config"])
+        config["image_size"] = tuple(config["image_size"])
+        payload["model_config"] = SPFConfig(**config)
+    except (KeyError, TypeError, ValueError) as err:
+        raise CheckpointError(f"checkpoint {path} holds no valid model_config ({type(err).__name__}: {err}).") from err
     return payload

@@ -7,14 +7,24 @@ applied. Shorthands: ``model=NAME``, ``sparsity=X``, ``noise=PRESET`` and
 
 The YAML files live in ``recipes/configs/`` of a clone, beside the recipes that read
 them (:data:`CONFIG_DIR`).
+
+Episodes are described by one :class:`~envs.episode_spec.EpisodeSpec` per config
+(``data.episodes``, ``val.episodes``, ...); YAML files and overrides write its keys flat
+(``data.split=val``, ``test.noise=none``), or nested (``data.episodes.split=val``).
+The evaluation episodes of a recipe (``val``, ``test``) follow its training episodes
+(``data`` for BC, ``env`` for DAgger and PPO) in
+:data:`~envs.episode_spec.SIZE_FIELDS` unless a file or an override sets them.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 from typing import Any, TypeVar
 
 from omegaconf import OmegaConf
+
+from envs.episode_spec import SIZE_FIELDS, nest_flat_keys
 
 #: The YAML defaults and presets of the recipes.
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "recipes" / "configs"
@@ -23,10 +33,14 @@ SHORTHANDS = {
     "model": ["model.name"],
     "sparsity": ["model.sparsity"],
     "pointer": ["model.pointer_update"],
-    "noise": ["data.noise", "val.noise", "test.noise"],
+    "noise": ["data.episodes.noise", "val.episodes.noise", "test.episodes.noise"],
     "epochs": ["optim.epochs"],
-    "task": ["data.task", "val.task", "test.task"],
+    "task": ["data.episodes.task", "val.episodes.task", "test.episodes.task"],
 }
+#: The configs whose episodes a recipe's evaluations (:data:`EVALUATIONS`) follow, first found first.
+TRAINING_EPISODES = ("data", "env")
+#: A recipe's evaluation configs.
+EVALUATIONS = ("val", "test")
 
 Config = TypeVar("Config")
 
@@ -66,9 +80,12 @@ def load_config(schema_cls: type[Config], name: str, overrides: list[str], prese
         ValueError: for an override that is not ``key=value`` or names an unknown key.
     """
     schema = OmegaConf.structured(schema_cls)
-    layers = [schema, OmegaConf.load(CONFIG_DIR / f"{name}.yaml")]
+    files = [OmegaConf.load(CONFIG_DIR / f"{name}.yaml")]
     if preset:
-        layers.extend(preset_layers(preset))
+        files.extend(preset_layers(preset))
+    layers = [schema, _sizing_layer(schema_cls)] + [
+        OmegaConf.create(nest_flat_keys(OmegaConf.to_container(layer), schema_cls)) for layer in files
+    ]
     expanded = []
     for item in overrides:
         if "=" not in item:
@@ -76,9 +93,10 @@ def load_config(schema_cls: type[Config], name: str, overrides: list[str], prese
         key, value = item.split("=", 1)
         for target in SHORTHANDS.get(key, [key]):
             expanded.append(f"{target}={value}")
+    expanded = nest_flat_keys(expanded, schema_cls)
     try:
         merged = OmegaConf.merge(*layers, OmegaConf.from_dotlist(expanded))
-        OmegaConf.resolve(merged)
+        # to_object resolves the interpolations (frozen dataclasses, EpisodeSpec, are read-only nodes)
         return OmegaConf.to_object(merged)
     except Exception as err:  # omegaconf raises several error types; report them uniformly
         # omegaconf appends full_key / object_type lines: keep the first, led by the key it names
@@ -86,6 +104,20 @@ def load_config(schema_cls: type[Config], name: str, overrides: list[str], prese
         if key and f"'{key}'" not in message:
             message = f"{key}: {message}"
         raise ValueError(f"invalid configuration: {message}") from err
+
+
+def _sizing_layer(schema_cls: type) -> Any:
+    """The layer under every YAML file: ``val`` and ``test`` episodes follow the training episodes
+    (:data:`TRAINING_EPISODES`) in :data:`~envs.episode_spec.SIZE_FIELDS` (OmegaConf interpolations,
+    so a file or an override that sets one of them wins)."""
+    import typing
+
+    hints = typing.get_type_hints(schema_cls) if dataclasses.is_dataclass(schema_cls) else {}
+    source = next((name for name in TRAINING_EPISODES if name in hints), None)
+    if source is None:
+        return OmegaConf.create({})
+    sized = {key: f"${{{source}.episodes.{key}}}" for key in SIZE_FIELDS}
+    return OmegaConf.create({name: {"episodes": dict(sized)} for name in EVALUATIONS if name in hints})
 
 
 def config_or_exit(parser: argparse.ArgumentParser, load: Any, *args: Any, **kwargs: Any) -> Any:

@@ -9,7 +9,7 @@ one on-disk store), read back through TorchRL's :class:`~torchrl.data.TensorStor
 
 The episodes are episodes ``0 .. E - 1`` of a batched env seeded with the dataset
 seed (numbered episodes, :mod:`envs.episode_numbering`), their demonstrations those
-of an episode store (:class:`~envs.demo_store.DemoStoreConfig` with ``episodes_seed``):
+of an episode store (a ``numbered`` :class:`~envs.demo_store.DemoStoreConfig`):
 per episode, ``demo_id`` (its row in the store), the follow episode step by step
 (``steps`` with batch ``[T]``: ``pixels``, the executed ``action``, the expert's
 ``expert_action`` label, ``mask`` for valid steps and ``is_init``; with a route style also
@@ -33,7 +33,7 @@ import contextlib
 import functools
 import logging
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -41,15 +41,12 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import SamplerWithoutReplacement, TensorDictReplayBuffer, TensorStorage
 from torchrl.data.replay_buffers import ImmutableDatasetWriter
 
-from envs.checks import check_episode_source, check_positive_ints
+from envs.checks import check_positive_ints
 from envs.demo_store import DemoStore, DemoStoreConfig
-from envs.follow import default_max_steps
-from envs.homing import FOLLOW, check_task
-from envs.house_grid import check_demo_length
-from envs.route_styles import route_mixture_for
+from envs.episode_spec import EpisodeSpec, flat_dict, from_flat
+from envs.homing import FOLLOW
 from envs.specs import NUM_RGB_CHANNELS
 from envs.tensor_store import StoreError, TensorStore, worker_pool
-from envs.transforms import DEFAULT_NOISE
 from envs.version import ENV_VERSION
 
 logger = logging.getLogger(__name__)
@@ -79,68 +76,39 @@ class DatasetError(StoreError):
     """A dataset directory is missing, half-written, corrupt or of another configuration."""
 
 
+def default_training_episodes() -> EpisodeSpec:
+    """The episodes BC trains on by default: the paper's 30-step planner routes of the
+    ``train`` split, 50 steps at most, under ``paper`` noise, seed 0."""
+    return EpisodeSpec(split="train", max_steps=50, seed=0)
+
+
 @dataclass
 class DatasetConfig:
     """What a dataset holds and how it is generated.
 
     Args:
+        episodes: the follow episodes (:class:`~envs.episode_spec.EpisodeSpec`): the
+            dataset holds episodes ``0 .. num_episodes - 1`` of an env seeded with
+            ``episodes.seed``. In YAML its keys may be written flat (``data.split``).
         num_episodes: number of follow episodes.
-        split: house split the episodes are drawn from.
-        num_houses: houses of the split (``None``: the split's default).
-        noise: actuation-noise preset of the follow episodes.
         random_action_prob: probability that the behaviour policy takes a uniformly
             random action instead of the expert's, so states off the route are seen
             (labels are always the expert's action).
-        demo_length: demonstration length n, steps (with ``route_lengths``: the longest,
-            to which shorter demonstrations are padded).
-        max_steps: follow-episode limit, steps; ``None``: each demonstration's own,
-            ``ceil(5/3 n)`` (:func:`~envs.follow.default_max_steps`).
-        image_size: frame side, pixels.
         chunk_size: episodes per chunk, the unit of resuming and of parallel workers.
         num_agents: agents a batched env steps together (each plays several of a chunk's
             episodes in turn, so few agents idle while a chunk's last episodes end).
-        seed: dataset seed: the episodes are episodes ``0 .. num_episodes - 1`` of an
-            env seeded with it.
-        task: ``"follow"`` or ``"homing"`` (:mod:`envs.homing`).
-        route_style: the style of the episodes' routes (:mod:`envs.route_styles`: ``"driven"``,
-            ``"planner=0.5,tour=0.25,driven=0.25"``, ...); ``None``: the planner's, as the paper samples them.
-        route_lengths: ``(shortest, longest)`` steps of routes with ``route_style`` (``None``: ``demo_length``).
     """
 
+    episodes: EpisodeSpec = field(default_factory=default_training_episodes)
     num_episodes: int = 2000
-    split: str = "train"
-    num_houses: int | None = None
-    noise: str = DEFAULT_NOISE
     random_action_prob: float = 0.2
-    demo_length: int = 30
-    max_steps: int | None = 50
-    image_size: int = 64
     chunk_size: int = 64
     num_agents: int = 16
-    seed: int = 0
-    task: str = FOLLOW
-    route_style: str | None = None
-    route_lengths: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
-        check_task(self.task, "data.task")
-        check_episode_source(self.split, self.num_houses, self.noise)
-        check_positive_ints(self, ("num_episodes", "image_size", "chunk_size", "num_agents"))
-        if self.max_steps is not None:
-            check_positive_ints(self, ("max_steps",))
-        check_demo_length(self.demo_length)
+        check_positive_ints(self, ("num_episodes", "chunk_size", "num_agents"))
         if not 0.0 <= self.random_action_prob <= 1.0:
             raise ValueError(f"random_action_prob must be in [0, 1], got {self.random_action_prob!r}.")
-        if self.route_lengths is not None and not isinstance(self.route_lengths, str):
-            self.route_lengths = tuple(self.route_lengths)  # a list in YAML and JSON
-        mixture = route_mixture_for(self.route_style, self.route_lengths, self.demo_length)
-        if mixture is not None:  # one spelling, as the demonstration store writes it
-            self.route_style, self.route_lengths = mixture.spec, (mixture.min_length, mixture.max_length)
-
-    @property
-    def step_limit(self) -> int:
-        """The longest an episode may be, steps: ``max_steps``, or the rule's for ``demo_length``."""
-        return default_max_steps(self.demo_length) if self.max_steps is None else self.max_steps
 
     @property
     def num_chunks(self) -> int:
@@ -148,11 +116,27 @@ class DatasetConfig:
 
     def demo_store_config(self) -> DemoStoreConfig:
         """The demonstrations of the dataset's episodes (an episode store of its seed)."""
-        return DemoStoreConfig.of_episodes(self)
+        return DemoStoreConfig.of(self.episodes, self.num_episodes)
+
+    def default_dir(self) -> Path:
+        """The dataset's directory unless a recipe names one: ``data/<split>-<episodes>ep-<noise>-...``,
+        with the data format and, for homing, the task in the name.
+
+        Examples:
+            >>> str(DatasetConfig().default_dir()).startswith("data/train-2000ep-paper-rand0.2-n30-64px-s0-")
+            True
+        """
+        d, e = self, self.episodes
+        task = "" if e.task == FOLLOW else f"-{e.task}"
+        # route styles are labelled by the route expert (envs.route_expert), which the name says
+        routes = "" if e.route_style is None else f"-{e.route_style.replace('=', '').replace(',', '+')}-{e.route_lengths[0]}to{e.route_lengths[1]}-routeexpert"
+        houses = "" if e.house_seeds is None else "-houses" + "+".join(map(str, e.house_seeds))
+        name = f"{e.split}{houses}-{d.num_episodes}ep-{e.noise}-rand{d.random_action_prob}-n{e.demo_length}{routes}-{e.image_size}px-s{e.seed}"
+        return Path("data") / f"{name}-{format_tag()}{task}"
 
 
 def _empty_episodes(config: DatasetConfig) -> TensorDict:
-    e, t, s = config.num_episodes, config.step_limit, config.image_size
+    e, t, s = config.num_episodes, config.episodes.step_limit, config.episodes.image_size
     steps = TensorDict(
         {
             "pixels": torch.zeros(e, t, s, s, NUM_RGB_CHANNELS, dtype=torch.uint8),
@@ -163,7 +147,7 @@ def _empty_episodes(config: DatasetConfig) -> TensorDict:
         },
         batch_size=[e, t],
     )
-    if config.route_style is not None:
+    if config.episodes.route_style is not None:
         steps.set(ROUTE_STEP_KEY, torch.zeros(e, t, 1, dtype=torch.int64))
     return TensorDict(
         {
@@ -184,15 +168,15 @@ def empty_training_episodes(config: DatasetConfig) -> TensorDict:
     ``demo_id``; DAgger's rounds are stored in it.
 
     Examples:
-        >>> empty_training_episodes(DatasetConfig(num_episodes=2, demo_length=5, image_size=32))["demo_frames"].shape
+        >>> empty_training_episodes(DatasetConfig(episodes=EpisodeSpec(demo_length=5, max_steps=50, image_size=32), num_episodes=2))["demo_frames"].shape
         torch.Size([2, 5, 32, 32, 3])
     """
-    e, n, s = config.num_episodes, config.demo_length, config.image_size
+    e, n, s = config.num_episodes, config.episodes.demo_length, config.episodes.image_size
     demonstrations = {
         "demo_frames": torch.zeros(e, n, s, s, NUM_RGB_CHANNELS, dtype=torch.uint8),
         "demo_actions": torch.zeros(e, n, dtype=torch.int64),
     }
-    if config.route_style is not None:  # demonstrations of several lengths
+    if config.episodes.route_style is not None:  # demonstrations of several lengths
         demonstrations["demo_steps"] = torch.zeros(e, 1, dtype=torch.int64)
     return _empty_episodes(config).exclude("demo_id").update(demonstrations)
 
@@ -214,7 +198,7 @@ def attach_demonstrations(episodes: TensorDictBase, demos: DemoStore) -> TensorD
     ids = episodes.get("demo_id").reshape(-1)
     episodes.set("demo_frames", demos.frames[ids].reshape(*episodes.batch_size, *demos.frames.shape[1:]))
     episodes.set("demo_actions", demos.actions[ids].reshape(*episodes.batch_size, -1))
-    if demos.config.route_style is not None:
+    if demos.config.episodes.route_style is not None:
         episodes.set("demo_steps", demos.steps[ids].reshape(*episodes.batch_size, 1))
     return episodes
 
@@ -242,7 +226,7 @@ def generate_chunk(config: DatasetConfig, chunk: int, demos: str | os.PathLike) 
     env = _chunk_env(config, min(config.num_agents, count), first, str(demos))
     with torch.no_grad():
         return play_episode_steps(
-            env, EpsilonExpertPolicy(config.random_action_prob), first, count, step_keys(config.route_style), config.step_limit,
+            env, EpsilonExpertPolicy(config.random_action_prob), first, count, step_keys(config.episodes.route_style), config.episodes.step_limit,
             episode_keys=("demo_id", "episode_seed"),
         )
 
@@ -257,34 +241,16 @@ def _chunk_env(config: DatasetConfig, count: int, first: int, demos: str):
     and compiled houses are the expensive part); each chunk moves its episode
     numbering to ``first`` and re-seeds it.
     """
-    from torchrl.envs import TransformedEnv
+    from envs.factory import make_env
 
-    from envs.nav_env import PathFollowEnv
-    from envs.transforms import ActuationNoise
-
-    key = (config.split, config.num_houses, config.noise, config.demo_length, config.max_steps, config.image_size,
-           config.task, config.route_style, config.route_lengths, count, demos)
+    key = (config.episodes, count, demos)
     if key not in _CHUNK_ENVS:
-        _CHUNK_ENVS[key] = TransformedEnv(
-            PathFollowEnv(
-                config.split,
-                num_houses=config.num_houses,
-                num_agents=count,
-                demo_length=config.demo_length,
-                max_steps=config.max_steps,
-                image_size=config.image_size,
-                with_expert=True,
-                task=config.task,
-                demo_store=DemoStore(demos),
-                emit_demo_frames=False,
-                route_style=config.route_style,
-                route_lengths=config.route_lengths,
-            ),
-            ActuationNoise(config.noise),
+        _CHUNK_ENVS[key] = make_env(
+            config.episodes, count, demo_store=DemoStore(demos), with_expert=True, init_tracker=False
         )
     env = _CHUNK_ENVS[key]
     env.base_env.numbering.offset = first
-    env.set_seed(config.seed, static_seed=True)
+    env.set_seed(config.episodes.seed, static_seed=True)
     return env
 
 
@@ -298,7 +264,7 @@ class EpisodeDataset(TensorStore):
     Examples:
         >>> import tempfile
         >>> root = tempfile.mkdtemp() + "/tiny"
-        >>> config = DatasetConfig(num_episodes=2, num_houses=1, demo_length=5, max_steps=6, image_size=32, chunk_size=2)
+        >>> config = DatasetConfig(episodes=EpisodeSpec(num_houses=1, demo_length=5, max_steps=6, image_size=32), num_episodes=2, chunk_size=2)
         >>> dataset = EpisodeDataset.build(root, config, num_workers=1, progress=False)
         >>> dataset.episodes["steps", "pixels"].shape
         torch.Size([2, 6, 32, 32, 3])
@@ -317,7 +283,11 @@ class EpisodeDataset(TensorStore):
 
     @staticmethod
     def config_from_dict(config: dict) -> DatasetConfig:
-        return DatasetConfig(**config)
+        return from_flat(DatasetConfig, config)
+
+    @staticmethod
+    def config_to_dict(config: DatasetConfig) -> dict:
+        return flat_dict(config)
 
     @staticmethod
     def empty(config: DatasetConfig) -> TensorDict:

@@ -155,6 +155,8 @@ def resolve_checkpoint(path_or_name: str | os.PathLike) -> Path:
         return path
     text = os.fspath(path_or_name)
     if not isinstance(path_or_name, str) or text.endswith(".pt") or os.sep in text or "/" in text:
+        if path.is_dir():
+            raise FileNotFoundError(f"checkpoint file {text} is a directory, not a checkpoint file.")
         raise FileNotFoundError(f"checkpoint file {text} does not exist.")
     names = read_manifest()["names"]
     if text not in names:
@@ -202,9 +204,63 @@ def policy_from_checkpoint(
     device = resolve_device(device)
     verify_checkpoint_file(path)
     payload = load_checkpoint(path, expected_model_type=expected_model_type, map_location=device)
-    policy = build_policy(payload["model_type"], payload["model_config"]).to(device)
-    policy.load_state_dict(payload["model"])
+    def refused(err: Exception) -> CheckpointError:  # on one line: load_state_dict lists the keys over many
+        reason = " ".join(line.strip() for line in str(err).splitlines() if line.strip())
+        return CheckpointError(f"checkpoint {path} does not load into its {payload['model_type']!r} model ({type(err).__name__}: {reason}).")
+
+    try:
+        policy = build_policy(payload["model_type"], payload["model_config"])
+    except ValueError as err:  # a memory layout its model type does not have
+        raise refused(err) from err
+    policy = policy.to(device)
+    try:
+        policy.load_state_dict(payload["model"])
+    except (KeyError, RuntimeError) as err:  # no weights, or weights of another network
+        raise refused(err) from err
     return policy.eval(), payload
+
+
+class CheckedCheckpoint(NamedTuple):
+    """What :func:`checkpoint_argument` returns."""
+
+    #: the checkpoint file.
+    path: Path
+    #: its policy, on the CPU, in eval mode, with the checkpoint's weights.
+    policy: SPFPolicy
+    #: its payload, as :func:`~spf_rl.checkpoint.load_checkpoint` returns it.
+    payload: dict[str, Any]
+
+
+def checkpoint_argument(path_or_name: str | os.PathLike, argument: str, *, model_type: str | None = None) -> CheckedCheckpoint:
+    """A checkpoint given on a command line or in a recipe's config (a path or a shipped name),
+    checked before any work: the file exists, is a listed and unchanged shipped file if it is
+    one, and loads into its policy (on the CPU).
+
+    Args:
+        path_or_name: the value given.
+        argument: what gave it, leading the error message: ``"argument --checkpoint"``,
+            ``"checkpoint"`` (a config key), ...
+        model_type: if given, refuse a checkpoint of another model type.
+
+    Raises:
+        ValueError: ``"<argument>: <why>"`` on one line: a missing file or directory, an unknown
+            shipped name (the message lists the shipped ones), an unreadable or corrupt file, a
+            changed shipped file, or another model type.
+
+    Examples:
+        >>> checkpoint_argument("spf-s0.8", "argument --checkpoint").payload["model_type"]
+        'spf'
+        >>> checkpoint_argument("missing.pt", "argument --checkpoint")
+        Traceback (most recent call last):
+        ...
+        ValueError: argument --checkpoint: checkpoint file missing.pt does not exist.
+    """
+    try:
+        path = resolve_checkpoint(path_or_name)
+        policy, payload = policy_from_checkpoint(path, expected_model_type=model_type)
+    except (OSError, ValueError, CheckpointError) as err:  # OSError: FileNotFoundError, an unreadable file
+        raise ValueError(f"{argument}: {err}") from None
+    return CheckedCheckpoint(path, policy, payload)
 
 
 def load_policy(
@@ -240,8 +296,10 @@ __all__ = [
     "CHECKPOINT_DIR",
     "DEFAULT_START_CHECKPOINT",
     "MANIFEST_NAME",
+    "CheckedCheckpoint",
     "LoadedPolicy",
     "checked_checkpoint",
+    "checkpoint_argument",
     "checkpoint_dir",
     "file_sha256",
     "list_checkpoints",

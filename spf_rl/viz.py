@@ -267,8 +267,7 @@ def watch(
     Returns:
         the episode's record (:func:`~spf_rl.train.evaluation.record_rollout`).
     """
-    import dataclasses
-
+    from envs.episode_spec import EpisodeSpec
     from envs.render import draw_top_down_map
     from envs.scenes import build_house
     from spf_rl.modules.memory import memory_indices
@@ -277,11 +276,13 @@ def watch(
     plt = pyplot()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    eval_config = EvalConfig(split=split, noise=noise, seed=seed, num_houses=num_houses)
+    episodes = EpisodeSpec(split=split, noise=noise, seed=seed, num_houses=num_houses, max_steps=50)
     config = getattr(policy, "config", None)
     indices = np.zeros(0, dtype=np.int64)
     if config is not None:
-        eval_config = dataclasses.replace(eval_config, demo_length=config.demo_length, image_size=config.image_size[0])
+        episodes = episodes.replace(demo_length=config.demo_length, image_size=config.image_size[0])
+    eval_config = EvalConfig(episodes)
+    if config is not None:
         if getattr(policy, "use_memory", False):
             indices = memory_indices(config.demo_length, policy.sparsity).numpy()
     record = record_rollout(policy, eval_config)

@@ -7,17 +7,19 @@ import json
 import pytest
 import torch
 
+from envs.episode_spec import SIZE_FIELDS, EpisodeSpec
 from spf_rl.data import DatasetConfig, EpisodeDataset
 from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
 from spf_rl.train.bc import BCConfig, bc_loss, train_bc
 from spf_rl.train.evaluation import EvalConfig
 from spf_rl.train.run import OptimConfig
 
-DATA = DatasetConfig(num_episodes=8, num_houses=1, demo_length=5, max_steps=8, image_size=32, chunk_size=4)
+DATA = DatasetConfig(episodes=EpisodeSpec(num_houses=1, demo_length=5, max_steps=8, image_size=32), num_episodes=8, chunk_size=4)
 
 
-def tiny_config(tmp_path, epochs: int, model: str = "spf") -> BCConfig:
-    evaluation = dict(num_episodes=2, num_agents=2, num_houses=1)
+def tiny_config(tmp_path, epochs: int, model: str = "spf", data: DatasetConfig = DATA) -> BCConfig:
+    evaluation = dict(num_episodes=2, num_agents=2)
+    sizes = {key: getattr(data.episodes, key) for key in ("num_houses", *SIZE_FIELDS)}  # as the training episodes
     return BCConfig(
         output_dir=str(tmp_path / "run"),
         data_dir=str(tmp_path / "data"),
@@ -25,11 +27,11 @@ def tiny_config(tmp_path, epochs: int, model: str = "spf") -> BCConfig:
         num_workers=1,
         logger="csv",
         progress=False,
-        data=DATA,
+        data=data,
         model=ModelConfig(name=model, sparsity=0.4, feature_dim=16, hidden_size=16),
         optim=OptimConfig(batch_size=4, epochs=epochs, lr=3e-3),
-        val=EvalConfig(split="val", seed=1, **evaluation),
-        test=EvalConfig(split="test", seed=2, **evaluation),
+        val=EvalConfig(EpisodeSpec(split="val", seed=1, **sizes), **evaluation),
+        test=EvalConfig(EpisodeSpec(split="test", seed=2, **sizes), **evaluation),
     )
 
 
@@ -65,10 +67,10 @@ def test_train_resume_and_results(tmp_path):
     assert (run / "training_curves.png").stat().st_size > 1000
     assert (run / "best.pt").exists() and (run / "last.pt").exists()
     # the test records say what they are of, so a DAgger run from best.pt reuses them (tests/test_dagger.py)
-    from spf_rl.train.evaluation import read_test_episodes, with_episode_sizes
+    from spf_rl.train.evaluation import read_test_episodes
 
     config = tiny_config(tmp_path, epochs=2)
-    test_config = with_episode_sizes(config.test, config.data)
+    test_config = config.test
     summary, records = read_test_episodes(run / "test_episodes.json", test_config, run / "best.pt")
     assert summary["success"] == results["test"]["success"] and len(records) == 2
     assert read_test_episodes(run / "test_episodes.json", test_config, run / "last.pt") is None  # another file
@@ -174,10 +176,7 @@ def test_valid_steps_must_be_a_prefix_along_time():
         policy.encode_pixels(td, valid=torch.ones(3, dtype=torch.bool))
 
 
-ROUTES = DatasetConfig(
-    num_episodes=8, num_houses=1, demo_length=12, max_steps=None, image_size=16, chunk_size=8,
-    route_style="driven", route_lengths=(10, 12),
-)
+ROUTES = DatasetConfig(episodes=EpisodeSpec(num_houses=1, demo_length=12, max_steps=None, image_size=16, route_style="driven", route_lengths=(10, 12)), num_episodes=8, chunk_size=8)
 
 
 def _pointer_error(policy, batch) -> float:
@@ -233,8 +232,7 @@ def test_the_pointer_loss_needs_route_step_labels(tmp_path):
 
 def test_a_run_with_the_pointer_loss_logs_it_apart(tmp_path):
     config = dataclasses.replace(
-        tiny_config(tmp_path, epochs=2, model="spf_random"),
-        data=ROUTES,
+        tiny_config(tmp_path, epochs=2, model="spf_random", data=ROUTES),
         model=ModelConfig(name="spf_random", pointer_update="rpf", feature_dim=16, hidden_size=16),
         optim=OptimConfig(batch_size=4, epochs=2, lr=3e-3, pointer_coef=0.1),
     )

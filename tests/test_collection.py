@@ -9,6 +9,7 @@ import torch
 from tensordict.nn import TensorDictModule
 
 from envs.demo_store import DemoStore, DemoStoreConfig
+from envs.episode_spec import EpisodeSpec
 from envs.episodes import gather_episode_steps
 from spf_rl.data import STEP_KEYS
 from spf_rl.modules import SPFConfig, make_spf_policy
@@ -16,7 +17,7 @@ from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig, make_c
 from spf_rl.train.dagger import ExpertMixturePolicy
 from spf_rl.train.evaluation import FramesFromStore
 
-TINY_ENV = CollectionEnvConfig(num_houses=1, demo_length=5, max_steps=6, image_size=32)
+TINY_ENV = CollectionEnvConfig(episodes=EpisodeSpec(num_houses=1, demo_length=5, max_steps=6, image_size=32))
 
 
 def tiny_policy():
@@ -25,9 +26,10 @@ def tiny_policy():
 
 def episode_store(root, count: int, seed: int) -> DemoStore:
     """The demonstrations of episodes ``0 .. count - 1`` of env seed ``seed`` in TINY_ENV's houses."""
+    env = TINY_ENV.episodes
     config = DemoStoreConfig(
-        num_demos=count, split=TINY_ENV.split, num_houses=TINY_ENV.num_houses, demo_length=TINY_ENV.demo_length,
-        image_size=TINY_ENV.image_size, episodes_seed=seed,
+        episodes=EpisodeSpec(split=env.split, num_houses=env.num_houses, demo_length=env.demo_length, image_size=env.image_size, seed=seed),
+        num_demos=count, numbered=True,
     )
     return DemoStore.build(root, config, progress=False)
 
@@ -38,7 +40,7 @@ def play_store(behaviour, store: DemoStore, count: int, seed: int, config: Colle
     )
     try:
         with torch.no_grad():
-            return gather_episode_steps(collector, 0, count, STEP_KEYS, TINY_ENV.max_steps, ("demo_id", "episode_seed"))
+            return gather_episode_steps(collector, 0, count, STEP_KEYS, TINY_ENV.episodes.max_steps, ("demo_id", "episode_seed"))
     finally:
         collector.shutdown()
 
@@ -66,7 +68,7 @@ def test_numbered_episodes_of_a_store_do_not_depend_on_the_collector_layout(tmp_
     assert first["steps", "mask"][:, 0].all() and first["steps", "is_init"][:, 0].all()
     lengths = first["steps", "mask"].sum(-1)
     assert torch.equal(lengths, first["length"]) and (lengths >= 1).all()
-    assert torch.equal(first["steps", "mask"], torch.arange(TINY_ENV.max_steps) < lengths[:, None])  # no gaps
+    assert torch.equal(first["steps", "mask"], torch.arange(TINY_ENV.episodes.max_steps) < lengths[:, None])  # no gaps
     assert 0 < int(first["steps", "action"][first["steps", "mask"]].ne(first["steps", "expert_action"][first["steps", "mask"]]).sum())
     for other in others:
         for key in ("pixels", "action", "expert_action", "mask"):
@@ -162,7 +164,7 @@ def test_ray_backend_collects_a_batch_on_a_local_cluster(tmp_path, ray_cluster):
     turned = (batch["next", "pose"][..., 2] - batch["pose"][..., 2]).numpy()
     nominal = nominal_motion(batch["action"].numpy())[..., 2]
     deviation = np.abs(np.angle(np.exp(1j * (turned - nominal))))
-    assert TINY_ENV.noise == "paper" and (deviation > np.deg2rad(1.0)).mean() > 0.5
+    assert TINY_ENV.episodes.noise == "paper" and (deviation > np.deg2rad(1.0)).mean() > 0.5
     # numbered episodes of an episode store: two Ray actors play the same episodes as one local collector
     store = episode_store(tmp_path / "store", count=5, seed=2)
     behaviour = ExpertMixturePolicy(FramesFromStore(policy, store), beta=0.0)

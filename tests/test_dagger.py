@@ -10,6 +10,7 @@ import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 
+from envs.episode_spec import SIZE_FIELDS, EpisodeSpec
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.modules import SPFConfig
 from spf_rl.modules.registry import build_policy
@@ -79,7 +80,10 @@ def test_config_errors_name_the_parameter(kwargs, name):
 
 
 def tiny_config(tmp_path, checkpoint, **overrides) -> DAggerConfig:
-    evaluation = dict(num_episodes=4, num_agents=4, demo_length=5, max_steps=6, image_size=32, num_houses=1)
+    env = overrides.pop("env", CollectionEnvConfig(episodes=EpisodeSpec(num_houses=1, demo_length=5, max_steps=6, image_size=32)))
+    # val and test play episodes of the env's sizes and routes (the policy is built for them)
+    sizes = {key: getattr(env.episodes, key) for key in SIZE_FIELDS}
+    evaluation = dict(num_episodes=4, num_agents=4)
     base = dict(
         checkpoint=str(checkpoint),
         output_dir=str(tmp_path / "dagger"),
@@ -92,10 +96,10 @@ def tiny_config(tmp_path, checkpoint, **overrides) -> DAggerConfig:
         aggregate_bc_data=False,
         logger="csv",
         progress=False,
-        env=CollectionEnvConfig(num_houses=1, demo_length=5, max_steps=6, image_size=32),
+        env=env,
         collector=CollectorConfig(num_agents=2),
-        val=EvalConfig(split="val", seed=1, **evaluation),
-        test=EvalConfig(split="test", seed=2, **evaluation),
+        val=EvalConfig(EpisodeSpec(split="val", seed=1, num_houses=1, **sizes), **evaluation),
+        test=EvalConfig(EpisodeSpec(split="test", seed=2, num_houses=1, **sizes), **evaluation),
     )
     base.update(overrides)
     return DAggerConfig(**base)
@@ -174,7 +178,7 @@ def test_rounds_aggregate_retrain_and_report(two_rounds, shared_checkpoint):
     assert results["best"]["val_success"] == best_record["val_success"] and "test_success" in results["best"]
     assert (output / "dagger.png").stat().st_size > 0
     stored = RoundStore(output / "rounds" / "round-01")
-    assert (stored.config.round_index, stored.config.beta, stored.config.max_steps) == (1, 0.5, 6)
+    assert (stored.config.round_index, stored.config.beta, stored.config.episodes.max_steps) == (1, 0.5, 6)
     episodes = stored.episodes
     assert episodes.batch_size == torch.Size([4])
     assert episodes["steps", "is_init"][:, 0].all() and episodes["steps", "mask"][:, 0].all()
@@ -198,11 +202,9 @@ def test_rounds_aggregate_retrain_and_report(two_rounds, shared_checkpoint):
 def test_expert_only_round_succeeds_in_every_episode(tmp_path, bc_checkpoint):
     """beta = 1 without noise: the expert drives every step of every (whole) episode, so each succeeds."""
     config = tiny_config(
-        tmp_path, bc_checkpoint, rounds=1, beta0=1.0, episodes_per_round=8, env=CollectionEnvConfig(
-            num_houses=1, demo_length=5, max_steps=12, image_size=32, noise="none"
-        )
+        tmp_path, bc_checkpoint, rounds=1, beta0=1.0, episodes_per_round=8, env=CollectionEnvConfig(episodes=EpisodeSpec(num_houses=1, noise="none", demo_length=5, max_steps=12, image_size=32))
     )
-    config.val = config.test = EvalConfig(split="val", seed=1, num_episodes=2, num_agents=2, demo_length=5, max_steps=12, image_size=32, num_houses=1)
+    config.val = config.test = EvalConfig(episodes=EpisodeSpec(split="val", num_houses=1, demo_length=5, max_steps=12, image_size=32, seed=1), num_episodes=2, num_agents=2)
     round_one = train_dagger(config)["history"][1]
     assert round_one["episodes"] == 8 and round_one["behaviour_success"] == 1.0
     episodes = RoundStore(tmp_path / "dagger" / "rounds" / "round-01").episodes
@@ -322,20 +324,20 @@ def test_a_round_of_an_older_layout_or_without_its_demonstrations_is_refused(tmp
 def test_round_store_refuses_a_wrong_count_and_bad_configs(tmp_path):
     from spf_rl.data import DatasetConfig, EpisodeDataset
 
-    config = RoundConfig(round_index=1, seed=3, beta=0.0, num_episodes=2, demo_length=4, max_steps=5, image_size=8)
-    three = EpisodeDataset.empty(DatasetConfig(num_episodes=3, demo_length=4, max_steps=5, image_size=8))
+    config = RoundConfig(episodes=EpisodeSpec(demo_length=4, max_steps=5, image_size=8, seed=3), round_index=1, beta=0.0, num_episodes=2)
+    three = EpisodeDataset.empty(DatasetConfig(episodes=EpisodeSpec(demo_length=4, max_steps=5, image_size=8), num_episodes=3))
     with pytest.raises(ValueError, match=r"batch size \[2\]"):
         RoundStore.write(tmp_path / "round-01", config, three)
     assert not (tmp_path / "round-01").exists()
     with pytest.raises(ValueError, match="beta must be in"):
-        RoundConfig(round_index=1, seed=3, beta=1.5, num_episodes=2, demo_length=4, max_steps=5, image_size=8)
+        RoundConfig(episodes=EpisodeSpec(demo_length=4, max_steps=5, image_size=8, seed=3), round_index=1, beta=1.5, num_episodes=2)
     with pytest.raises(ValueError, match="round_index"):
-        RoundConfig(round_index=0, seed=3, beta=0.0, num_episodes=2, demo_length=4, max_steps=5, image_size=8)
+        RoundConfig(episodes=EpisodeSpec(demo_length=4, max_steps=5, image_size=8, seed=3), round_index=0, beta=0.0, num_episodes=2)
 
 
 def test_checkpoint_of_other_sizes_is_refused(tmp_path, bc_checkpoint):
-    config = tiny_config(tmp_path, bc_checkpoint, env=CollectionEnvConfig(num_houses=1, demo_length=6, max_steps=6, image_size=32))
-    with pytest.raises(ValueError, match="demo_length"):
+    config = tiny_config(tmp_path, bc_checkpoint, env=CollectionEnvConfig(episodes=EpisodeSpec(num_houses=1, demo_length=6, max_steps=6, image_size=32)))
+    with pytest.raises(ValueError, match=r"env.demo_length / env.image_size \(6, 32\) must match the checkpoint's"):
         train_dagger(config)
 
 
@@ -367,8 +369,8 @@ def test_resuming_without_the_round_data_names_what_is_missing(tmp_path):
     from spf_rl.data import DatasetConfig, EpisodeDataset
     from spf_rl.train.dagger_rounds import training_sources
 
-    config = RoundConfig(round_index=1, seed=3, beta=0.0, num_episodes=2, demo_length=4, max_steps=5, image_size=8)
-    episodes = EpisodeDataset.empty(DatasetConfig(num_episodes=2, demo_length=4, max_steps=5, image_size=8))
+    config = RoundConfig(episodes=EpisodeSpec(demo_length=4, max_steps=5, image_size=8, seed=3), round_index=1, beta=0.0, num_episodes=2)
+    episodes = EpisodeDataset.empty(DatasetConfig(episodes=EpisodeSpec(demo_length=4, max_steps=5, image_size=8), num_episodes=2))
     RoundStore.write(tmp_path / "rounds" / "round-01", config, episodes)
     (tmp_path / "rounds" / "round-03").mkdir()  # a round directory without meta.json is incomplete
     with pytest.raises(FileNotFoundError, match="round-02 is missing or incomplete"):
@@ -398,11 +400,11 @@ def test_round_0_reuses_the_start_checkpoints_own_test_records(tmp_path, monkeyp
     import dataclasses
 
     import spf_rl.train.dagger as dagger_module
-    from spf_rl.train.evaluation import evaluate_policy, with_episode_sizes, write_test_episodes
+    from spf_rl.train.evaluation import evaluate_policy, write_test_episodes
 
     start = save_bc_checkpoint(tmp_path)
     config = tiny_config(tmp_path, start, rounds=0)
-    test_config = with_episode_sizes(config.test, config.env)
+    test_config = config.test  # of the env's sizes
     policy = build_policy("spf", load_checkpoint(start)["model_config"])
     policy.load_state_dict(load_checkpoint(start)["model"])
     summary, records = evaluate_policy(policy, test_config)
@@ -411,16 +413,16 @@ def test_round_0_reuses_the_start_checkpoints_own_test_records(tmp_path, monkeyp
     monkeypatch.setattr(dagger_module, "evaluate_policy", lambda p, c, progress=False: played.append(c) or evaluate_policy(p, c))
 
     results = train_dagger(config)
-    assert [c.split for c in played] == ["val"]  # round 0's test came from the file
+    assert [c.episodes.split for c in played] == ["val"]  # round 0's test came from the file
     assert (results["start"]["test_success"], results["start"]["test_spl"]) == (summary["success"], summary["spl"])
     shipped = json.loads((Path(config.output_dir) / "test_episodes.json").read_text())
     assert shipped["round"] == 0 and shipped["episodes"] == json.loads(json.dumps(records, default=str))
 
-    other = dataclasses.replace(test_config, seed=9)  # records of other episodes: played again
+    other = dataclasses.replace(test_config, episodes=test_config.episodes.replace(seed=9))  # records of other episodes: played again
     write_test_episodes(tmp_path / "test_episodes.json", records, other, start)
     played.clear()
     train_dagger(dataclasses.replace(config, output_dir=str(tmp_path / "again")))
-    assert [c.split for c in played] == ["val", "test"]
+    assert [c.episodes.split for c in played] == ["val", "test"]
 
 
 def test_random_sparsity_rounds_do_not_depend_on_the_global_rng(tmp_path):

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from envs.demo_store import DemoStoreError
+from envs.episode_spec import EpisodeSpec, from_flat
 from envs.version import ENV_VERSION
 from spf_rl.data import DatasetConfig, DatasetError, EpisodeDataset, demos_root, generate_chunk
 
@@ -18,7 +19,7 @@ TINY = dict(num_episodes=6, num_houses=1, demo_length=5, max_steps=8, image_size
 @pytest.fixture(scope="module")
 def built(tmp_path_factory):
     root = tmp_path_factory.mktemp("ds") / "tiny"
-    return EpisodeDataset.build(root, DatasetConfig(**TINY), num_workers=1, progress=False)
+    return EpisodeDataset.build(root, from_flat(DatasetConfig, TINY), num_workers=1, progress=False)
 
 
 def test_layout_and_labels(built):
@@ -41,7 +42,7 @@ def test_layout_and_labels(built):
 
 
 def test_chunks_are_deterministic(built):
-    config = DatasetConfig(**TINY)
+    config = from_flat(DatasetConfig, TINY)
     again = generate_chunk(config, 1, demos_root(built.root))
     assert torch.equal(again["steps", "pixels"], built.episodes[2:4]["steps", "pixels"])
     assert torch.equal(again["steps", "expert_action"], built.episodes[2:4]["steps", "expert_action"])
@@ -50,7 +51,7 @@ def test_chunks_are_deterministic(built):
 def test_episodes_do_not_depend_on_the_chunking(built, tmp_path):
     # every episode is a function of the seed and its number: chunks of 3 episodes played by 2 agents
     # (one of them plays two episodes of each chunk) give the bytes of chunks of 2 played by 2
-    other_config = DatasetConfig(**{**TINY, "chunk_size": 3, "num_agents": 2})
+    other_config = from_flat(DatasetConfig, {**TINY, "chunk_size": 3, "num_agents": 2})
     other = EpisodeDataset.build(tmp_path / "three", other_config, num_workers=1, progress=False)
     for key in built.episodes.keys(include_nested=True, leaves_only=True):
         assert torch.equal(other.episodes[key], built.episodes[key]), key
@@ -87,13 +88,13 @@ def test_interrupted_build_resumes_to_the_same_bytes(built, tmp_path, monkeypatc
 
     monkeypatch.setattr(data_module, "generate_chunk", stop_at_last_chunk)
     with pytest.raises(RuntimeError, match="stopped"):
-        EpisodeDataset.build(root, DatasetConfig(**TINY), num_workers=1, progress=False)
+        EpisodeDataset.build(root, from_flat(DatasetConfig, TINY), num_workers=1, progress=False)
     assert not root.exists() and (tmp_path / "resumed.partial").exists()
     with pytest.raises(DatasetError, match="resume"):
         EpisodeDataset(root)
     calls.clear()
     monkeypatch.setattr(data_module, "generate_chunk", lambda config, chunk, demos: calls.append(chunk) or real(config, chunk, demos))
-    resumed = EpisodeDataset.build(root, DatasetConfig(**TINY), num_workers=1, progress=False)
+    resumed = EpisodeDataset.build(root, from_flat(DatasetConfig, TINY), num_workers=1, progress=False)
     assert calls == [2]  # chunks 0 and 1 were kept
     for key in built.episodes.keys(include_nested=True, leaves_only=True):
         assert torch.equal(resumed.episodes[key], built.episodes[key]), key
@@ -112,7 +113,7 @@ def test_corruption_is_detected(built, tmp_path):
 def test_missing_and_mismatched_datasets(built, tmp_path):
     with pytest.raises(DatasetError, match="not a dataset store"):
         EpisodeDataset(tmp_path / "nothing")
-    other = DatasetConfig(**{**TINY, "noise": "locobot"})
+    other = from_flat(DatasetConfig, {**TINY, "noise": "locobot"})
     with pytest.raises(DatasetError, match="another configuration"):
         EpisodeDataset.build(built.root, other, num_workers=1, progress=False)
     root = tmp_path / "badmeta"
@@ -134,7 +135,7 @@ def test_missing_and_mismatched_datasets(built, tmp_path):
 )
 def test_bad_config(kwargs, match):
     with pytest.raises(ValueError, match=match):
-        DatasetConfig(**kwargs)
+        from_flat(DatasetConfig, kwargs)
 
 
 def test_replay_buffer_yields_each_episode_once_per_epoch(built):
@@ -164,23 +165,23 @@ def test_stale_datasets_are_refused(built, tmp_path, changes, match):
     with pytest.raises(DatasetError, match=match):
         EpisodeDataset(root)
     with pytest.raises(DatasetError, match=match):  # and never resumed into
-        EpisodeDataset.build(root, DatasetConfig(**TINY), num_workers=1, progress=False)
+        EpisodeDataset.build(root, from_flat(DatasetConfig, TINY), num_workers=1, progress=False)
 
 
 def test_homing_datasets_and_evaluations_play_homing_episodes(tmp_path):
     from spf_rl.data import _chunk_env
     from spf_rl.train.evaluation import EvalConfig, make_eval_env
 
-    config = DatasetConfig(**{**TINY, "num_episodes": 2, "task": "homing"})
+    config = from_flat(DatasetConfig, {**TINY, "num_episodes": 2, "task": "homing"})
     dataset = EpisodeDataset.build(tmp_path / "homing", config, num_workers=1, progress=False)
-    assert dataset.demos.config.task == "homing"
+    assert dataset.demos.config.episodes.task == "homing"
     assert _chunk_env(config, 2, 0, str(dataset.demos.root)).base_env.task == "homing"
-    env = make_eval_env(EvalConfig(task="homing", num_episodes=2, num_agents=2, demo_length=5, max_steps=8, image_size=32, num_houses=1, render=False))
+    env = make_eval_env(EvalConfig(episodes=EpisodeSpec(split="test", num_houses=1, demo_length=5, max_steps=8, image_size=32, task="homing", seed=1234), num_episodes=2, num_agents=2, render=False))
     assert env.base_env.task == "homing"
     with pytest.raises(ValueError, match="task"):
-        DatasetConfig(task="fetch")
+        DatasetConfig(episodes=EpisodeSpec(max_steps=50, task="fetch"))
     with pytest.raises(ValueError, match="task"):
-        EvalConfig(task="fetch")
+        EvalConfig(episodes=EpisodeSpec(split="test", max_steps=50, task="fetch", seed=1234))
 
 
 #: The 4,000-episode dataset of the bc_row runs, made by the hand-written loop before the
@@ -200,7 +201,7 @@ def test_two_workers_build_both_stores_in_one_pool_and_the_same_bytes(built, tmp
 
     real = data_module.worker_pool
     monkeypatch.setattr(data_module, "worker_pool", counted)
-    two = EpisodeDataset.build(tmp_path / "two", DatasetConfig(**TINY), num_workers=2, progress=False)
+    two = EpisodeDataset.build(tmp_path / "two", from_flat(DatasetConfig, TINY), num_workers=2, progress=False)
     assert pools == [2]
     for key in built.episodes.keys(include_nested=True, leaves_only=True):
         assert torch.equal(two.episodes[key], built.episodes[key]), key
@@ -218,7 +219,7 @@ def test_collected_datasets_match_the_hand_loop_datasets_in_distribution(tmp_pat
     4,000-episode dataset the previous generator (a hand-written loop) made for the bc_row runs,
     as its committed results record them."""
     old = HAND_LOOP_DATASET
-    config = DatasetConfig(**{**HAND_LOOP_DATASET_CONFIG, "num_episodes": 96, "chunk_size": 32})
+    config = from_flat(DatasetConfig, {**HAND_LOOP_DATASET_CONFIG, "num_episodes": 96, "chunk_size": 32})
     new = EpisodeDataset.build(tmp_path / "new", config, num_workers=1, progress=False).episodes
     lengths = new["length"].double()
     standard_error = float(lengths.std()) / len(lengths) ** 0.5
@@ -232,7 +233,7 @@ def test_episodes_the_numbering_never_reaches_are_an_error_not_a_hang(built):
     from envs.scripted import EpsilonExpertPolicy
     from spf_rl.data import STEP_KEYS, _chunk_env
 
-    config = DatasetConfig(**TINY)
+    config = from_flat(DatasetConfig, TINY)
     env = _chunk_env(config, 2, 4, str(demos_root(built.root)))  # plays episodes 4, 5, 6, ...
     with pytest.raises(RuntimeError, match=r"never reaches episodes \[0, 1\]"):
-        play_episode_steps(env, EpsilonExpertPolicy(0.0), 0, 2, STEP_KEYS, config.max_steps)
+        play_episode_steps(env, EpsilonExpertPolicy(0.0), 0, 2, STEP_KEYS, config.episodes.max_steps)

@@ -17,6 +17,7 @@ from torchrl.envs import ParallelEnv, SerialEnv, check_env_specs
 
 from envs import demo_store as demo_store_module
 from envs.demo_store import DemoStore, DemoStoreConfig, DemoStoreError, sample_store_demonstration
+from envs.episode_spec import EpisodeSpec
 from envs.factory import make_path_follow_env
 from envs.nav_env import PathFollowEnv
 from envs.render import FirstPersonRenderer
@@ -25,7 +26,7 @@ from envs.version import ENV_VERSION
 from spf_rl.modules import SPFConfig, make_actor, make_spf_policy
 
 # K = 20 so that two env seeds drawing the same sequence of demo ids is unlikely
-STORE_CONFIG = DemoStoreConfig(num_demos=20, split="train", num_houses=2, demo_length=5, image_size=32, seed=0)
+STORE_CONFIG = DemoStoreConfig(episodes=EpisodeSpec(split="train", num_houses=2, demo_length=5, image_size=32, seed=0), num_demos=20)
 ENV_KWARGS = dict(num_houses=2, demo_length=5, image_size=32, max_steps=3)
 TENSOR_FILES = ("frames", "actions", "poses", "house_seed", "shortest_length_m")
 
@@ -63,16 +64,16 @@ def _tensors(store: DemoStore) -> dict[str, torch.Tensor]:
 
 # ------------------------------------------------------------------ building
 def test_build_is_deterministic_and_depends_on_the_seed(store, tmp_path):
-    config = DemoStoreConfig(**{**vars(STORE_CONFIG), "num_demos": 4})
+    config = DemoStoreConfig.from_dict({**STORE_CONFIG.to_dict(), "num_demos": 4})
     first = DemoStore.build(tmp_path / "a", config, progress=False)
-    second = DemoStore.build(tmp_path / "b", DemoStoreConfig(**vars(config)), progress=False)
+    second = DemoStore.build(tmp_path / "b", DemoStoreConfig.from_dict(config.to_dict()), progress=False)
     for key, value in _tensors(first).items():
         assert torch.equal(value, _tensors(second)[key]), key
     # demonstration k depends only on (seed, k): a smaller store is a prefix of a larger one
     for key, value in _tensors(first).items():
         assert torch.equal(value, _tensors(store)[key][:4]), key
     assert first.frames.float().std() > 10  # rendered, not blank
-    other = DemoStore.build(tmp_path / "c", DemoStoreConfig(**{**vars(config), "seed": 1}), progress=False)
+    other = DemoStore.build(tmp_path / "c", DemoStoreConfig.from_dict({**config.to_dict(), "seed": 1}), progress=False)
     assert not torch.equal(other.poses, first.poses)
     assert not torch.equal(other.frames, first.frames)
 
@@ -113,17 +114,17 @@ def test_demonstration_has_the_stored_route(store):
 def test_build_reopens_a_matching_store_and_refuses_another_config(store_root):
     frames_file = store_root / "data" / "frames.memmap"
     before = (frames_file.stat().st_mtime_ns, (store_root / "meta.json").stat().st_mtime_ns)
-    reopened = DemoStore.build(store_root, DemoStoreConfig(**vars(STORE_CONFIG)), progress=False)
+    reopened = DemoStore.build(store_root, DemoStoreConfig.from_dict(STORE_CONFIG.to_dict()), progress=False)
     assert (frames_file.stat().st_mtime_ns, (store_root / "meta.json").stat().st_mtime_ns) == before
     assert reopened.config == STORE_CONFIG and len(reopened) == 20
     with pytest.raises(DemoStoreError, match=str(store_root)):
-        DemoStore.build(store_root, DemoStoreConfig(**{**vars(STORE_CONFIG), "seed": 5}), progress=False)
+        DemoStore.build(store_root, DemoStoreConfig.from_dict({**STORE_CONFIG.to_dict(), "seed": 5}), progress=False)
     with pytest.raises(DemoStoreError, match=str(store_root)):
-        DemoStore.build(store_root, DemoStoreConfig(**{**vars(STORE_CONFIG), "num_demos": 3}), progress=False)
+        DemoStore.build(store_root, DemoStoreConfig.from_dict({**STORE_CONFIG.to_dict(), "num_demos": 3}), progress=False)
 
 
 def test_interrupted_build_resumes_to_the_same_bytes(tmp_path, monkeypatch):
-    config = DemoStoreConfig(num_demos=5, num_houses=1, demo_length=5, image_size=32)
+    config = DemoStoreConfig(episodes=EpisodeSpec(num_houses=1, demo_length=5, image_size=32), num_demos=5)
     monkeypatch.setattr(demo_store_module, "DEMO_CHUNK_ROWS", 2)  # chunks {0, 1}, {2, 3}, {4}
     reference = DemoStore.build(tmp_path / "reference", config, progress=False)
     root = tmp_path / "store"
@@ -155,7 +156,7 @@ def test_interrupted_build_resumes_to_the_same_bytes(tmp_path, monkeypatch):
 def test_building_and_opening_never_hold_the_full_size_layout_in_memory(tmp_path, monkeypatch):
     """The store's full-size zeros (gigabytes for a route dataset) are only ever made as meta
     tensors; its files start zero-filled."""
-    config = DemoStoreConfig(num_demos=5, num_houses=1, demo_length=5, image_size=32)
+    config = DemoStoreConfig(episodes=EpisodeSpec(num_houses=1, demo_length=5, image_size=32), num_demos=5)
     monkeypatch.setattr(demo_store_module, "DEMO_CHUNK_ROWS", 2)
     real, devices = DemoStore.empty, []
 
@@ -176,7 +177,7 @@ def test_building_and_opening_never_hold_the_full_size_layout_in_memory(tmp_path
 
 
 def test_a_damaged_partial_build_is_rebuilt(tmp_path, monkeypatch):
-    config = DemoStoreConfig(num_demos=3, num_houses=1, demo_length=5, image_size=32)
+    config = DemoStoreConfig(episodes=EpisodeSpec(num_houses=1, demo_length=5, image_size=32), num_demos=3)
     partial = tmp_path / "store.partial"
     partial.mkdir()
     (partial / "progress.json").write_text("{ not json")
@@ -187,7 +188,7 @@ def test_a_damaged_partial_build_is_rebuilt(tmp_path, monkeypatch):
 def test_build_into_an_empty_existing_directory(tmp_path):
     root = tmp_path / "store"
     root.mkdir()
-    store = DemoStore.build(root, DemoStoreConfig(num_demos=2, num_houses=1, demo_length=5, image_size=32), progress=False)
+    store = DemoStore.build(root, DemoStoreConfig(episodes=EpisodeSpec(num_houses=1, demo_length=5, image_size=32), num_demos=2), progress=False)
     assert (root / "meta.json").exists() and len(store) == 2
 
 
@@ -215,8 +216,8 @@ def test_flipped_byte_is_detected(store_copy, name):
         pytest.param(lambda root: (root / "data" / "meta.json").write_text("]"), id="garbage-tensordict-meta"),
         pytest.param(lambda root: shutil.rmtree(root / "data"), id="deleted-data"),
         pytest.param(lambda root: _edit_meta(root, format_version=99), id="other-format-version"),
-        pytest.param(lambda root: _edit_meta(root, config={**vars(STORE_CONFIG), "num_demos": 21}), id="wrong-shape"),
-        pytest.param(lambda root: _edit_meta(root, config={**vars(STORE_CONFIG), "split": "nope"}), id="invalid-config"),
+        pytest.param(lambda root: _edit_meta(root, config={**STORE_CONFIG.to_dict(), "num_demos": 21}), id="wrong-shape"),
+        pytest.param(lambda root: _edit_meta(root, config={**STORE_CONFIG.to_dict(), "split": "nope"}), id="invalid-config"),
         pytest.param(lambda root: _edit_meta(root, checksums=None), id="no-checksums"),
         # non-UTF-8 bytes and valid JSON that is not an object
         pytest.param(
@@ -272,7 +273,7 @@ def test_build_refuses_a_non_empty_directory_that_is_not_a_store(tmp_path):
     root = tmp_path / "store"
     (root / "data").mkdir(parents=True)
     with pytest.raises(DemoStoreError, match=str(root)):
-        DemoStore.build(root, DemoStoreConfig(num_demos=1, num_houses=1, demo_length=5, image_size=32), progress=False)
+        DemoStore.build(root, DemoStoreConfig(episodes=EpisodeSpec(num_houses=1, demo_length=5, image_size=32), num_demos=1), progress=False)
     assert (root / "data").exists() and not (tmp_path / "store.partial").exists()
 
 
@@ -467,7 +468,7 @@ def test_env_refuses_emit_false_without_store_and_a_missing_store(tmp_path):
 )
 def test_store_config_refuses_bad_values(kwargs, match):
     with pytest.raises(ValueError, match=match):
-        DemoStoreConfig(**kwargs)
+        DemoStoreConfig.from_dict(kwargs)
 
 
 # ---------------------------------------------------------------- collector

@@ -15,6 +15,7 @@ from tensordict.nn import TensorDictModuleBase
 from torch import nn
 from torchrl.modules import set_recurrent_mode
 
+from envs.episode_spec import SIZE_FIELDS, EpisodeSpec
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.config import load_config
 from spf_rl.data import DatasetConfig, empty_training_episodes
@@ -23,7 +24,7 @@ from spf_rl.hub import policy_from_checkpoint
 from spf_rl.modules import SPFConfig
 from spf_rl.modules.registry import build_policy
 from spf_rl.train import collection, dagger, ppo
-from spf_rl.train.bc import BCConfig, bc_loss, episodes_to_sequence, train_bc
+from spf_rl.train.bc import BCConfig, bc_loss, default_test_config, episodes_to_sequence, train_bc
 from spf_rl.train.collection import (
     CollectionEnvConfig,
     CollectorConfig,
@@ -39,7 +40,7 @@ from spf_rl.train.ppo_loss import AMP_RATIO_SYNC_TOLERANCE, Autocast, make_ppo_m
 
 META = torch.device("meta")
 POLICY = SPFConfig(demo_length=5, sparsity=0.4, feature_dim=16, hidden_size=16, image_size=(32, 32))
-ENV = CollectionEnvConfig(num_houses=1, demo_length=5, max_steps=6, image_size=32, with_expert=False)
+ENV = CollectionEnvConfig(episodes=EpisodeSpec(num_houses=1, demo_length=5, max_steps=6, image_size=32), with_expert=False)
 ALLOWED = r"must be one of 'auto', 'cpu', 'cuda' or 'cuda:N'"
 #: bf16 autocast: step-mode and sequence-mode logits agree within this fraction of the
 #: largest |logit| (bf16 keeps 8 mantissa bits, ~0.4% per rounding, and the error grows
@@ -64,6 +65,12 @@ def assert_amp_agreement(step16: torch.Tensor, whole16: torch.Tensor, whole32: t
     atol = max(AMP_LOGIT_RELATIVE_TOLERANCE * scale, AMP_SHIFT_FACTOR * shift)
     torch.testing.assert_close(step16, whole16, rtol=0.0, atol=atol)
 no_cuda = pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without CUDA")
+
+
+def sized_like(evaluation: EvalConfig, env: CollectionEnvConfig) -> EvalConfig:
+    """``evaluation`` on episodes of ``env``'s sizes and routes (a policy is evaluated on the episodes it is built for)."""
+    sizes = {key: getattr(env.episodes, key) for key in SIZE_FIELDS}
+    return dataclasses.replace(evaluation, episodes=evaluation.episodes.replace(**sizes))
 
 
 def leaf_devices(tensordict: TensorDictBase) -> set[str]:
@@ -161,7 +168,7 @@ def test_recipes_with_device_cuda_fail_clearly_here(tmp_path, capsys):
 
 # ---------------------------------------------------------------------- plumbing (meta stands in for a GPU)
 def test_every_leaf_of_a_training_batch_lands_on_the_device():
-    episodes = empty_training_episodes(DatasetConfig(num_episodes=3, demo_length=5, max_steps=6, image_size=32))
+    episodes = empty_training_episodes(DatasetConfig(episodes=EpisodeSpec(demo_length=5, max_steps=6, image_size=32), num_episodes=3))
     episodes["steps", "mask"][:, :4] = True
     sequence = episodes_to_sequence(episodes, META)
     assert sequence.batch_size == (3, 4) and sequence.device == META
@@ -204,7 +211,7 @@ class RecordingPolicy(TensorDictModuleBase):
 
 def test_evaluation_steps_the_env_on_the_cpu_and_the_policy_on_its_device():
     recorder = RecordingPolicy(build_policy("spf", POLICY))
-    config = EvalConfig(split="val", num_episodes=2, num_agents=2, num_houses=1, demo_length=5, max_steps=3, image_size=32)
+    config = EvalConfig(episodes=EpisodeSpec(split="val", num_houses=1, demo_length=5, max_steps=3, image_size=32, seed=1234), num_episodes=2, num_agents=2)
     summary, records = evaluate_policy(recorder, config)
     assert summary["episodes"] == 2 and recorder.seen
     for keys, devices in recorder.seen:
@@ -254,11 +261,10 @@ def test_dagger_collects_with_the_learner_on_its_device_into_cpu_storage(tmp_pat
     learner = build_policy("spf", POLICY).to(META)
     config = DAggerConfig(
         checkpoint="unused.pt", output_dir=str(tmp_path), env=ENV, collector=CollectorConfig(num_agents=2),
-        episodes_per_round=2,
+        episodes_per_round=2, val=sized_like(dagger.default_dagger_val_config(), ENV),
+        test=sized_like(default_test_config(), ENV),
     )
-    round_config = RoundConfig(
-        round_index=1, seed=0, beta=0.5, num_episodes=2, demo_length=5, max_steps=6, image_size=32, num_houses=1
-    )
+    round_config = RoundConfig(episodes=EpisodeSpec(num_houses=1, demo_length=5, max_steps=6, image_size=32, seed=0), round_index=1, beta=0.5, num_episodes=2)
     with pytest.raises(Stop):
         dagger._collect_round(learner, config, round_config, tmp_path / "round-01")
     assert captured["device"] == META and captured["storing_device"] == "cpu"
@@ -280,10 +286,12 @@ def test_ppo_puts_policy_value_head_reference_and_collector_on_the_device(tmp_pa
 
     monkeypatch.setattr(ppo, "SPFPPOLoss", RecordingLoss)  # TorchRL's loss cannot be built on meta
     monkeypatch.setattr(ppo, "make_collector", recording_make_collector)
+    env = CollectionEnvConfig(episodes=EpisodeSpec(num_houses=1, demo_length=5, max_steps=6, image_size=32), with_expert=False)
+    defaults = PPOConfig()
     config = PPOConfig(
         checkpoint=str(checkpoint), output_dir=str(tmp_path / "run"), frames_per_batch=12, total_frames=12,
         minibatch_rows=1, kl_coef=0.1, store_demos=4, collector=CollectorConfig(num_agents=2),
-        env=CollectionEnvConfig(num_houses=1, demo_length=5, max_steps=6, image_size=32, with_expert=False),
+        env=env, val=sized_like(defaults.val, env), test=sized_like(defaults.test, env),
     )
     config.device = META
     run = ppo._PPORun(config)
@@ -362,7 +370,7 @@ def test_step_and_sequence_logits_agree_under_bf16_autocast():
 def test_amp_bc_loss_and_ppo_collection_on_the_cpu():
     torch.manual_seed(0)
     policy = build_policy("spf", POLICY)
-    episodes = empty_training_episodes(DatasetConfig(num_episodes=2, demo_length=5, max_steps=6, image_size=32))
+    episodes = empty_training_episodes(DatasetConfig(episodes=EpisodeSpec(demo_length=5, max_steps=6, image_size=32), num_episodes=2))
     episodes["steps", "mask"][:, :5] = True
     episodes["steps", "pixels"].random_(0, 256)
     loss, _ = bc_loss(policy, episodes, amp=True)
@@ -383,13 +391,17 @@ def test_amp_bc_loss_and_ppo_collection_on_the_cpu():
 
 def tiny_ppo_config(tmp_path: Path, checkpoint: Path, **overrides) -> PPOConfig:
     """Two iterations (a value-head warm-up, then a PPO update) of 2 agents x 12 steps."""
-    evaluation = dict(num_episodes=2, num_agents=2, num_houses=1)
+    env = overrides.pop(
+        "env", CollectionEnvConfig(episodes=EpisodeSpec(num_houses=1, demo_length=5, max_steps=8, image_size=32), with_expert=False)
+    )
+    sizes = {key: getattr(env.episodes, key) for key in SIZE_FIELDS}  # val and test: the env's sizes and routes
+    evaluation = dict(num_episodes=2, num_agents=2)
     values = dict(
         checkpoint=str(checkpoint), output_dir=str(tmp_path / "run"), frames_per_batch=24, total_frames=48,
         ppo_epochs=1, minibatch_rows=1, critic_warmup_iters=1, val_every=2, kl_coef=0.1, logger="", progress=False,
-        store_demos=6, store_root=str(tmp_path / "stores"), collector=CollectorConfig(num_agents=2),
-        env=CollectionEnvConfig(num_houses=1, demo_length=5, max_steps=8, image_size=32, with_expert=False),
-        val=EvalConfig(split="val", seed=1, **evaluation), test=EvalConfig(split="test", seed=2, **evaluation),
+        store_demos=6, store_root=str(tmp_path / "stores"), collector=CollectorConfig(num_agents=2), env=env,
+        val=EvalConfig(EpisodeSpec(split="val", seed=1, num_houses=1, **sizes), **evaluation),
+        test=EvalConfig(EpisodeSpec(split="test", seed=2, num_houses=1, **sizes), **evaluation),
     )
     return PPOConfig(**{**values, **overrides})
 

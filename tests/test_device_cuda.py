@@ -12,6 +12,7 @@ import torch
 from test_device import assert_amp_agreement, random_sequence, step_and_sequence_logits, tiny_ppo_config
 
 import spf_rl
+from envs.episode_spec import EpisodeSpec
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.data import DatasetConfig, empty_training_episodes
 from spf_rl.device import resolve_device
@@ -30,8 +31,10 @@ pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUD
 
 CUDA = torch.device("cuda")
 POLICY = SPFConfig(demo_length=5, sparsity=0.4, feature_dim=16, hidden_size=16, image_size=(32, 32))
-ENV = CollectionEnvConfig(num_houses=1, demo_length=5, max_steps=8, image_size=32, with_expert=False)
-EVALUATION = dict(num_episodes=2, num_agents=2, num_houses=1)
+ENV = CollectionEnvConfig(episodes=EpisodeSpec(num_houses=1, demo_length=5, max_steps=8, image_size=32), with_expert=False)
+EVALUATION = dict(num_episodes=2, num_agents=2)
+#: the episodes' sizes of the BC data, the DAgger env and (so the policy is evaluated on the episodes it is built for) val and test
+SIZES = dict(num_houses=1, demo_length=5, max_steps=8, image_size=32)
 
 
 @pytest.fixture
@@ -65,7 +68,7 @@ def test_auto_resolves_to_cuda_and_bad_indices_are_refused():
 def test_bc_loss_on_cuda_matches_the_cpu(no_tf32):
     torch.manual_seed(0)
     policy = build_policy("spf", POLICY)
-    episodes = empty_training_episodes(DatasetConfig(num_episodes=3, demo_length=5, max_steps=6, image_size=32))
+    episodes = empty_training_episodes(DatasetConfig(episodes=EpisodeSpec(demo_length=5, max_steps=6, image_size=32), num_episodes=3))
     episodes["steps", "mask"][:, :5] = True
     episodes["steps", "pixels"].random_(0, 256)
     episodes["demo_frames"].random_(0, 256)
@@ -113,7 +116,7 @@ def test_step_and_sequence_logits_agree_on_cuda(no_tf32):
 
 
 def test_evaluation_on_cuda_plays_the_cpu_episodes(no_tf32):
-    config = EvalConfig(split="val", num_episodes=4, num_agents=4, num_houses=1, seed=3, max_steps=20)
+    config = EvalConfig(episodes=EpisodeSpec(split="val", num_houses=1, max_steps=20, seed=3), num_episodes=4, num_agents=4)
     cpu_policy, _ = spf_rl.load_policy("spf-s0.8")
     cuda_policy, _ = spf_rl.load_policy("spf-s0.8", device="cuda")
     _, cpu_records = evaluate_policy(cpu_policy, config)
@@ -150,21 +153,23 @@ def test_tiny_ppo_run_on_cuda(tmp_path, amp):
 
 
 def test_tiny_bc_then_dagger_on_cuda(tmp_path):
-    data = DatasetConfig(num_episodes=8, num_houses=1, demo_length=5, max_steps=8, image_size=32, chunk_size=4)
+    data = DatasetConfig(episodes=EpisodeSpec(**SIZES), num_episodes=8, chunk_size=4)
     bc = BCConfig(
         output_dir=str(tmp_path / "bc"), data_dir=str(tmp_path / "data"), device="cuda", num_workers=1, logger="",
         progress=False, data=data, model=ModelConfig(name="spf", sparsity=0.4, feature_dim=16, hidden_size=16),
         optim=OptimConfig(batch_size=4, epochs=1, lr=3e-3, amp=True),
-        val=EvalConfig(split="val", seed=1, **EVALUATION), test=EvalConfig(split="test", seed=2, **EVALUATION),
+        val=EvalConfig(EpisodeSpec(split="val", seed=1, **SIZES), **EVALUATION),
+        test=EvalConfig(EpisodeSpec(split="test", seed=2, **SIZES), **EVALUATION),
     )
     assert train_bc(bc)["test"]["episodes"] == 2
     assert raw_devices(tmp_path / "bc" / "best.pt") == {"cpu"}
     dagger = DAggerConfig(
         checkpoint=str(tmp_path / "bc" / "best.pt"), output_dir=str(tmp_path / "dagger"), device="cuda", rounds=1,
         episodes_per_round=4, aggregate_bc_data=False, logger="", progress=False, test_every_round=False,
-        env=CollectionEnvConfig(num_houses=1, demo_length=5, max_steps=8, image_size=32),
+        env=CollectionEnvConfig(episodes=EpisodeSpec(**SIZES)),
         collector=CollectorConfig(num_agents=2), optim=OptimConfig(batch_size=2, lr=3e-4, cosine_schedule=False),
-        val=EvalConfig(split="val", seed=1, **EVALUATION), test=EvalConfig(split="test", seed=2, **EVALUATION),
+        val=EvalConfig(EpisodeSpec(split="val", seed=1, **SIZES), **EVALUATION),
+        test=EvalConfig(EpisodeSpec(split="test", seed=2, **SIZES), **EVALUATION),
     )
     results = train_dagger(dagger)
     assert [r["round"] for r in results["history"]] == [0, 1]

@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from envs.demo_store import DemoStore, DemoStoreConfig
+from envs.episode_spec import EpisodeSpec
 from envs.follow import default_max_steps, episode_for_seed
 from envs.nav_env import PathFollowEnv
 from envs.route_styles import RouteMixture
@@ -47,8 +48,8 @@ def test_each_route_gets_its_own_episode_limit():
 
 
 def test_a_demo_store_of_a_route_style_pads_its_routes(tmp_path):
-    config = DemoStoreConfig(num_demos=4, num_houses=2, demo_length=20, image_size=16, route_style="driven", route_lengths=[10, 20])
-    assert config.route_style == "driven=1.0" and config.route_lengths == (10, 20)  # one spelling
+    config = DemoStoreConfig(episodes=EpisodeSpec(num_houses=2, demo_length=20, image_size=16, route_style="driven", route_lengths=[10, 20]), num_demos=4)
+    assert config.episodes.route_style == "driven=1.0" and config.episodes.route_lengths == (10, 20)  # one spelling
     store = DemoStore.build(tmp_path / "store", config, progress=False)
     steps = store.steps
     assert ((steps >= 10) & (steps <= 20)).all()
@@ -126,11 +127,8 @@ def test_a_dataset_and_an_evaluation_of_a_route_style(tmp_path):
     from spf_rl.train.bc import episodes_to_sequence
     from spf_rl.train.evaluation import EvalConfig, episode_store_name, evaluate_policy
 
-    data = DatasetConfig(
-        num_episodes=6, num_houses=2, demo_length=16, max_steps=None, image_size=16, chunk_size=6,
-        route_style="driven=1,planner=1", route_lengths=[10, 16],
-    )
-    assert data.route_style == "planner=1.0,driven=1.0" and data.step_limit == default_max_steps(16)
+    data = DatasetConfig(episodes=EpisodeSpec(num_houses=2, demo_length=16, max_steps=None, image_size=16, route_style="driven=1,planner=1", route_lengths=[10, 16]), num_episodes=6, chunk_size=6)
+    assert data.episodes.route_style == "planner=1.0,driven=1.0" and data.episodes.step_limit == default_max_steps(16)
     dataset = EpisodeDataset.build(tmp_path / "data", data, num_workers=1, progress=False)
     batch = dataset[list(range(6))]
     steps = batch["demo_steps"].squeeze(-1)
@@ -146,8 +144,7 @@ def test_a_dataset_and_an_evaluation_of_a_route_style(tmp_path):
     assert onwards.float().mean() > 0.95  # it may step back where a later look re-matches the route
     assert torch.equal(sequence["route_step"], batch["steps", "route_step"][:, : sequence.shape[1]])
 
-    config = EvalConfig(split="val", num_episodes=4, num_agents=2, num_houses=2, demo_length=16, max_steps=None,
-                        image_size=16, render=False, route_style="tour", route_lengths=(10, 16), seed=3)
+    config = EvalConfig(episodes=EpisodeSpec(split="val", num_houses=2, demo_length=16, max_steps=None, image_size=16, route_style="tour", route_lengths=(10, 16), seed=3), num_episodes=4, num_agents=2, render=False)
     assert episode_store_name(config).startswith("val-2houses-follow-n16-tour1.0-10to16-16px")
     summary, records = evaluate_policy(OpenLoopPolicy(), config, progress=False)
     assert summary["episodes"] == 4 and all(0.0 < r["ndtw"] <= 1.0 for r in records)
@@ -168,17 +165,18 @@ def test_dagger_rounds_of_a_route_style(tmp_path):
     config = SPFConfig(demo_length=12, sparsity_range=(0.2, 1.0), feature_dim=8, hidden_size=8, image_size=(16, 16))
     save_checkpoint(tmp_path / "bc.pt", "spf_random", config, {"model": build_policy("spf_random", config).state_dict()})
     routes = {"demo_length": 12, "max_steps": None, "image_size": 16, "num_houses": 1, "route_style": "driven", "route_lengths": (10, 12)}
-    evaluation = dict(num_episodes=2, num_agents=2, **routes)
+    evaluation = dict(num_episodes=2, num_agents=2)
     results = train_dagger(DAggerConfig(
         checkpoint=str(tmp_path / "bc.pt"), output_dir=str(tmp_path / "dagger"), device="cpu", rounds=1, episodes_per_round=4,
         beta0=0.5, steps_per_round=None, window_rounds=None, aggregate_bc_data=False, logger="", progress=False,
-        env=CollectionEnvConfig(**routes), collector=CollectorConfig(num_agents=2),
+        env=CollectionEnvConfig(EpisodeSpec(**routes)), collector=CollectorConfig(num_agents=2),
         optim=OptimConfig(lr=3e-4, cosine_schedule=False, pointer_coef=0.1),  # the rounds carry the pointer's labels
-        val=EvalConfig(split="val", seed=1, **evaluation), test=EvalConfig(split="test", seed=2, **evaluation),
+        val=EvalConfig(EpisodeSpec(split="val", seed=1, **routes), **evaluation),
+        test=EvalConfig(EpisodeSpec(split="test", seed=2, **routes), **evaluation),
     ))
     assert [r["round"] for r in results["history"]] == [0, 1]
     stored = RoundStore(tmp_path / "dagger" / "rounds" / "round-01")
-    assert stored.config.route_style == "driven=1.0" and stored.config.route_lengths == (10, 12)
+    assert stored.config.episodes.route_style == "driven=1.0" and stored.config.episodes.route_lengths == (10, 12)
     rows = stored[torch.arange(4)]
     steps = rows["demo_steps"].squeeze(-1)
     assert ((steps >= 10) & (steps <= 12)).all()  # the round's routes, each with its own length

@@ -17,6 +17,7 @@ from torchrl.envs import Compose, InitTracker, TransformedEnv
 
 import envs.demo_store as demo_store_module
 from envs.demo_store import DemoStore, DemoStoreConfig
+from envs.episode_spec import EpisodeSpec, from_flat
 from envs.episodes import run_episodes
 from envs.nav_env import PathFollowEnv
 from envs.scripted import ExpertPolicy
@@ -29,8 +30,9 @@ SIZES = dict(demo_length=6, image_size=32)
 EPISODES, AGENTS, SEED = 7, 3, 11
 
 
-def _store(root, episodes=EPISODES, seed=SEED, **kwargs) -> DemoStore:
-    config = DemoStoreConfig(num_demos=episodes, split="val", num_houses=2, episodes_seed=seed, **SIZES, **kwargs)
+def _store(root, episodes=EPISODES, seed=SEED, task="follow", **kwargs) -> DemoStore:
+    config = DemoStoreConfig.of(EpisodeSpec(split="val", num_houses=2, seed=seed, task=task, **SIZES), num_demos=episodes)
+    config = dataclasses.replace(config, **kwargs)
     return DemoStore.build(root, config, progress=False)
 
 
@@ -86,8 +88,8 @@ def test_episodes_past_the_store_wrap_around(tmp_path):
 
 @pytest.mark.parametrize("bad", [-1, 1.5, True, "3"])
 def test_episodes_seed_is_checked(bad):
-    with pytest.raises(ValueError, match="episodes_seed must be None or a non-negative int"):
-        DemoStoreConfig(num_demos=2, episodes_seed=bad)
+    with pytest.raises(ValueError, match="seed must be an int >= 0"):
+        DemoStoreConfig(episodes=EpisodeSpec(seed=bad), num_demos=2, numbered=True)
 
 
 def test_a_store_with_other_route_lengths_cannot_be_an_episode_store(tmp_path):
@@ -98,7 +100,7 @@ def test_a_store_with_other_route_lengths_cannot_be_an_episode_store(tmp_path):
 
 def _eval_config(**kwargs) -> EvalConfig:
     base = dict(split="val", num_houses=2, num_episodes=EPISODES, num_agents=AGENTS, seed=SEED, max_steps=10, **SIZES)
-    return EvalConfig(**{**base, **kwargs})
+    return from_flat(EvalConfig, {**base, **kwargs})
 
 
 class FramesEveryStep(torch.nn.Module):
@@ -185,7 +187,7 @@ def test_a_kept_episode_store_is_built_once(tmp_path, monkeypatch):
     monkeypatch.setattr(demo_store_module, "make_demo_chunk", lambda *args: calls.append(args))
     assert evaluate_policy(policy, config)[1] == first
     assert calls == []
-    other = dataclasses.replace(config, seed=SEED + 1)
+    other = dataclasses.replace(config, episodes=config.episodes.replace(seed=SEED + 1))
     assert episode_store_name(other) != episode_store_name(config)
 
 
@@ -224,7 +226,7 @@ def test_episode_identity_ignores_how_episodes_are_played():
     config = _eval_config()
     assert episode_identity(dataclasses.replace(config, store_root="elsewhere")) == episode_identity(config)
     assert episode_identity(dataclasses.replace(config, num_collectors=2)) == episode_identity(config)
-    assert episode_identity(dataclasses.replace(config, seed=SEED + 1)) != episode_identity(config)
+    assert episode_identity(dataclasses.replace(config, episodes=config.episodes.replace(seed=SEED + 1))) != episode_identity(config)
 
 
 def test_homing_episode_store_plays_the_homing_episodes(tmp_path):

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from spf_rl.checkpoint import CheckpointError, save_checkpoint
+from spf_rl.checkpoint import save_checkpoint
 from spf_rl.modules.policy import SPFConfig
 from spf_rl.modules.registry import build_policy
 
@@ -49,10 +49,13 @@ def test_same_seed_gives_identical_json(checkpoint, tmp_path):
     assert a["memory_bytes"] == 3 * 3 * 32 * 32 + 6
 
 
-def test_other_model_type_is_refused(checkpoint, tmp_path):
+def test_other_model_type_is_refused_before_any_work(checkpoint, tmp_path, capsys):
     module = _evaluate_module()
-    with pytest.raises(CheckpointError, match="holds a 'spf' model, but a 'rpf' model"):
+    with pytest.raises(SystemExit) as exit_info:
         _run(module, checkpoint, tmp_path / "c", "--model-type", "rpf")
+    assert exit_info.value.code == 2
+    assert "argument paths: " in (err := capsys.readouterr().err) and "holds a 'spf' model, but a 'rpf' model" in err
+    assert not (tmp_path / "c").exists()
 
 
 def test_random_sparsity_model_is_evaluated_at_the_requested_sparsity(tmp_path):
@@ -68,9 +71,12 @@ def test_random_sparsity_model_is_evaluated_at_the_requested_sparsity(tmp_path):
     assert list((tmp_path / "d").glob("*-at1-*.json"))
 
 
-def test_sparsity_flag_is_refused_for_fixed_sparsity_models(checkpoint, tmp_path):
-    with pytest.raises(ValueError, match="--sparsity"):
+def test_sparsity_flag_is_refused_for_fixed_sparsity_models_before_any_work(checkpoint, tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_info:
         _run(_evaluate_module(), checkpoint, tmp_path / "e", "--sparsity", "0.4")
+    assert exit_info.value.code == 2
+    assert "argument --sparsity: applies to random-sparsity models" in capsys.readouterr().err
+    assert not (tmp_path / "e").exists()
 
 
 def test_worker_processes_write_the_scores_of_one_process(checkpoint, tmp_path):

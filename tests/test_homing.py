@@ -7,6 +7,7 @@ import torch
 
 from envs import DemoStore, DemoStoreConfig, PathFollowEnv, demonstration_from_actions, make_path_follow_env
 from envs.demos import apply_motion, nominal_motion
+from envs.episode_spec import EpisodeSpec
 from envs.episodes import run_episodes
 from envs.expert import FORWARD, FORWARD_STEP_M, TURN_ANGLE_DEG, TURN_LEFT, TURN_RIGHT
 from envs.homing import HOMING, check_task, homing_demonstration, reversed_poses
@@ -126,8 +127,8 @@ def test_given_routes_play_their_homing_episode():
 
 def test_demo_store_holds_homing_demonstrations(tmp_path):
     common = dict(num_demos=2, num_houses=1, demo_length=5, image_size=16)
-    follow = DemoStore.build(tmp_path / "follow", DemoStoreConfig(**common), progress=False)
-    homing = DemoStore.build(tmp_path / "homing", DemoStoreConfig(**common, task="homing"), progress=False)
+    follow = DemoStore.build(tmp_path / "follow", DemoStoreConfig.from_dict(common), progress=False)
+    homing = DemoStore.build(tmp_path / "homing", DemoStoreConfig.from_dict({**common, "task": "homing"}), progress=False)
     for k in range(2):
         np.testing.assert_allclose(homing.poses[k].numpy(), reversed_poses(follow.poses[k].numpy()))
         assert homing.demonstration(k).task == HOMING
@@ -138,8 +139,8 @@ def test_demo_store_holds_homing_demonstrations(tmp_path):
     assert env.demonstrations[0].task == HOMING
     with pytest.raises(ValueError, match=r"task='follow' \(store: 'homing'\)"):
         PathFollowEnv(num_houses=1, demo_length=5, image_size=16, demo_store=homing)
-    with pytest.raises(ValueError, match="DemoStoreConfig.task must be one of"):
-        DemoStoreConfig(task="return")
+    with pytest.raises(ValueError, match="task must be one of"):
+        DemoStoreConfig(episodes=EpisodeSpec(task="return"))
 
 
 def test_unknown_task_is_refused():

@@ -11,6 +11,7 @@ from tensordict import TensorDict
 from torchrl.modules import set_recurrent_mode
 
 from envs import DemoStore, DemoStoreConfig, PathFollowEnv
+from envs.episode_spec import EpisodeSpec
 from envs.follow import MAX_STEPS_PER_DEMO_STEP, default_max_steps
 from envs.geodesic import count_components
 from envs.house_grid import (
@@ -108,8 +109,8 @@ def test_grid_can_be_chosen_but_not_with_house_seeds():
 
 
 def test_demo_store_follows_the_grid_rule(tmp_path):
-    config = DemoStoreConfig(num_demos=2, num_houses=1, demo_length=5, image_size=16, grid_size_cells=17)
-    assert config.house_seeds == [house_seed(0, 17)] and DemoStoreConfig(demo_length=40).grid == 21
+    config = DemoStoreConfig(episodes=EpisodeSpec(num_houses=1, demo_length=5, image_size=16), num_demos=2, grid_size_cells=17)
+    assert config.house_seeds == [house_seed(0, 17)] and DemoStoreConfig(episodes=EpisodeSpec(demo_length=40)).grid == 21
     store = DemoStore.build(tmp_path / "store", config, progress=False)
     env = PathFollowEnv(num_houses=1, demo_length=5, image_size=16, grid_size_cells=17, demo_store=store, render=False)
     env.reset()

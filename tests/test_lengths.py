@@ -9,6 +9,7 @@ import success_by_length
 import torch
 from tensordict import TensorDict
 
+from envs.episode_spec import EpisodeSpec
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.config import load_config
 from spf_rl.data import DEMOS_SUFFIX, DatasetConfig, format_tag
@@ -92,7 +93,7 @@ def test_epoch_schedule_visits_every_batch():
 
 
 def tiny_mixed(tmp_path: Path, epochs: int) -> MixedLengthConfig:
-    evaluation = dict(num_episodes=2, num_agents=2, num_houses=1)
+    evaluation = dict(num_episodes=2, num_agents=2)
     return MixedLengthConfig(
         output_dir=str(tmp_path / "run"),
         data_root=str(tmp_path / "data"),
@@ -101,11 +102,11 @@ def tiny_mixed(tmp_path: Path, epochs: int) -> MixedLengthConfig:
         progress=False,
         lengths=[4, 6],
         episodes=[4, 4],
-        data=DatasetConfig(num_houses=1, image_size=32, chunk_size=4),
+        data=DatasetConfig(episodes=EpisodeSpec(num_houses=1, max_steps=50, image_size=32), chunk_size=4),
         model=TINY_MODEL,
         optim=OptimConfig(batch_size=2, epochs=epochs, lr=3e-3),
-        val=EvalConfig(split="val", seed=1, **evaluation),
-        test=EvalConfig(split="test", seed=2, **evaluation),
+        val=EvalConfig(EpisodeSpec(split="val", seed=1, num_houses=1, max_steps=50), **evaluation),
+        test=EvalConfig(EpisodeSpec(split="test", seed=2, num_houses=1, max_steps=50), **evaluation),
     )
 
 
@@ -157,14 +158,14 @@ def test_length_and_homing_configs_load():
     assert full.lengths == [30, 50, 100] and full.episodes == [2000, 1200, 600]
     steps = sum(-(-count // full.optim.batch_size) for count in full.episodes) * full.optim.epochs
     assert steps >= 5000  # the common schedule of the Table 1 rows, in gradient steps
-    assert full.dataset_config(2).max_steps == 167 and full.dataset_config(1).max_steps == 84
+    assert full.dataset_config(2).episodes.max_steps == 167 and full.dataset_config(1).episodes.max_steps == 84
     quick = load_config(MixedLengthConfig, "bc_lengths", ["sparsity=0.6"], preset="bc_lengths_quick")
     assert quick.output_dir == "runs/bc_lengths_quick/spf-s0.6-seed0" and quick.optim.epochs == 1
     from spf_rl.train.bc import BCConfig
 
     homing = load_config(BCConfig, "bc", [], preset="bc_homing")
     row = load_config(BCConfig, "bc", [], preset="bc_row")
-    assert (homing.data.task, homing.val.task, homing.test.task) == ("homing", "homing", "homing")
+    assert (homing.data.episodes.task, homing.val.episodes.task, homing.test.episodes.task) == ("homing", "homing", "homing")
     assert str(homing.resolved_data_dir()).endswith("-homing") and homing.output_dir.startswith("runs/bc_homing/")
     # the homing model trains on the common row schedule, written once (base: bc_row)
     assert (homing.data.num_episodes, homing.optim.epochs, homing.val.num_episodes, homing.test.num_episodes) == (

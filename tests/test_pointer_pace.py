@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from envs.episode_spec import EpisodeSpec
 from spf_rl.checkpoint import save_checkpoint
 from spf_rl.data import DatasetConfig, empty_training_episodes
 from spf_rl.eval import table1 as table1_report
@@ -22,7 +23,7 @@ N = 6
 def episodes(count: int = 3, valid: int = 5) -> torch.Tensor:
     """Random stored episodes with their demonstrations, ``valid`` steps each."""
     torch.manual_seed(0)
-    out = empty_training_episodes(DatasetConfig(num_episodes=count, demo_length=N, max_steps=8, image_size=16))
+    out = empty_training_episodes(DatasetConfig(episodes=EpisodeSpec(demo_length=N, max_steps=8, image_size=16), num_episodes=count))
     out["steps", "pixels"].random_(0, 256)
     out["demo_frames"].random_(0, 256)
     out["steps", "mask"][:, :valid] = True
@@ -103,7 +104,9 @@ def test_pace_episodes_are_the_training_data_on_the_validation_split(tmp_path, m
     table1_rows.pace_episodes([], quick=False)
     table1_rows.pace_episodes([], quick=True)
     (root, config), (_, quick) = calls
-    assert config == dataclasses.replace(train, split="val", seed=VAL_SEED, num_episodes=table1_rows.PACE_EPISODES)
+    assert config == dataclasses.replace(
+        train, episodes=train.episodes.replace(split="val", seed=VAL_SEED), num_episodes=table1_rows.PACE_EPISODES
+    )
     assert quick.num_episodes == table1_rows.QUICK_EPISODES
     assert root.parts[0] == "data" and root.name.startswith(f"val-{table1_rows.PACE_EPISODES}ep-")
 

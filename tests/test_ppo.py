@@ -14,6 +14,7 @@ from ppo_finetune import expand_shorthands
 from torchrl.modules import set_recurrent_mode
 from torchrl.objectives.value import GAE
 
+from envs.episode_spec import SIZE_FIELDS, EpisodeSpec
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.config import load_config
 from spf_rl.modules import SPFConfig
@@ -26,7 +27,7 @@ from spf_rl.train.ppo_config import PPOConfig
 from spf_rl.train.ppo_loss import SPFPPOLoss, compute_values, make_ppo_modules, recompute_log_prob
 
 POLICY = SPFConfig(demo_length=5, sparsity=0.4, feature_dim=16, hidden_size=16, image_size=(32, 32))
-ENV = CollectionEnvConfig(num_houses=1, demo_length=5, max_steps=8, image_size=32, with_expert=False)
+ENV = CollectionEnvConfig(episodes=EpisodeSpec(num_houses=1, demo_length=5, max_steps=8, image_size=32), with_expert=False)
 AGENTS = 2
 STEPS = 12  # > max_steps: rows hold a second episode that starts mid-row (is_init)
 
@@ -40,7 +41,10 @@ def checkpoint(tmp_path) -> Path:
 
 
 def tiny_config(tmp_path, checkpoint, iterations: int, **overrides) -> PPOConfig:
-    evaluation = dict(num_episodes=2, num_agents=2, num_houses=1)
+    env = overrides.pop("env", ENV)
+    # val and test play episodes of the env's sizes and routes (the policy is built for them)
+    sizes = {key: getattr(env.episodes, key) for key in SIZE_FIELDS}
+    evaluation = dict(num_episodes=2, num_agents=2)
     values = dict(
         checkpoint=str(checkpoint),
         output_dir=str(tmp_path / "run"),
@@ -55,9 +59,9 @@ def tiny_config(tmp_path, checkpoint, iterations: int, **overrides) -> PPOConfig
         store_root=str(tmp_path / "stores"),
         progress=False,
         collector=CollectorConfig(num_agents=AGENTS),
-        env=ENV,
-        val=EvalConfig(split="val", seed=1, **evaluation),
-        test=EvalConfig(split="test", seed=2, **evaluation),
+        env=env,
+        val=EvalConfig(EpisodeSpec(split="val", seed=1, num_houses=1, **sizes), **evaluation),
+        test=EvalConfig(EpisodeSpec(split="test", seed=2, num_houses=1, **sizes), **evaluation),
     )
     values.update(overrides)
     return PPOConfig(**values)
@@ -116,7 +120,7 @@ def test_store_collection_carries_ids_and_replays_with_the_frames_looked_up(tmp_
     from envs.demo_store import DemoStore, DemoStoreConfig
     from spf_rl.train.evaluation import FramesFromStore, frames_lookup
 
-    store = DemoStore.build(tmp_path / "store", DemoStoreConfig(num_demos=4, num_houses=1, demo_length=5, image_size=32), progress=False)
+    store = DemoStore.build(tmp_path / "store", DemoStoreConfig(episodes=EpisodeSpec(num_houses=1, demo_length=5, image_size=32), num_demos=4), progress=False)
     torch.manual_seed(0)
     policy = build_policy("spf", POLICY).eval()
     actor, _ = make_ppo_modules(policy)
@@ -223,7 +227,7 @@ def test_end_to_end_interrupt_and_resume(tmp_path, checkpoint, monkeypatch):
     # started again with the same config: continues at iteration 2, start not re-evaluated
     calls = []
     evaluate = ppo_module.evaluate_policy
-    monkeypatch.setattr(ppo_module, "evaluate_policy", lambda policy, cfg, **kw: calls.append(cfg.split) or evaluate(policy, cfg, **kw))
+    monkeypatch.setattr(ppo_module, "evaluate_policy", lambda policy, cfg, **kw: calls.append(cfg.episodes.split) or evaluate(policy, cfg, **kw))
     results = train_ppo(config)
     assert [r["iteration"] for r in results["history"]] == [1, 2]
     assert results["history"][0] == last["history"][0]
@@ -273,11 +277,12 @@ def test_bad_values_through_the_recipe_config(tmp_path, checkpoint):
     with pytest.raises(ValueError, match="clip_epsilon"):
         load_config(PPOConfig, "ppo", ["clip_epsilon=0"])
     config = load_config(PPOConfig, "ppo", expand_shorthands(["noise=none", "collector.backend=ray"]))
-    assert config.env.noise == config.val.noise == config.test.noise == "none" and config.collector.backend == "ray"
+    assert config.env.episodes.noise == config.val.episodes.noise == config.test.episodes.noise == "none"
+    assert config.collector.backend == "ray"
     quick = load_config(PPOConfig, "ppo", [], preset="ppo_quick")
     assert quick.num_iterations < load_config(PPOConfig, "ppo", []).num_iterations
-    with pytest.raises(ValueError, match="image_size"):
-        train_ppo(tiny_config(tmp_path, checkpoint, iterations=1, env=CollectionEnvConfig(num_houses=1, demo_length=5, image_size=64)))
+    with pytest.raises(ValueError, match=r"env.image_size must equal the checkpoint's image size \(32, 32\), got 64"):
+        train_ppo(tiny_config(tmp_path, checkpoint, iterations=1, env=CollectionEnvConfig(episodes=EpisodeSpec(num_houses=1, demo_length=5, max_steps=50, image_size=64))))
 
 
 @pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason="ray is not installed (pip install '.[distributed]')")

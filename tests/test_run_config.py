@@ -29,7 +29,8 @@ def test_a_fresh_directory_takes_any_config(tmp_path):
 
 
 def test_a_resume_with_another_validation_set_is_refused_and_keeps_the_config(tmp_path):
-    old = DAggerConfig(val=dataclasses.replace(default_dagger_val_config(), seed=1))
+    val = default_dagger_val_config()
+    old = DAggerConfig(val=dataclasses.replace(val, episodes=val.episodes.replace(seed=1)))
     run = started_run(tmp_path / "run", old)
     before = (run / "config.json").read_text()
     with pytest.raises(ValueError, match=r"val\.seed: 1 -> 3.*new output_dir"):

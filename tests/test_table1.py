@@ -333,7 +333,7 @@ def test_every_row_trains_on_one_budget_and_every_dagger_column_by_one_rule():
         if dagger is None:
             continue
         rule = (dagger.rounds, dagger.episodes_per_round, dagger.beta0, dagger.steps_per_round, dagger.window_rounds)
-        assert rule == (10, 256, 0.0, 500, 4) and dagger.val.seed == DAGGER_VAL_SEED != config.val.seed
+        assert rule == (10, 256, 0.0, 500, 4) and dagger.val.episodes.seed == DAGGER_VAL_SEED != config.val.episodes.seed
         assert dagger.bc_data == config.data and dagger.test == config.test
         assert dagger.output_dir == f"runs/table1/dagger-{row.name}-seed1" and dagger.checkpoint == f"runs/table1/{row.name}-seed1/best.pt"
     assert table1_rows.budgets() == {

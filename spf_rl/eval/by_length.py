@@ -78,9 +78,10 @@ def success_by_length(policies: dict, lengths: Sequence[int], config, out: Path,
         results[label], _ = evaluate_lengths(policy, lengths, config, progress=progress)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    setup = {"lengths": lengths, "episodes": config.num_episodes, "split": config.split, "num_houses": config.num_houses,
-             "noise": config.noise, "seed": config.seed}
+    e = config.episodes
+    setup = {"lengths": lengths, "episodes": config.num_episodes, "split": e.split, "num_houses": e.num_houses,
+             "noise": e.noise, "seed": e.seed}
     content = {"recipe": RECIPE, "setup": setup, "render": config.render, "results": results}
     atomic_write_json(out / JSON_NAME, content)
-    plot_if_available(plot_success_by_length, results, out / FIGURE_NAME, title=f"success against route length ({config.noise} noise)")
+    plot_if_available(plot_success_by_length, results, out / FIGURE_NAME, title=f"success against route length ({config.episodes.noise} noise)")
     return content

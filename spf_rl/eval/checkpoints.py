@@ -22,6 +22,7 @@ from pathlib import Path
 import torch
 
 from envs.atomic_io import atomic_write_json
+from envs.episode_spec import EpisodeSpec
 from envs.transforms import DEFAULT_NOISE
 from spf_rl.hub import CHECKPOINT_DIR, list_checkpoints
 from spf_rl.train.evaluation import TEST_SEED
@@ -173,15 +174,18 @@ def evaluate_checkpoint(target: str, options: EvalOptions) -> dict:
                 policy.set_sparsity(sparsity)
             demo_length = options.demo_length
         memory = model_memory_bytes(model_type, demo_length, sparsity, image_size)
-    eval_config = EvalConfig(
+    episodes = EpisodeSpec(
         split=options.split,
-        num_episodes=options.episodes,
         noise=options.noise,
         seed=options.seed,
-        num_agents=options.num_agents,
         demo_length=demo_length,
         max_steps=default_max_steps(demo_length) if options.max_steps is None else options.max_steps,
         image_size=image_size,
+    )
+    eval_config = EvalConfig(
+        episodes,
+        num_episodes=options.episodes,
+        num_agents=options.num_agents,
         render=target != OPEN_LOOP,
         store_root=options.store_root or None,
         num_collectors=options.num_collectors,

@@ -43,11 +43,12 @@ def pointer_pace(policy: torch.nn.Module, episodes: TensorDictBase, batch_size: 
         ValueError: ``batch_size`` below 1, no valid step, or a policy without a pointer.
 
     Examples:
+        >>> from envs import EpisodeSpec
         >>> from spf_rl.data import DatasetConfig, empty_training_episodes
         >>> from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
         >>> config = spf_config(ModelConfig(name="spf", feature_dim=8, hidden_size=8, initial_pointer_step=-0.5),
         ...                     demo_length=5, image_size=32)
-        >>> episodes = empty_training_episodes(DatasetConfig(num_episodes=2, demo_length=5, max_steps=6, image_size=32))
+        >>> episodes = empty_training_episodes(DatasetConfig(episodes=EpisodeSpec(demo_length=5, max_steps=6, image_size=32), num_episodes=2))
         >>> episodes["steps", "mask"][:, :4] = True
         >>> round(pointer_pace(build_policy("spf", config), episodes), 3)  # untrained: tanh(b) is the initial step
         -0.5

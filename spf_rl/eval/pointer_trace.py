@@ -31,14 +31,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torchrl.envs import Compose, InitTracker, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from envs.episode_spec import EpisodeSpec
 from envs.episodes import episode_record
+from envs.factory import make_env
 from envs.follow import SUCCESS_RADIUS_M, default_max_steps
-from envs.nav_env import PathFollowEnv
 from envs.route_expert import RouteExpert
-from envs.transforms import ActuationNoise
 from spf_rl.train.evaluation import greedy_on_device
 
 logger = logging.getLogger(__name__)
@@ -124,12 +123,12 @@ def trace_routes(
     """
     check_rpf_pointer(policy)
     demo_length = int(policy.config.demo_length)
-    base = PathFollowEnv(
-        split=split, num_agents=episodes, demo_length=demo_length, route_style=style, route_lengths=route_lengths,
-        image_size=tuple(policy.config.image_size)[0],
+    spec = EpisodeSpec(
+        split=split, noise=noise, demo_length=demo_length, route_style=style, route_lengths=route_lengths,
+        image_size=tuple(policy.config.image_size)[0], seed=seed,
     )
-    env = TransformedEnv(base, Compose(ActuationNoise(noise), InitTracker(), policy.make_tensordict_primer()))
-    env.set_seed(seed)
+    env = make_env(spec, episodes, primer=policy.make_tensordict_primer(), seeded=True)
+    base = env.base_env
     max_steps = default_max_steps(route_lengths[1])
     try:
         with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):

@@ -329,12 +329,15 @@ def cell_key(set_name: str, style: str, bucket: Sequence[int]) -> str:
 def cell_config(options: BenchOptions, set_name: str, style: str, bucket: Sequence[int]):
     """The :class:`~spf_rl.train.evaluation.EvalConfig` of a cell: routes of ``style`` and ``bucket``
     lengths padded to the longest, each with its own step limit."""
+    from envs.episode_spec import EpisodeSpec
     from spf_rl.train.evaluation import EvalConfig, episode_store_root
 
+    episodes = EpisodeSpec(
+        split="test", num_houses=options.set_houses[set_name], seed=options.seed, noise=options.noise,
+        demo_length=bucket[1], max_steps=None, route_style=style, route_lengths=tuple(bucket), image_size=options.image_size,
+    )
     return EvalConfig(
-        split="test", num_houses=options.set_houses[set_name], num_episodes=options.episodes, seed=options.seed,
-        noise=options.noise, demo_length=bucket[1], max_steps=None, route_style=style, route_lengths=tuple(bucket),
-        image_size=options.image_size, num_agents=options.num_agents, num_collectors=options.num_collectors,
+        episodes, num_episodes=options.episodes, num_agents=options.num_agents, num_collectors=options.num_collectors,
         store_root=options.store_root if options.store_root is not None else episode_store_root(),
     )
 
@@ -347,7 +350,7 @@ def cell_identity(config) -> dict:
     from envs.version import ENV_VERSION
     from spf_rl.train.evaluation import episode_identity
 
-    return {**episode_identity(config), "route_lengths": list(config.route_lengths), "env_version": ENV_VERSION,
+    return {**episode_identity(config), "route_lengths": list(config.episodes.route_lengths), "env_version": ENV_VERSION,
             "arrival": ARRIVAL_RULE}
 
 
@@ -414,7 +417,7 @@ def evaluate_model(model: BenchModel, config, progress: bool = False) -> list[di
 
     if model.policy is None:
         config = dataclasses.replace(config, render=False)
-    return evaluation.evaluate_policy(model.at_length(config.demo_length), config, progress=progress)[1]
+    return evaluation.evaluate_policy(model.at_length(config.episodes.demo_length), config, progress=progress)[1]
 
 
 # --------------------------------------------------------------------- statistics

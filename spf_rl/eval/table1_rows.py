@@ -169,13 +169,11 @@ def row_config(row: RowSpec, seed: int, overrides: list[str], quick: bool):
 def eval_sets(overrides: list[str], quick: bool) -> dict:
     """``{"test": EvalConfig, "extended": EvalConfig}``: the schedule's test config, and the same on 100 houses."""
     from spf_rl.train.bc import BCConfig
-    from spf_rl.train.evaluation import with_episode_sizes
 
-    base = load_config(BCConfig, "bc", overrides, preset=TABLE1_PRESET)
-    test = with_episode_sizes(base.test, base.data)
+    test = load_config(BCConfig, "bc", overrides, preset=TABLE1_PRESET).test  # sized as the training episodes
     if quick:
         test = dataclasses.replace(test, num_episodes=QUICK_EPISODES, num_agents=QUICK_EPISODES)
-    return {"test": test, "extended": dataclasses.replace(test, num_houses=EXTENDED_HOUSES)}
+    return {"test": test, "extended": dataclasses.replace(test, episodes=test.episodes.replace(num_houses=EXTENDED_HOUSES))}
 
 
 def pace_episodes(overrides: Sequence[str], quick: bool):
@@ -188,8 +186,9 @@ def pace_episodes(overrides: Sequence[str], quick: bool):
 
     base = load_config(BCConfig, "bc", list(overrides), preset=TABLE1_PRESET)
     count = QUICK_EPISODES if quick else PACE_EPISODES
-    data = dataclasses.replace(base.data, split="val", num_episodes=count, seed=VAL_SEED, chunk_size=min(count, base.data.chunk_size))
-    root = dataclasses.replace(base, data=data, data_dir=None).resolved_data_dir()
+    episodes = base.data.episodes.replace(split="val", seed=VAL_SEED)
+    data = dataclasses.replace(base.data, episodes=episodes, num_episodes=count, chunk_size=min(count, base.data.chunk_size))
+    root = data.default_dir()
     dataset = EpisodeDataset.build(root, data, base.num_workers, progress=False)
     return dataset[list(range(len(dataset)))], root
 
@@ -249,7 +248,7 @@ def budgets(overrides: Sequence[str] = ()) -> dict:
         "bc": {"preset": TABLE1_PRESET, "gradient_steps": bc.optim.epochs * steps_per_epoch,
                "episodes": bc.data.num_episodes, "batch_episodes": bc.optim.batch_size},
         "dagger": {"preset": TABLE1_DAGGER_PRESET, "rounds": dagger.rounds, "episodes_per_round": dagger.episodes_per_round,
-                   "gradient_steps": dagger.rounds * dagger.steps_per_round, "val_seed": dagger.val.seed},
+                   "gradient_steps": dagger.rounds * dagger.steps_per_round, "val_seed": dagger.val.episodes.seed},
     }
 
 
@@ -606,7 +605,7 @@ def reproduce(options: Table1Options) -> dict:
     rows = [ROW_BY_NAME[name] for name in options.rows]
     shipped = train_missing(rows, seeds, overrides, options.checkpoints, options.quick, train=not options.from_checkpoints)
     sets = {name: options.eval_sets[name] for name in options.sets}
-    lines = table_lines(rows, base.data.demo_length, base.data.image_size)
+    lines = table_lines(rows, base.data.episodes.demo_length, base.data.episodes.image_size)
     evaluations, missing = evaluate_all(lines, seeds, sets, options.checkpoints, options.eval_dir, device)
     table = build_table(lines, evaluations, sets, seeds, CLAIMS, missing, options.num_resamples)
     paces, table["pointer_pace"] = pointer_paces(lines, seeds, options.checkpoints, overrides, options.quick, device)

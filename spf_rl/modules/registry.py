@@ -54,7 +54,16 @@ class ModelConfig:
     def __post_init__(self) -> None:
         if self.name not in MODEL_NAMES:
             raise ValueError(f"model name must be one of {MODEL_NAMES}, got {self.name!r}.")
-        self.sparsity_range = list(validate_sparsity_range(self.sparsity_range))
+        # the network's hyper-parameters are checked here, when the config is loaded, with
+        # SPFConfig's own checks: a bad one is refused (naming it) before any data is built or run written
+        try:
+            self.sparsity_range = list(validate_sparsity_range(self.sparsity_range))
+            SPFConfig(
+                sparsity=self.sparsity, pointer_update=self.pointer_update, k=self.k, feature_dim=self.feature_dim,
+                hidden_size=self.hidden_size, initial_pointer_step=self.initial_pointer_step,
+            )
+        except ValueError as err:
+            raise ValueError(f"model.{err}") from None
 
 
 def spf_config(model: ModelConfig, demo_length: int, image_size: int, num_actions: int = 3) -> SPFConfig:

@@ -26,19 +26,19 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torchrl.envs import Compose, InitTracker, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from tqdm.auto import tqdm
 
 from envs.atomic_io import atomic_write_json
 from envs.demos import Demonstration
+from envs.episode_spec import EpisodeSpec
 from envs.episodes import episode_record
+from envs.factory import make_env
 from envs.follow import default_max_steps, success_radius
 from envs.homing import FOLLOW, HOMING
-from envs.nav_env import PathFollowEnv
 from envs.render import draw_top_down_map
 from envs.scenes import build_house, split_seeds
-from envs.transforms import DEFAULT_NOISE, NOISE_PRESETS, ActuationNoise
+from envs.transforms import DEFAULT_NOISE, NOISE_PRESETS
 from envs.user_demos import ACTION_LETTERS
 from spf_rl.metrics import summarize
 from spf_rl.train.evaluation import greedy_on_device
@@ -189,17 +189,12 @@ def repeat_route(
         (the repeats, in agent order; the played demonstration's ``(n, H, W, 3)`` frames;
         the demonstration the env played: ``demo`` itself, or its homing demonstration).
     """
-    base = PathFollowEnv(
-        house_seeds=[demo.house_seed],
-        num_agents=repeats,
-        demo_length=demo.length if demo_length is None else demo_length,
-        max_steps=max_steps,
-        image_size=image_size,
-        demonstrations=[demo],
-        task=task,
+    spec = EpisodeSpec(
+        house_seeds=(demo.house_seed,), noise=noise, demo_length=demo.length if demo_length is None else demo_length,
+        max_steps=max_steps, image_size=image_size, task=task, seed=seed,
     )
-    env = TransformedEnv(base, Compose(ActuationNoise(noise), InitTracker(), policy.make_tensordict_primer()))
-    env.set_seed(seed)
+    env = make_env(spec, repeats, primer=policy.make_tensordict_primer(), seeded=True, demonstrations=[demo])
+    base = env.base_env
     bar = tqdm(total=max_steps, desc=f"{repeats} repeats", unit="step", disable=not progress)
     try:
         with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):

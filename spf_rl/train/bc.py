@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -32,8 +32,8 @@ from torchrl.record.loggers import get_logger
 
 from envs.atomic_io import atomic_write_json
 from envs.checks import check_positive_ints
-from envs.homing import FOLLOW
-from spf_rl.data import ROUTE_STEP_KEY, DatasetConfig, EpisodeDataset, format_tag
+from envs.episode_spec import EpisodeSpec, check_sizes_match
+from spf_rl.data import ROUTE_STEP_KEY, DatasetConfig, EpisodeDataset
 from spf_rl.device import DEFAULT_DEVICE, autocast, check_device, machine_info, module_device, to_device
 from spf_rl.modules.memory import memory_bytes
 from spf_rl.modules.policy import SPFPolicy
@@ -46,10 +46,10 @@ from spf_rl.train.evaluation import (
     EvalConfig,
     episode_store_root,
     evaluate_policy,
-    with_episode_sizes,
     write_test_episodes,
 )
 from spf_rl.train.run import OptimConfig, TrainingRun, run_on_device, start_run, trim_csv_logs
+from spf_rl.train.run_config import config_dict
 
 logger = logging.getLogger(__name__)
 
@@ -57,12 +57,12 @@ logger = logging.getLogger(__name__)
 def default_val_config() -> EvalConfig:
     """Validation that picks the checkpoint: 300 episodes of the ``val`` split, seed 1
     (fewer pick noisily: the standard error of a success rate on 100 episodes is about 0.05)."""
-    return EvalConfig(split="val", num_episodes=300, seed=VAL_SEED, store_root=episode_store_root())
+    return EvalConfig(EpisodeSpec(split="val", max_steps=50, seed=VAL_SEED), num_episodes=300, store_root=episode_store_root())
 
 
 def default_test_config() -> EvalConfig:
     """The final test of the best checkpoint: 500 episodes of the ``test`` split, seed 2."""
-    return EvalConfig(split="test", num_episodes=500, seed=TEST_SEED, store_root=episode_store_root())
+    return EvalConfig(EpisodeSpec(split="test", max_steps=50, seed=TEST_SEED), num_episodes=500, store_root=episode_store_root())
 
 
 @dataclass
@@ -112,20 +112,16 @@ class BCConfig:
     def __post_init__(self) -> None:
         check_device(self.device)
         check_positive_ints(self, ("val_every",))
-        check_pointer_labels(self.optim, self.data.route_style, "data.route_style")
+        check_pointer_labels(self.optim, self.data.episodes.route_style, "data.route_style")
+        check_sizes_match(self.data.episodes, "data", val=self.val.episodes, test=self.test.episodes)
 
     def validates_after(self, epoch: int) -> bool:
         """Whether epoch ``epoch`` (from 1) is validated: every ``val_every``-th one and the last."""
         return epoch % self.val_every == 0 or epoch == self.optim.epochs
 
     def resolved_data_dir(self) -> Path:
-        if self.data_dir:
-            return Path(self.data_dir)
-        d, task = self.data, "" if self.data.task == FOLLOW else f"-{self.data.task}"
-        # route styles are labelled by the route expert (envs.route_expert), which the name says
-        routes = "" if d.route_style is None else f"-{d.route_style.replace('=', '').replace(',', '+')}-{d.route_lengths[0]}to{d.route_lengths[1]}-routeexpert"
-        name = f"{d.split}-{d.num_episodes}ep-{d.noise}-rand{d.random_action_prob}-n{d.demo_length}{routes}-{d.image_size}px-s{d.seed}"
-        return Path("data") / f"{name}-{format_tag()}{task}"
+        """``data_dir``, or the dataset's default directory (:meth:`~spf_rl.data.DatasetConfig.default_dir`)."""
+        return Path(self.data_dir) if self.data_dir else self.data.default_dir()
 
 
 def check_pointer_labels(optim: OptimConfig, route_style: str | None, name: str) -> None:
@@ -306,7 +302,7 @@ def _train_bc(config: BCConfig, device: torch.device) -> dict:
     logger.info("dataset: %s", dataset.statistics())
 
     model_type = config.model.name
-    policy_config = spf_config(config.model, config.data.demo_length, config.data.image_size)
+    policy_config = spf_config(config.model, config.data.episodes.demo_length, config.data.episodes.image_size)
     policy = build_policy(model_type, policy_config).to(device)
     logger.info("training on %s%s", device, " with bf16 autocast" if config.optim.amp else "")
     batches_per_epoch = -(-len(dataset) // config.optim.batch_size)
@@ -319,7 +315,7 @@ def _train_bc(config: BCConfig, device: torch.device) -> dict:
         trim_csv_logs(output / "logs", run.step)
 
     run_logger = get_logger(config.logger, logger_name=str(output / "logs"), experiment_name="bc") if config.logger and ranks.is_main else None
-    val_config = with_episode_sizes(config.val, config.data)
+    val_config = config.val
     for epoch in range(start_epoch, config.optim.epochs):
         sampler = ShardedSampler(ranks) if ranks.distributed else None
         buffer = dataset.replay_buffer(config.optim.batch_size, seed=config.seed * 1000 + epoch, sampler=sampler)
@@ -339,13 +335,13 @@ def _train_bc(config: BCConfig, device: torch.device) -> dict:
         return {"rank": ranks.rank, "history": history}
 
     run.load_best()
-    test_config = with_episode_sizes(config.test, config.data)
+    test_config = config.test
     test, records = evaluate_policy(policy, test_config, progress=config.progress)
     results = {
         "model": model_type,
         "sparsity": policy_config.effective_sparsity,
         "memory_frames": policy_config.memory_length,
-        "memory_bytes": model_memory_bytes(model_type, config.data.demo_length, config.model.sparsity, config.data.image_size),
+        "memory_bytes": model_memory_bytes(model_type, config.data.episodes.demo_length, config.model.sparsity, config.data.episodes.image_size),
         "test": test,
         "best_epoch": best["epoch"],
         "val_best": best,
@@ -354,7 +350,7 @@ def _train_bc(config: BCConfig, device: torch.device) -> dict:
         "seed": config.seed,
         "wall_seconds_this_run": time.time() - start_time,
         "machine_this_run": machine_info(),
-        "config": asdict(config),
+        "config": config_dict(config),
     }
     atomic_write_json(output / "results.json", results, default=str)
     write_test_episodes(output / TEST_EPISODES_FILE, records, test_config, run.best_path)

@@ -27,21 +27,17 @@ import functools
 import importlib.util
 import logging
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 import torch
 from torchrl.collectors import Collector
-from torchrl.envs import Compose, EnvBase, InitTracker, ParallelEnv, TensorDictPrimer, TransformedEnv
+from torchrl.envs import Compose, InitTracker, ParallelEnv, TensorDictPrimer, TransformedEnv
 from torchrl.modules.utils import get_primers_from_module
 
-from envs.checks import check_episode_source, check_positive_ints
 from envs.demo_store import DemoStore
-from envs.follow import default_max_steps
-from envs.house_grid import check_demo_length
-from envs.nav_env import PathFollowEnv
-from envs.route_styles import route_mixture_for
-from envs.transforms import DEFAULT_NOISE, ActuationNoise
+from envs.episode_spec import EpisodeSpec
+from envs.factory import make_env
 from spf_rl.device import DEFAULT_DEVICE, resolve_device
 
 logger = logging.getLogger(__name__)
@@ -53,48 +49,25 @@ _HAS_RAY = importlib.util.find_spec("ray") is not None
 RAY_ENDLESS_FRAMES = 2**62
 
 
+def default_collection_episodes() -> EpisodeSpec:
+    """The episodes collectors play by default: 30-step planner routes of the ``train`` split,
+    50 steps at most, under ``paper`` noise."""
+    return EpisodeSpec(split="train", max_steps=50)
+
+
 @dataclass
 class CollectionEnvConfig:
     """The episodes a collector plays.
 
     Args:
-        split: house split (``"train"``, ``"val"``, ``"test"``).
-        noise: actuation-noise preset.
-        num_houses: houses of the split (``None``: its default).
-        demo_length: demonstration length n (with ``route_lengths``: the longest, to which
-            shorter demonstrations are padded).
-        max_steps: episode limit, steps; ``None``: each demonstration's own, ``ceil(5/3 n)``.
-        image_size: frame side, pixels.
+        episodes: the episodes (:class:`~envs.episode_spec.EpisodeSpec`); the collector seeds
+            its envs, so ``episodes.seed`` is used only by envs that draw numbered episodes
+            from a store. In YAML its keys may be written flat (``env.split``).
         with_expert: emit the expert's action (``"expert_action"``) at every step.
-        route_style: the style of the episodes' routes (:mod:`envs.route_styles`); ``None``:
-            the planner's, as the paper samples them.
-        route_lengths: ``(shortest, longest)`` steps of routes with ``route_style`` (``None``: ``demo_length``).
     """
 
-    split: str = "train"
-    noise: str = DEFAULT_NOISE
-    num_houses: int | None = None
-    demo_length: int = 30
-    max_steps: int | None = 50
-    image_size: int = 64
+    episodes: EpisodeSpec = field(default_factory=default_collection_episodes)
     with_expert: bool = True
-    route_style: str | None = None
-    route_lengths: tuple[int, int] | None = None
-
-    def __post_init__(self) -> None:
-        check_episode_source(self.split, self.num_houses, self.noise)
-        check_positive_ints(self, ("image_size",) if self.max_steps is None else ("max_steps", "image_size"))
-        check_demo_length(self.demo_length)
-        if self.route_lengths is not None and not isinstance(self.route_lengths, str):
-            self.route_lengths = tuple(self.route_lengths)  # a list in YAML and JSON
-        mixture = route_mixture_for(self.route_style, self.route_lengths, self.demo_length)
-        if mixture is not None:  # one spelling, as the stores write it
-            self.route_style, self.route_lengths = mixture.spec, (mixture.min_length, mixture.max_length)
-
-    @property
-    def step_limit(self) -> int:
-        """The longest an episode may be, steps: ``max_steps``, or the rule's for ``demo_length``."""
-        return default_max_steps(self.demo_length) if self.max_steps is None else self.max_steps
 
 
 @dataclass
@@ -158,10 +131,6 @@ def collection_device(setting: str | torch.device, config: CollectorConfig) -> t
     return device
 
 
-def _single_agent_env(env_config: CollectionEnvConfig, store: _StoreEpisodes | None = None) -> TransformedEnv:
-    return TransformedEnv(_base_env(env_config, None, store), ActuationNoise(env_config.noise))
-
-
 @dataclass(frozen=True)
 class _StoreEpisodes:
     """Envs whose demonstrations come from a :class:`~envs.demo_store.DemoStore`: its
@@ -178,31 +147,24 @@ class _StoreEpisodes:
         return _StoreEpisodes(self.demo_store, self.seed, self.offset + self.stride * index, self.stride * num_agents)
 
 
-def _base_env(env_config: CollectionEnvConfig, num_agents: int | None, store: _StoreEpisodes | None = None) -> PathFollowEnv:
-    env = PathFollowEnv(
-        env_config.split,
-        num_houses=env_config.num_houses,
-        num_agents=num_agents,
-        demo_length=env_config.demo_length,
-        max_steps=env_config.max_steps,
-        image_size=env_config.image_size,
-        with_expert=env_config.with_expert,
-        route_style=env_config.route_style,
-        route_lengths=env_config.route_lengths,
-        **(
-            {}
-            if store is None
-            else dict(
-                demo_store=store.demo_store,
-                emit_demo_frames=False,
-                episode_offset=store.offset,
-                episode_stride=store.stride,
-            )
-        ),
-    )
+def _env(
+    env_config: CollectionEnvConfig, num_agents: int | None, store: _StoreEpisodes | None, init_tracker: bool,
+    primer: TensorDictPrimer | None = None,
+) -> TransformedEnv:
+    """The env stack of :func:`envs.factory.make_env` for ``env_config``'s episodes (seeded here
+    only for numbered episodes of a store)."""
+    spec = env_config.episodes
+    options = {} if store is None else dict(demo_store=store.demo_store, episode_offset=store.offset, episode_stride=store.stride)
     if store is not None and store.seed is not None:
-        env.set_seed(store.seed)
-    return env
+        spec = spec.replace(seed=store.seed)
+    return make_env(
+        spec, num_agents, primer=primer, init_tracker=init_tracker, with_expert=env_config.with_expert,
+        seeded=store is not None and store.seed is not None, **options,
+    )
+
+
+def _single_agent_env(env_config: CollectionEnvConfig, store: _StoreEpisodes | None = None) -> TransformedEnv:
+    return _env(env_config, None, store, init_tracker=False)
 
 
 def make_collection_env(
@@ -225,25 +187,20 @@ def make_collection_env(
             ``demo_store``); for numbered episodes the envs are seeded here.
 
     Examples:
-        >>> env = make_collection_env(CollectionEnvConfig(num_houses=1, demo_length=5, image_size=32), num_agents=2)
+        >>> env = make_collection_env(CollectionEnvConfig(EpisodeSpec(num_houses=1, demo_length=5, image_size=32)), num_agents=2)
         >>> env.batch_size, "expert_action" in env.observation_spec.keys()
         (torch.Size([2]), True)
     """
     if env_mode not in ENV_MODES:
         raise ValueError(f"env_mode must be one of {ENV_MODES}, got {env_mode!r}.")
     if env_mode == "batched":
-        env: EnvBase = _base_env(env_config, num_agents, store)
-        transforms = [ActuationNoise(env_config.noise), InitTracker()]
-    else:
-        factories = [
-            functools.partial(_single_agent_env, env_config, None if store is None else store.agent(i, num_agents))
-            for i in range(num_agents)
-        ]
-        env = ParallelEnv(num_agents, factories, mp_start_method="spawn")
-        transforms = [InitTracker()]
-    if primer is not None:
-        transforms.append(primer.clone())
-    return TransformedEnv(env, Compose(*transforms))
+        return _env(env_config, num_agents, store, init_tracker=True, primer=primer)
+    factories = [
+        functools.partial(_single_agent_env, env_config, None if store is None else store.agent(i, num_agents))
+        for i in range(num_agents)
+    ]
+    transforms = [InitTracker()] + ([primer.clone()] if primer is not None else [])
+    return TransformedEnv(ParallelEnv(num_agents, factories, mp_start_method="spawn"), Compose(*transforms))
 
 
 def make_collector(
@@ -289,8 +246,8 @@ def make_collector(
         demo_store: a :class:`~envs.demo_store.DemoStore`'s directory: the envs draw their
             demonstrations from it and emit ``demo_id`` instead of the frames, which
             ``policy`` looks up itself (:class:`~spf_rl.train.evaluation.FramesFromStore`).
-            An episode store (:meth:`~envs.demo_store.DemoStoreConfig.of_episodes` with
-            ``episodes_seed = seed``) is played as numbered episodes: every env seeded with
+            An episode store (a ``numbered`` :class:`~envs.demo_store.DemoStoreConfig`,
+            :meth:`~envs.demo_store.DemoStoreConfig.of`, of env seed ``seed``) is played as numbered episodes: every env seeded with
             ``seed``, collector ``w`` of ``W`` playing episode numbers ``w, w + W, ...``
             (:func:`~envs.episodes.gather_episode_steps` keeps them). Any other store: a
             random demonstration of it per episode, the envs seeded by the collector.
@@ -310,7 +267,7 @@ def make_collector(
         >>> import torch
         >>> from tensordict.nn import TensorDictModule
         >>> forward = TensorDictModule(lambda p: torch.zeros(p.shape[0], dtype=torch.long), ["pixels"], ["action"])
-        >>> env_config = CollectionEnvConfig(num_houses=1, demo_length=5, max_steps=6, image_size=32)
+        >>> env_config = CollectionEnvConfig(EpisodeSpec(num_houses=1, demo_length=5, max_steps=6, image_size=32))
         >>> collector = make_collector(forward, env_config, CollectorConfig(num_agents=2), frames_per_batch=12, total_frames=12)
         >>> [batch.batch_size for batch in collector]
         [torch.Size([2, 6])]

@@ -42,7 +42,7 @@ import json
 import logging
 import shutil
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -56,6 +56,7 @@ from tqdm.auto import tqdm
 
 from envs.atomic_io import atomic_write_json
 from envs.demo_store import DemoStore
+from envs.episode_spec import check_sizes_match
 from envs.episodes import STEPS_PER_BATCH, gather_episode_steps
 from envs.scripted import behaviour_coins
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
@@ -63,7 +64,7 @@ from spf_rl.data import DatasetConfig, EpisodeDataset, demos_root, step_keys
 from spf_rl.device import DEFAULT_DEVICE, check_device, exact_float32, machine_info, module_device
 from spf_rl.hub import DEFAULT_START_CHECKPOINT, checked_checkpoint
 from spf_rl.modules.registry import build_policy
-from spf_rl.train.bc import BCConfig, bc_loss, check_pointer_labels, default_test_config, default_val_config
+from spf_rl.train.bc import bc_loss, check_pointer_labels, default_test_config, default_val_config
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig, collection_device, make_collector
 from spf_rl.train.dagger_rounds import (
     RoundConfig,
@@ -81,11 +82,11 @@ from spf_rl.train.evaluation import (
     FramesFromStore,
     evaluate_policy,
     read_test_episodes,
-    with_episode_sizes,
     write_test_episodes,
 )
 from spf_rl.train.run import OptimConfig, trim_csv_logs
 from spf_rl.train.run_config import DAGGER_RESUME_FREE, write_run_config
+from spf_rl.train.run_config import config_dict as run_config_dict
 from spf_rl.viz import plot_if_available, pyplot, write_figure
 
 logger = logging.getLogger(__name__)
@@ -100,7 +101,8 @@ DAGGER_VAL_SEED = 3  # not the BC val seed (1), on which the starting checkpoint
 def default_dagger_val_config() -> EvalConfig:
     """BC's validation size and split on fresh episodes: the start (round 0) was picked as
     the best of its BC run on seed 1's episodes, a maximum of noisy scores that would favour it there."""
-    return replace(default_val_config(), seed=DAGGER_VAL_SEED)
+    val = default_val_config()
+    return replace(val, episodes=val.episodes.replace(seed=DAGGER_VAL_SEED))
 
 
 class ExpertMixturePolicy(TensorDictModuleBase):
@@ -234,9 +236,10 @@ class DAggerConfig:
         for name in ("beta0", "beta_decay"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)!r}.")
-        check_pointer_labels(self.optim, self.env.route_style, "env.route_style")
+        check_pointer_labels(self.optim, self.env.episodes.route_style, "env.route_style")
+        check_sizes_match(self.env.episodes, "env", val=self.val.episodes, test=self.test.episodes)
         if self.aggregate_bc_data:
-            check_pointer_labels(self.optim, self.bc_data.route_style, "bc_data.route_style")
+            check_pointer_labels(self.optim, self.bc_data.episodes.route_style, "bc_data.route_style")
 
     def beta(self, round_index: int) -> float:
         """Expert probability of round ``round_index`` (1-based)."""
@@ -298,9 +301,9 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
     payload = load_checkpoint(last_path if start_path is None else start_path)
     model_type, policy_config = payload["model_type"], payload["model_config"]
     env = config.env
-    if (policy_config.demo_length, policy_config.image_size) != (env.demo_length, (env.image_size, env.image_size)):
+    if (policy_config.demo_length, policy_config.image_size) != (env.episodes.demo_length, (env.episodes.image_size,) * 2):
         raise ValueError(
-            f"env.demo_length / env.image_size ({env.demo_length}, {env.image_size}) must match the checkpoint's "
+            f"env.demo_length / env.image_size ({env.episodes.demo_length}, {env.episodes.image_size}) must match the checkpoint's "
             f"({policy_config.demo_length}, {policy_config.image_size})."
         )
     policy = build_policy(model_type, policy_config).to(device)
@@ -308,7 +311,7 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
     logger.info("DAgger on %s%s", device, " with bf16 autocast for retraining" if config.optim.amp else "")
     optimizer = torch.optim.Adam(policy.parameters(), lr=config.optim.lr, weight_decay=config.optim.weight_decay)
     trained = DistributedDataParallel(policy, device_ids=[device] if device.type == "cuda" else None) if ranks.distributed else policy
-    val_config, test_config = with_episode_sizes(config.val, env), with_episode_sizes(config.test, env)
+    val_config, test_config = config.val, config.test
 
     history: list[dict] = []
     done_rounds = 0
@@ -321,7 +324,7 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
 
     bc_data = None
     if config.aggregate_bc_data:
-        bc_dir = config.bc_data_dir or BCConfig(data=config.bc_data).resolved_data_dir()
+        bc_dir = config.bc_data_dir or config.bc_data.default_dir()
         bc_data = EpisodeDataset.build(bc_dir, config.bc_data, config.num_workers, config.progress)
 
     if config.logger and ranks.is_main:  # rounds logged but not in last.pt are logged again
@@ -380,9 +383,8 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
     def round_config_of(round_index: int) -> RoundConfig:
         round_seed = episode_seed_of_round(config, round_index)
         return RoundConfig(
-            round_index=round_index, seed=round_seed, beta=config.beta(round_index), num_episodes=config.episodes_per_round,
-            demo_length=env.demo_length, max_steps=env.max_steps, image_size=env.image_size, split=env.split,
-            num_houses=env.num_houses, noise=env.noise, route_style=env.route_style, route_lengths=env.route_lengths,
+            round_index=round_index, beta=config.beta(round_index), num_episodes=config.episodes_per_round,
+            episodes=env.episodes.replace(seed=round_seed),
         )
 
     def collect_missing_window(done: int) -> None:
@@ -462,7 +464,7 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
         "history": history,
         "wall_seconds_this_run": time.time() - start_time,
         "machine_this_run": machine_info(),
-        "config": asdict(config),
+        "config": run_config_dict(config),
     }
     atomic_write_json(output / "results.json", results, default=str)
     plot_if_available(plot_rounds, history, output / "dagger.png", title=f"DAgger from {Path(config.checkpoint).name}")
@@ -516,7 +518,7 @@ def _collect_round(policy: TensorDictModuleBase, config: DAggerConfig, round_con
     try:
         with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
             return gather_episode_steps(
-                collector, 0, round_config.num_episodes, step_keys(round_config.route_style), env.step_limit,
+                collector, 0, round_config.num_episodes, step_keys(round_config.episodes.route_style), env.episodes.step_limit,
                 episode_keys=("demo_id", "episode_seed"), progress=config.progress,
             )
     finally:

@@ -18,18 +18,17 @@ from __future__ import annotations
 
 import functools
 import logging
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 from tensordict import TensorDict, TensorDictBase
 
-from envs.checks import check_episode_source, check_positive_ints
+from envs.checks import check_positive_ints
 from envs.demo_store import DemoStore, DemoStoreConfig
+from envs.episode_spec import EpisodeSpec, flat_dict, from_flat
 from envs.homing import FOLLOW
-from envs.house_grid import check_demo_length
 from envs.tensor_store import StoreError, TensorStore
-from envs.transforms import DEFAULT_NOISE
 from spf_rl.data import DatasetConfig, EpisodeDataset, attach_demonstrations, demos_root
 
 logger = logging.getLogger(__name__)
@@ -48,63 +47,46 @@ class RoundConfig:
 
     Args:
         round_index: the round (1-based).
-        seed: the round's collection seed.
         beta: the expert's probability in the round's behaviour policy.
         num_episodes: episodes stored.
-        demo_length: demonstration length n.
-        max_steps: episode limit (steps are padded to it); ``None``: each demonstration's own,
-            ``ceil(5/3 n)`` (steps padded to that of ``demo_length``).
-        image_size: frame side, pixels.
-        split: house split of the episodes.
-        num_houses: houses of the split (``None``: its default).
-        noise: actuation-noise preset.
-        route_style, route_lengths: the routes' style and lengths (:mod:`envs.route_styles`;
-            ``None``: the planner's routes of ``demo_length`` steps).
+        episodes: the round's episodes (:class:`~envs.episode_spec.EpisodeSpec`):
+            episodes ``0 .. num_episodes - 1`` of its collection seed ``episodes.seed``.
+            DAgger rounds follow the demonstrated route (``task="follow"``).
     """
 
     round_index: int
-    seed: int
     beta: float
     num_episodes: int
-    demo_length: int
-    max_steps: int | None
-    image_size: int
-    split: str = "train"
-    num_houses: int | None = None
-    noise: str = DEFAULT_NOISE
-    route_style: str | None = None
-    route_lengths: tuple[int, int] | None = None
+    episodes: EpisodeSpec
 
     def __post_init__(self) -> None:
-        check_positive_ints(self, ("round_index", "num_episodes", "image_size"))
-        if self.max_steps is not None:
-            check_positive_ints(self, ("max_steps",))
-        if self.route_lengths is not None:  # a list when read back from meta.json
-            object.__setattr__(self, "route_lengths", tuple(self.route_lengths))
-        check_demo_length(self.demo_length)
-        check_episode_source(self.split, self.num_houses, self.noise)
+        check_positive_ints(self, ("round_index", "num_episodes"))
+        if not isinstance(self.episodes, EpisodeSpec):
+            raise ValueError(f"episodes must be an EpisodeSpec, got {type(self.episodes).__name__}.")
+        if self.episodes.task != FOLLOW:
+            raise ValueError(f"DAgger rounds follow the demonstrated route: episodes.task must be {FOLLOW!r}, got {self.episodes.task!r}.")
         if not 0.0 <= self.beta <= 1.0:
             raise ValueError(f"beta must be in [0, 1], got {self.beta!r}.")
 
     @property
-    def task(self) -> str:
-        """DAgger rounds follow the demonstrated route."""
-        return FOLLOW
+    def seed(self) -> int:
+        """The round's collection seed (``episodes.seed``)."""
+        return self.episodes.seed
 
     def collection(self) -> dict:
-        """The fields that fix the round's episodes (all of them)."""
-        return asdict(self)
+        """The fields that fix the round's episodes (all of them), flat (:func:`~envs.episode_spec.flat_dict`)."""
+        return flat_dict(self)
 
 
 def round_demo_config(config: RoundConfig) -> DemoStoreConfig:
     """The demonstrations of a round's episodes: an episode store of its seed.
 
     Examples:
-        >>> round_demo_config(RoundConfig(round_index=1, seed=7, beta=0.0, num_episodes=3, demo_length=4,
-        ...     max_steps=5, image_size=8)).episodes_seed
+        >>> round_demo_config(RoundConfig(round_index=1, beta=0.0, num_episodes=3,
+        ...     episodes=EpisodeSpec(demo_length=4, max_steps=5, image_size=8, seed=7))).episodes_seed
         7
     """
-    return DemoStoreConfig.of_episodes(config)
+    return DemoStoreConfig.of(config.episodes, config.num_episodes)
 
 
 class RoundStore(TensorStore):
@@ -116,7 +98,7 @@ class RoundStore(TensorStore):
 
     Examples:
         >>> import tempfile
-        >>> config = RoundConfig(round_index=1, seed=7, beta=0.0, num_episodes=3, demo_length=4, max_steps=5, image_size=8)
+        >>> config = RoundConfig(round_index=1, beta=0.0, num_episodes=3, episodes=EpisodeSpec(demo_length=4, max_steps=5, image_size=8, seed=7))
         >>> root = tempfile.mkdtemp() + "/round-01"
         >>> episodes = RoundStore.empty(config)
         >>> RoundStore.write(root, config, episodes).episodes["steps", "pixels"].shape
@@ -135,15 +117,15 @@ class RoundStore(TensorStore):
 
     @staticmethod
     def config_from_dict(config: dict) -> RoundConfig:
-        return RoundConfig(**config)
+        return from_flat(RoundConfig, config)
+
+    @staticmethod
+    def config_to_dict(config: RoundConfig) -> dict:
+        return config.collection()
 
     @staticmethod
     def empty(config: RoundConfig) -> TensorDict:
-        sizes = DatasetConfig(
-            num_episodes=config.num_episodes, demo_length=config.demo_length, max_steps=config.max_steps,
-            image_size=config.image_size, route_style=config.route_style, route_lengths=config.route_lengths,
-        )
-        return EpisodeDataset.empty(sizes)
+        return EpisodeDataset.empty(DatasetConfig(episodes=config.episodes, num_episodes=config.num_episodes))
 
     @property
     def episodes(self) -> TensorDict:

@@ -5,7 +5,7 @@ plays the same episodes (the env gives each agent its own episode stream), so
 scores are comparable across models and reproducible.
 
 With ``store_root`` set, the episodes' demonstrations are rendered once into an
-episode store (:class:`~envs.demo_store.DemoStore` with ``episodes_seed``) kept
+episode store (a numbered :class:`~envs.demo_store.DemoStore`) kept
 there by configuration: every later evaluation of the same episodes (each
 validation of a training run, each checkpoint of Table 1) skips the route search
 and the demonstration renders at every episode start, the env emits ``demo_id``
@@ -31,26 +31,22 @@ import functools
 import os
 import tempfile
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from torchrl.collectors import Collector
-from torchrl.envs import Compose, InitTracker, TransformedEnv
+from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules.utils import get_primers_from_module
 
-from envs.checks import check_episode_source, check_positive_ints
+from envs.checks import check_positive_ints
 from envs.demo_store import DemoStore, DemoStoreConfig
+from envs.episode_spec import EpisodeSpec, flat_dict
 from envs.episodes import STEPS_PER_BATCH, record_episodes, run_episodes
-from envs.follow import default_max_steps
-from envs.homing import FOLLOW, check_task
-from envs.house_grid import check_demo_length
-from envs.nav_env import PathFollowEnv
-from envs.route_styles import route_mixture_for
-from envs.transforms import DEFAULT_NOISE, ActuationNoise
+from envs.factory import make_env
 from envs.version import ENV_VERSION
 from spf_rl.device import act_on_device, module_device
 from spf_rl.metrics import summarize
@@ -61,24 +57,24 @@ TEST_SEED = 2
 VAL_SEED = 1
 
 
+def default_eval_episodes() -> EpisodeSpec:
+    """The episodes :class:`EvalConfig` plays by default: 30-step planner routes of the ``test``
+    split, 50 steps at most, under ``paper`` noise, seed 1234."""
+    return EpisodeSpec(split="test", max_steps=50, seed=1234)
+
+
 @dataclass
 class EvalConfig:
     """How a policy is evaluated.
 
     Args:
-        split: house split.
-        num_episodes: episodes played (the same ones for every policy).
-        noise: actuation-noise preset.
-        seed: seed of the episode streams.
+        episodes: the episodes (:class:`~envs.episode_spec.EpisodeSpec`): episodes
+            ``0 .. num_episodes - 1`` of an env seeded with ``episodes.seed``, the same ones
+            for every policy. In YAML its keys may be written flat (``test.split``).
+        num_episodes: episodes played.
         num_agents: agents stepped together in one batched env.
-        demo_length: demonstration length n (with ``route_lengths``: the longest, to
-            which shorter demonstrations are padded).
-        max_steps: episode limit, steps; ``None``: each demonstration's own, ``ceil(5/3 n)``.
-        image_size: frame side, pixels.
-        num_houses: houses of the split (``None``: its default).
         render: render frames (policies that ignore the camera, like open-loop
             replay, can skip it; the episodes are the same).
-        task: ``"follow"`` or ``"homing"`` (:mod:`envs.homing`).
         store_root: directory of episode stores (the demonstrations of the
             episodes, rendered once), kept by configuration and reused by later
             evaluations (the training recipes use :func:`episode_store_root`). ``None``:
@@ -89,61 +85,33 @@ class EvalConfig:
             TorchRL multi-process collector whose workers each step a batched env of
             ``num_agents`` agents with a CPU copy of the policy. The episodes and scores
             are the same for any number.
-        route_style: the style of the episodes' routes (:mod:`envs.route_styles`); ``None``:
-            the planner's, as the paper samples them.
-        route_lengths: ``(shortest, longest)`` steps of routes with ``route_style`` (``None``: ``demo_length``).
     """
 
-    split: str = "test"
+    episodes: EpisodeSpec = field(default_factory=default_eval_episodes)
     num_episodes: int = 500
-    noise: str = DEFAULT_NOISE
-    seed: int = 1234
     num_agents: int = 25
-    demo_length: int = 30
-    max_steps: int | None = 50
-    image_size: int = 64
-    num_houses: int | None = None
     render: bool = True
-    task: str = FOLLOW
     store_root: str | None = None
     num_collectors: int = 1
-    route_style: str | None = None
-    route_lengths: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
-        check_task(self.task, "task")
-        check_episode_source(self.split, self.num_houses, self.noise)
-        check_positive_ints(self, ("num_episodes", "num_agents", "image_size", "num_collectors"))
-        if self.max_steps is not None:
-            check_positive_ints(self, ("max_steps",))
-        check_demo_length(self.demo_length)
-        if self.route_lengths is not None and not isinstance(self.route_lengths, str):
-            self.route_lengths = tuple(self.route_lengths)  # a list in YAML and JSON
-        mixture = route_mixture_for(self.route_style, self.route_lengths, self.demo_length)
-        if mixture is not None:  # one spelling, as the episode store writes it
-            self.route_style, self.route_lengths = mixture.spec, (mixture.min_length, mixture.max_length)
-
-    @property
-    def step_limit(self) -> int:
-        """The longest an episode may be, steps: ``max_steps``, or the rule's for ``demo_length``."""
-        return default_max_steps(self.demo_length) if self.max_steps is None else self.max_steps
+        check_positive_ints(self, ("num_episodes", "num_agents", "num_collectors"))
 
 
-#: Fields of :class:`EvalConfig` that choose the routes' style (``None``: the planner's, as before they existed).
-ROUTE_FIELDS = ("route_style", "route_lengths")
 #: Fields of :class:`EvalConfig` that choose how episodes are played, never which.
 HOW_FIELDS = ("store_root", "num_collectors")
 
 
 def config_dict(config: EvalConfig) -> dict:
-    """``config``'s fields as JSON writes them; the route fields only when a route style is set, so
-    the JSON of the planner's episodes is what it was before route styles existed.
+    """``config``'s fields as JSON writes them, flat (:func:`~envs.episode_spec.flat_dict`): the
+    route fields only when a route style is set, so the JSON of the planner's episodes is what it
+    was before route styles existed.
 
     Examples:
-        >>> "route_style" in config_dict(EvalConfig()), config_dict(EvalConfig(route_style="tour"))["route_lengths"]
-        (False, (30, 30))
+        >>> "route_style" in config_dict(EvalConfig()), config_dict(EvalConfig(EpisodeSpec(route_style="tour")))["route_lengths"]
+        (False, [30, 30])
     """
-    return {key: value for key, value in dataclasses.asdict(config).items() if not (key in ROUTE_FIELDS and value is None)}
+    return flat_dict(config)
 
 
 def episode_identity(config: EvalConfig) -> dict:
@@ -154,21 +122,10 @@ def episode_identity(config: EvalConfig) -> dict:
     Examples:
         >>> episode_identity(EvalConfig(store_root="a")) == episode_identity(EvalConfig())
         True
-        >>> "route_style" in episode_identity(EvalConfig()), episode_identity(EvalConfig(route_style="tour"))["route_style"]
+        >>> "route_style" in episode_identity(EvalConfig()), episode_identity(EvalConfig(EpisodeSpec(route_style="tour")))["route_style"]
         (False, 'tour=1.0')
     """
     return {key: value for key, value in config_dict(config).items() if key not in HOW_FIELDS}
-
-
-def with_episode_sizes(config: EvalConfig, sizes) -> EvalConfig:
-    """``config`` with the demo length, episode limit, frame size and routes of ``sizes`` (any
-    config with ``demo_length``, ``max_steps`` and ``image_size``, and optionally
-    ``route_style`` and ``route_lengths``, e.g. the training data's or the collection
-    env's), so a policy is evaluated on the episodes it was built for."""
-    return dataclasses.replace(
-        config, demo_length=sizes.demo_length, max_steps=sizes.max_steps, image_size=sizes.image_size,
-        route_style=getattr(sizes, "route_style", None), route_lengths=getattr(sizes, "route_lengths", None),
-    )
 
 
 def greedy(policy: TensorDictModuleBase):
@@ -200,8 +157,8 @@ class FramesFromStore(TensorDictModuleBase):
         >>> from tensordict import TensorDict
         >>> from tensordict.nn import TensorDictModule
         >>> from envs.demo_store import DemoStore, DemoStoreConfig
-        >>> store = DemoStore.build(tempfile.mkdtemp() + "/store", DemoStoreConfig(num_demos=2, num_houses=1,
-        ...     demo_length=4, image_size=16), progress=False)
+        >>> store = DemoStore.build(tempfile.mkdtemp() + "/store", DemoStoreConfig(
+        ...     EpisodeSpec(num_houses=1, demo_length=4, image_size=16), num_demos=2), progress=False)
         >>> reader = TensorDictModule(lambda f: f.float().mean((-4, -3, -2, -1)), ["demo_frames"], ["logits"])
         >>> fed = FramesFromStore(reader, store)
         >>> fed.in_keys
@@ -302,7 +259,8 @@ def make_eval_env(
     worker: int = 0,
     workers: int = 1,
 ) -> TransformedEnv:
-    """Batched env with noise, ``is_init`` and the policy's recurrent-state primer.
+    """Batched env with noise, ``is_init`` and the policy's recurrent-state primer
+    (:func:`envs.factory.make_env`), seeded with the episodes' seed.
 
     With ``demo_store`` (an episode store of ``config``, :func:`episode_store`) it
     emits ``demo_id`` instead of the demonstration frames; with ``render=False``, no
@@ -310,35 +268,23 @@ def make_eval_env(
     worker ``worker`` of ``workers`` plays episode numbers ``worker``, ``worker + workers``, ...
     """
     reads_frames = policy is not None and "demo_frames" in policy.in_keys
-    transforms = [ActuationNoise(config.noise), InitTracker()]
-    if policy is not None and hasattr(policy, "make_tensordict_primer"):
-        transforms.append(policy.make_tensordict_primer())
-    env = TransformedEnv(
-        PathFollowEnv(
-            config.split,
-            num_houses=config.num_houses,
-            num_agents=min(config.num_agents, config.num_episodes),
-            demo_length=config.demo_length,
-            max_steps=config.max_steps,
-            image_size=config.image_size,
-            render=config.render,
-            task=config.task,
-            demo_store=demo_store,
-            emit_demo_frames=demo_store is None and (config.render or reads_frames),
-            route_style=config.route_style,
-            route_lengths=config.route_lengths,
-            episode_offset=worker,
-            episode_stride=workers,
-        ),
-        Compose(*transforms),
+    primer = policy.make_tensordict_primer() if policy is not None and hasattr(policy, "make_tensordict_primer") else None
+    return make_env(
+        config.episodes,
+        min(config.num_agents, config.num_episodes),
+        demo_store=demo_store,
+        primer=primer,
+        episode_offset=worker,
+        episode_stride=workers,
+        seeded=True,
+        render=config.render,
+        emit_demo_frames=demo_store is None and (config.render or reads_frames),
     )
-    env.set_seed(config.seed)
-    return env
 
 
 def episode_store_config(config: EvalConfig) -> DemoStoreConfig:
     """The episode store of ``config``: the demonstrations of its episodes ``0 .. E - 1``."""
-    return DemoStoreConfig.of_episodes(config)
+    return DemoStoreConfig.of(config.episodes, config.num_episodes)
 
 
 def episode_store_name(config: EvalConfig) -> str:
@@ -346,16 +292,19 @@ def episode_store_name(config: EvalConfig) -> str:
     version, so that a store of an older environment is never reopened).
 
     Examples:
-        >>> episode_store_name(EvalConfig(split="val", num_episodes=300, seed=1)).startswith("val-follow-n30-64px-seed1-300ep-env")
+        >>> episode_store_name(EvalConfig(EpisodeSpec(split="val", seed=1), num_episodes=300)).startswith("val-follow-n30-64px-seed1-300ep-env")
         True
     """
-    houses = "" if config.num_houses is None else f"-{config.num_houses}houses"
+    e = config.episodes
+    houses = "" if e.num_houses is None else f"-{e.num_houses}houses"
+    if e.house_seeds is not None:
+        houses = "-houses" + "+".join(map(str, e.house_seeds))
     routes = ""
-    if config.route_style is not None:  # "planner=0.5,driven=0.5" -> "-planner0.5+driven0.5-10to30"
-        routes = f"-{config.route_style.replace('=', '').replace(',', '+')}-{config.route_lengths[0]}to{config.route_lengths[1]}"
+    if e.route_style is not None:  # "planner=0.5,driven=0.5" -> "-planner0.5+driven0.5-10to30"
+        routes = f"-{e.route_style.replace('=', '').replace(',', '+')}-{e.route_lengths[0]}to{e.route_lengths[1]}"
     return (
-        f"{config.split}{houses}-{config.task}-n{config.demo_length}{routes}-{config.image_size}px"
-        f"-seed{config.seed}-{config.num_episodes}ep-env{ENV_VERSION}"
+        f"{e.split}{houses}-{e.task}-n{e.demo_length}{routes}-{e.image_size}px"
+        f"-seed{e.seed}-{config.num_episodes}ep-env{ENV_VERSION}"
     )
 
 
@@ -529,7 +478,7 @@ def record_rollout(policy: TensorDictModuleBase, config: EvalConfig) -> dict:
     act = greedy_on_device(policy)
     policy.eval()
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-        rollout = env.rollout(config.step_limit, act, break_when_any_done=True)[0]
+        rollout = env.rollout(config.episodes.step_limit, act, break_when_any_done=True)[0]
     demo = env.base_env.demonstrations[0]
     final = rollout[-1]["next"]
     poses = torch.cat([rollout["pose"], final["pose"][None]]).numpy()

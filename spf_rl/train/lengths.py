@@ -20,7 +20,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +38,7 @@ from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
 from spf_rl.train.bc import bc_loss, check_pointer_labels, default_test_config, default_val_config, model_memory_bytes
 from spf_rl.train.evaluation import EvalConfig, evaluate_policy
 from spf_rl.train.run import OptimConfig, TrainingRun, run_on_device, start_run
+from spf_rl.train.run_config import config_dict as run_config_dict
 
 logger = logging.getLogger(__name__)
 
@@ -90,9 +91,8 @@ def policy_for_length(policy: SPFPolicy, demo_length: int) -> SPFPolicy:
 
 def length_eval_config(config: EvalConfig, demo_length: int, image_size: int) -> EvalConfig:
     """``config`` for demonstrations of ``demo_length`` steps: the rule's ``max_steps``, the policy's frame size."""
-    return dataclasses.replace(
-        config, demo_length=demo_length, max_steps=default_max_steps(demo_length), image_size=image_size
-    )
+    episodes = config.episodes.replace(demo_length=demo_length, max_steps=default_max_steps(demo_length), image_size=image_size)
+    return dataclasses.replace(config, episodes=episodes)
 
 
 def evaluate_lengths(
@@ -115,7 +115,8 @@ def evaluate_lengths(
     Examples:
         >>> from spf_rl.modules import SPFConfig
         >>> policy = SPFPolicy(SPFConfig(demo_length=5, feature_dim=8, hidden_size=8, image_size=(16, 16)))
-        >>> config = EvalConfig(split="val", num_episodes=2, num_agents=2, num_houses=1, render=False)
+        >>> from envs import EpisodeSpec
+        >>> config = EvalConfig(EpisodeSpec(split="val", num_houses=1), num_episodes=2, num_agents=2, render=False)
         >>> rows, _ = evaluate_lengths(policy, [4, 6], config)
         >>> [(row["demo_length"], row["max_steps"], row["episodes"]) for row in rows]
         [(4, 7, 2), (6, 10, 2)]
@@ -127,7 +128,7 @@ def evaluate_lengths(
         rows.append(
             {
                 "demo_length": length,
-                "max_steps": length_config.max_steps,
+                "max_steps": length_config.episodes.max_steps,
                 "grid_size_cells": default_grid_size_cells(length),
                 **summary,
             }
@@ -189,18 +190,18 @@ class MixedLengthConfig:
             )
         for count in self.episodes:
             check_positive_int("episodes[i]", count)
-        check_pointer_labels(self.optim, self.data.route_style, "data.route_style")
+        check_pointer_labels(self.optim, self.data.episodes.route_style, "data.route_style")
 
     def dataset_config(self, index: int) -> DatasetConfig:
         """The dataset of ``lengths[index]``."""
         length = self.lengths[index]
-        return dataclasses.replace(
-            self.data, num_episodes=self.episodes[index], demo_length=length, max_steps=default_max_steps(length)
-        )
+        episodes = self.data.episodes.replace(demo_length=length, max_steps=default_max_steps(length))
+        return dataclasses.replace(self.data, num_episodes=self.episodes[index], episodes=episodes)
 
     def dataset_dir(self, index: int) -> Path:
         d = self.dataset_config(index)
-        name = f"{d.split}-{d.num_episodes}ep-{d.noise}-rand{d.random_action_prob}-n{d.demo_length}-T{d.max_steps}-{d.image_size}px-s{d.seed}-{format_tag()}"
+        e = d.episodes
+        name = f"{e.split}-{d.num_episodes}ep-{e.noise}-rand{d.random_action_prob}-n{e.demo_length}-T{e.max_steps}-{e.image_size}px-s{e.seed}-{format_tag()}"
         return Path(self.data_root) / name
 
 
@@ -232,7 +233,7 @@ def _train_mixed(config: MixedLengthConfig, device: torch.device) -> dict:
         EpisodeDataset.build(config.dataset_dir(i), config.dataset_config(i), config.num_workers, config.progress)
         for i in range(len(config.lengths))
     ]
-    model_type, image_size = config.model.name, config.data.image_size
+    model_type, image_size = config.model.name, config.data.episodes.image_size
     policy_config = spf_config(config.model, config.lengths[0], image_size)
     policy = build_policy(model_type, policy_config).to(device)
     views = {length: policy_for_length(policy, length) for length in config.lengths}
@@ -277,7 +278,7 @@ def _train_mixed(config: MixedLengthConfig, device: torch.device) -> dict:
         "seed": config.seed,
         "wall_seconds_this_run": time.time() - start_time,
         "machine_this_run": machine_info(),
-        "config": asdict(config),
+        "config": run_config_dict(config),
     }
     atomic_write_json(output / "results.json", results, default=str)
     atomic_write_json(output / "test_episodes.json", {"episodes_by_length": records}, default=str)

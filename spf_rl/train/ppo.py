@@ -49,7 +49,6 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import asdict
 from pathlib import Path
 
 import torch
@@ -66,7 +65,7 @@ from spf_rl.device import autocast, exact_float32, machine_info
 from spf_rl.hub import checked_checkpoint
 from spf_rl.modules.registry import build_policy
 from spf_rl.train.collection import collection_device, make_collector
-from spf_rl.train.evaluation import FramesFromStore, evaluate_policy, frames_lookup, with_episode_sizes
+from spf_rl.train.evaluation import FramesFromStore, evaluate_policy, frames_lookup
 from spf_rl.train.ppo_config import PPO_RESUME_FREE, PPOConfig, checked_env_config, training_demo_store
 from spf_rl.train.ppo_loss import (
     AMP_RATIO_SYNC_TOLERANCE,
@@ -80,6 +79,7 @@ from spf_rl.train.ppo_loss import (
     episode_statistics,
     make_ppo_modules,
 )
+from spf_rl.train.run_config import config_dict as run_config_dict
 from spf_rl.train.run_config import write_run_config
 from spf_rl.viz import plot_if_available, pyplot, write_figure
 
@@ -137,8 +137,7 @@ class _PPORun:
         payload = load_checkpoint(checked_checkpoint(config.checkpoint))
         self.model_type, self.policy_config = payload["model_type"], payload["model_config"]
         self.env_config = checked_env_config(config, self.policy_config)
-        self.val_config = with_episode_sizes(config.val, self.env_config)
-        self.test_config = with_episode_sizes(config.test, self.env_config)
+        self.val_config, self.test_config = config.val, config.test
 
         torch.manual_seed(config.seed)
         self.policy = build_policy(self.model_type, self.policy_config)
@@ -377,7 +376,7 @@ class _PPORun:
             "seed": self.config.seed,
             "wall_seconds_this_run": seconds,
             "machine_this_run": machine_info(),
-            "config": asdict(self.config),
+            "config": run_config_dict(self.config),
         }
         atomic_write_json(self.output / "results.json", results, default=str)
         plot_if_available(

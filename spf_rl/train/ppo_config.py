@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from envs.demo_store import DemoStore, DemoStoreConfig
+from envs.episode_spec import EpisodeSpec, check_sizes_match
 from envs.homing import FOLLOW
 from envs.version import ENV_VERSION
 from spf_rl.device import DEFAULT_DEVICE, check_device
@@ -130,18 +131,17 @@ class PPOConfig:
     logger: str | None = "csv"
     progress: bool = True
     collector: CollectorConfig = field(default_factory=lambda: CollectorConfig(num_agents=25))
-    env: CollectionEnvConfig = field(
-        default_factory=lambda: CollectionEnvConfig(split="train", noise="paper", with_expert=False)
-    )
+    env: CollectionEnvConfig = field(default_factory=lambda: CollectionEnvConfig(with_expert=False))
     val: EvalConfig = field(
-        default_factory=lambda: EvalConfig(split="val", num_episodes=100, seed=VAL_SEED, noise="paper", store_root=episode_store_root())
+        default_factory=lambda: EvalConfig(EpisodeSpec(split="val", max_steps=50, seed=VAL_SEED), num_episodes=100, store_root=episode_store_root())
     )
     test: EvalConfig = field(
-        default_factory=lambda: EvalConfig(split="test", num_episodes=500, seed=TEST_SEED, noise="paper", store_root=episode_store_root())
+        default_factory=lambda: EvalConfig(EpisodeSpec(split="test", max_steps=50, seed=TEST_SEED), num_episodes=500, store_root=episode_store_root())
     )
 
     def __post_init__(self) -> None:
         check_device(self.device)
+        check_sizes_match(self.env.episodes, "env", val=self.val.episodes, test=self.test.episodes)
 
         def positive_int(name: str) -> None:
             value = getattr(self, name)
@@ -212,14 +212,14 @@ def checked_env_config(config: PPOConfig, policy_config: SPFConfig) -> Collectio
         >>> checked_env_config(PPOConfig(bc_coef=0.1), SPFConfig(demo_length=30)).with_expert
         True
     """
-    env = config.env
-    if env.demo_length != policy_config.demo_length:
+    env, spec = config.env, config.env.episodes
+    if spec.demo_length != policy_config.demo_length:
         raise ValueError(
-            f"env.demo_length must equal the checkpoint's demo_length {policy_config.demo_length}, got {env.demo_length}."
+            f"env.demo_length must equal the checkpoint's demo_length {policy_config.demo_length}, got {spec.demo_length}."
         )
-    if (env.image_size, env.image_size) != tuple(policy_config.image_size):
+    if (spec.image_size, spec.image_size) != tuple(policy_config.image_size):
         raise ValueError(
-            f"env.image_size must equal the checkpoint's image size {tuple(policy_config.image_size)}, got {env.image_size}."
+            f"env.image_size must equal the checkpoint's image size {tuple(policy_config.image_size)}, got {spec.image_size}."
         )
     if config.bc_coef > 0 and not env.with_expert:
         logger.info("bc_coef > 0: the env emits expert_action (env.with_expert=True)")
@@ -236,13 +236,11 @@ def training_demo_store(config: PPOConfig, env: CollectionEnvConfig) -> DemoStor
     """
     if config.store_demos is None:
         return None
-    store_config = DemoStoreConfig(
-        num_demos=config.store_demos, split=env.split, num_houses=env.num_houses, demo_length=env.demo_length,
-        image_size=env.image_size, seed=TRAIN_STORE_SEED,
-    )
-    houses = "" if env.num_houses is None else f"-{env.num_houses}houses"
+    spec = env.episodes.replace(seed=TRAIN_STORE_SEED, task=FOLLOW, route_style=None, route_lengths=None)
+    store_config = DemoStoreConfig(episodes=spec, num_demos=config.store_demos)
+    houses = "" if spec.num_houses is None else f"-{spec.num_houses}houses"
     name = (
-        f"{env.split}{houses}-{FOLLOW}-n{env.demo_length}-{env.image_size}px-seed{TRAIN_STORE_SEED}"
+        f"{spec.split}{houses}-{FOLLOW}-n{spec.demo_length}-{spec.image_size}px-seed{TRAIN_STORE_SEED}"
         f"-{config.store_demos}demos-env{ENV_VERSION}"
     )
     root = Path(config.store_root) if config.store_root is not None else Path(config.output_dir) / "demos"

@@ -13,11 +13,11 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Collection
-from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 from envs.atomic_io import atomic_write_json
+from envs.episode_spec import flat_dict
 
 logger = logging.getLogger(__name__)
 
@@ -36,8 +36,10 @@ DAGGER_RESUME_FREE = ("rounds", "test_every_round", "collector", "bc_data_dir", 
 
 
 def config_dict(config: Any) -> dict:
-    """``config`` (a dataclass) as the JSON-ready dict ``config.json`` holds (tuples become lists)."""
-    return json.loads(json.dumps(asdict(config), default=str))
+    """``config`` (a dataclass) as the JSON-ready dict ``config.json`` holds: tuples become lists, and
+    each episode description is written flat in the config that holds it (:func:`~envs.episode_spec.flat_dict`),
+    as YAML writes it (``"val": {"split": "val", "num_episodes": 300, ...}``)."""
+    return json.loads(json.dumps(flat_dict(config), default=str))
 
 
 def changed_settings(old: dict, new: dict, free: Collection[str] = (), prefix: str = "") -> list[str]:
