@@ -171,7 +171,7 @@ def measure_evaluation(sizes: Sizes, scratch: Path) -> dict:
     """Frames/s of ``evaluate_policy`` of the learner (greedy) on the test split, as ``EvalConfig()``
     runs it (its default collectors): its demonstrations rendered, then its episodes."""
     from envs.episode_spec import EpisodeSpec
-    from spf_rl.train.evaluation import EvalConfig, evaluate_policy
+    from spf_rl.evaluation import EvalConfig, evaluate_policy
 
     episodes = EpisodeSpec(split="test", noise="paper", seed=sizes.seed, num_houses=sizes.num_houses, **_episode_sizes(sizes))
     config = dataclasses.replace(

@@ -44,7 +44,8 @@ def bench_models(dataset, device, amp: bool, steps: int, batch_size: int = 16) -
 
     from spf_rl.device import to_device
     from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
-    from spf_rl.train.bc import bc_loss, episodes_to_sequence
+    from spf_rl.modules.views import episodes_to_sequence
+    from spf_rl.train.bc import bc_loss
 
     def sync() -> None:
         if device.type == "cuda":
@@ -111,7 +112,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     import envs  # noqa: F401
     from spf_rl.data import DatasetConfig, EpisodeDataset
-    from spf_rl.train.bc import model_memory_bytes
+    from spf_rl.modules.views import model_memory_bytes
 
     data_config = DatasetConfig(EpisodeSpec(num_houses=4, max_steps=50, seed=123), num_episodes=64, chunk_size=16)
     dataset = EpisodeDataset.build(args.data_dir, data_config, num_workers=2, progress=True)

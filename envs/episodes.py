@@ -2,7 +2,7 @@
 
 :func:`run_episodes` plays a fixed, seed-determined set of episodes and returns one
 record per episode (:func:`episode_record`: success, SPL, path fidelity, distances);
-the evaluation of trained policies (:mod:`spf_rl.train.evaluation`), the expert and
+the evaluation of trained policies (:mod:`spf_rl.evaluation`), the expert and
 open-loop figures (:mod:`spf_rl.eval.scripted`) and the taught routes' repeats use it.
 :func:`record_episodes` does the same from a collector the caller built.
 :func:`play_episode_steps` and :func:`gather_episode_steps` keep every step of each

@@ -13,7 +13,7 @@ Usage::
     python recipes/bc_lengths.py lengths=[30,50] episodes=[4000,2400] device=cuda
 
 The checkpoint (``best.pt``) is saved for the first length; load it at any length with
-:func:`spf_rl.train.lengths.policy_for_length`, or compare it with other checkpoints
+:func:`spf_rl.modules.views.policy_for_length`, or compare it with other checkpoints
 with ``python recipes/success_by_length.py``.
 """
 from __future__ import annotations

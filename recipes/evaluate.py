@@ -28,8 +28,8 @@ from envs.transforms import DEFAULT_NOISE, NOISE_PRESETS
 from spf_rl.cli import ArgumentParser
 from spf_rl.device import DEFAULT_DEVICE, DEVICE_CHOICES, resolve_device
 from spf_rl.eval.checkpoints import OPEN_LOOP, EvalOptions, evaluate_checkpoints, expand_targets
+from spf_rl.evaluation import TEST_SEED
 from spf_rl.modules.registry import MODEL_NAMES
-from spf_rl.train.evaluation import TEST_SEED
 
 SPLITS = tuple(SPLIT_SEED_OFFSETS)
 
@@ -49,7 +49,7 @@ def check_target(target: str, model_type: str | None, sparsity: float | None) ->
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
-    from spf_rl.train.evaluation import episode_store_root
+    from spf_rl.evaluation import episode_store_root
 
     parser = ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("paths", nargs="+", help="checkpoint files, directories of *.pt, or 'open_loop'")

@@ -51,8 +51,8 @@ def main(argv: list[str] | None = None) -> dict:
     import envs  # noqa: F401  (selects the headless GL back-end first)
     from envs.episode_spec import from_flat
     from spf_rl.checkpoint import CheckpointError
+    from spf_rl.evaluation import EvalConfig, config_dict, evaluate_policy
     from spf_rl.hub import checkpoint_argument, policy_from_checkpoint
-    from spf_rl.train.evaluation import EvalConfig, config_dict, evaluate_policy
 
     config = json.loads((run / "config.json").read_text())
     data, test_fields = config["data"], dict(config["test"])

@@ -21,7 +21,7 @@ from pathlib import Path
 
 from envs.transforms import DEFAULT_NOISE, NOISE_PRESETS
 from spf_rl.cli import ArgumentParser
-from spf_rl.train.evaluation import TEST_SEED
+from spf_rl.evaluation import TEST_SEED
 
 DEFAULT_OUT = Path("results/pointer_trace.json")
 

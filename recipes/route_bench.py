@@ -43,7 +43,7 @@ from spf_rl.eval.route_bench import (
     parse_list,
     run_bench,
 )
-from spf_rl.train.evaluation import TEST_SEED
+from spf_rl.evaluation import TEST_SEED
 
 #: The options' own defaults, shown in --help.
 DEFAULTS = {option.name: option.default for option in dataclasses.fields(BenchOptions)}

@@ -1,6 +1,6 @@
 """Success against route length: evaluate checkpoints on demonstrations of 30, 50 and 100 steps.
 
-Each checkpoint's weights run at every length (:func:`spf_rl.train.lengths.policy_for_length`:
+Each checkpoint's weights run at every length (:func:`spf_rl.modules.views.policy_for_length`:
 SPF's weights do not depend on the demonstration length); episodes of ``n`` steps are
 sampled in houses large enough for them and end after ``ceil(5/3 n)`` steps. Every
 checkpoint plays the same episodes at a length (same seed). Written to ``--out``:
@@ -24,7 +24,7 @@ from pathlib import Path
 from envs.scenes import SPLIT_SEED_OFFSETS
 from envs.transforms import DEFAULT_NOISE, NOISE_PRESETS
 from spf_rl.cli import ArgumentParser
-from spf_rl.train.evaluation import TEST_SEED
+from spf_rl.evaluation import TEST_SEED
 
 
 def build_parser() -> ArgumentParser:
@@ -56,8 +56,8 @@ def main(argv: list[str] | None = None) -> dict:
     from envs.episode_spec import EpisodeSpec
     from spf_rl.device import resolve_device
     from spf_rl.eval.by_length import load_policies, success_by_length
+    from spf_rl.evaluation import EvalConfig
     from spf_rl.hub import checkpoint_argument
-    from spf_rl.train.evaluation import EvalConfig
 
     try:  # every argument, and every checkpoint's loading, before any episode is played
         episodes = EpisodeSpec(split=args.split, noise=args.noise, seed=args.seed, num_houses=args.num_houses, max_steps=50)

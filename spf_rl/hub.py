@@ -276,7 +276,7 @@ def load_policy(
             (``"spf"``, ``"rpf"``, ``"action_only"``, ``"spf_random"``).
         device: where the policy goes (``"cpu"`` by default; ``"auto"``, ``"cuda"``,
             ``"cuda:N"``); feed it inputs on that device, or evaluate it with
-            :func:`~spf_rl.train.evaluation.evaluate_policy`, which moves them.
+            :func:`~spf_rl.evaluation.evaluate_policy`, which moves them.
 
     Returns:
         ``(policy, config)``: the policy in eval mode (step by step in a collector,

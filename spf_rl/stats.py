@@ -1,7 +1,7 @@
 """Statistics for comparing policies scored on shared episodes: seed summaries, house-level
 bootstrap confidence intervals and paired bootstrap tests.
 
-Every policy evaluated with the same :class:`~spf_rl.train.evaluation.EvalConfig` plays
+Every policy evaluated with the same :class:`~spf_rl.evaluation.EvalConfig` plays
 the same episodes, so two policies can be compared episode by episode (a paired test),
 which is far more sensitive than comparing two independent means. The episodes are
 not independent draws, though: they come from a handful of houses (18 in the test

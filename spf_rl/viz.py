@@ -109,7 +109,7 @@ def plot_success_by_length(results: dict[str, list[dict]], path: str | Path, tit
     Args:
         results: ``{model label: rows}``, a row per length with ``demo_length``, ``success``,
             ``spl`` and optionally ``success_ci`` / ``spl_ci`` (``[low, high]``), as
-            :func:`spf_rl.train.lengths.evaluate_lengths` gives them.
+            :func:`spf_rl.evaluation.evaluate_lengths` gives them.
         path: output PNG.
         title: figure title.
 
@@ -265,13 +265,13 @@ def watch(
         gif: also write the GIF.
 
     Returns:
-        the episode's record (:func:`~spf_rl.train.evaluation.record_rollout`).
+        the episode's record (:func:`~spf_rl.evaluation.record_rollout`).
     """
     from envs.episode_spec import EpisodeSpec
     from envs.render import draw_top_down_map
     from envs.scenes import build_house
+    from spf_rl.evaluation import EvalConfig, record_rollout
     from spf_rl.modules.memory import memory_indices
-    from spf_rl.train.evaluation import EvalConfig, record_rollout
 
     plt = pyplot()
     out = Path(out_dir)

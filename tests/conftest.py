@@ -12,8 +12,8 @@ import torch
 from torch import nn
 
 import envs  # noqa: F401  (selects the GL back-end before mujoco opens a context)
+from spf_rl.evaluation import EPISODE_STORE_ROOT_ENV
 from spf_rl.modules.encoder import ImageEncoder
-from spf_rl.train.evaluation import EPISODE_STORE_ROOT_ENV
 
 #: Scripts that made the committed test data: run by hand, never collected (``--doctest-modules``).
 collect_ignore_glob = ["data/*.py"]

@@ -9,9 +9,9 @@ import torch
 
 from envs.episode_spec import SIZE_FIELDS, EpisodeSpec
 from spf_rl.data import DatasetConfig, EpisodeDataset
+from spf_rl.evaluation import EvalConfig
 from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
 from spf_rl.train.bc import BCConfig, bc_loss, train_bc
-from spf_rl.train.evaluation import EvalConfig
 from spf_rl.train.run import OptimConfig
 
 DATA = DatasetConfig(episodes=EpisodeSpec(num_houses=1, demo_length=5, max_steps=8, image_size=32), num_episodes=8, chunk_size=4)
@@ -67,7 +67,7 @@ def test_train_resume_and_results(tmp_path):
     assert (run / "training_curves.png").stat().st_size > 1000
     assert (run / "best.pt").exists() and (run / "last.pt").exists()
     # the test records say what they are of, so a DAgger run from best.pt reuses them (tests/test_dagger.py)
-    from spf_rl.train.evaluation import read_test_episodes
+    from spf_rl.evaluation import read_test_episodes
 
     config = tiny_config(tmp_path, epochs=2)
     test_config = config.test
@@ -124,7 +124,7 @@ def test_padded_steps_are_not_encoded_and_change_no_valid_output(model, tmp_path
     from torch.nn import functional as F
     from torchrl.modules import set_recurrent_mode
 
-    from spf_rl.train.bc import episodes_to_sequence
+    from spf_rl.modules.views import episodes_to_sequence
 
     dataset = EpisodeDataset.build(tmp_path / "data", DATA, num_workers=1, progress=False)
     batch = dataset[:8]
@@ -182,7 +182,8 @@ ROUTES = DatasetConfig(episodes=EpisodeSpec(num_houses=1, demo_length=12, max_st
 def _pointer_error(policy, batch) -> float:
     from torchrl.modules import set_recurrent_mode
 
-    from spf_rl.train.bc import episodes_to_sequence, pointer_loss
+    from spf_rl.modules.views import episodes_to_sequence
+    from spf_rl.train.bc import pointer_loss
 
     sequence = episodes_to_sequence(batch)
     with torch.no_grad(), set_recurrent_mode(True):

@@ -12,10 +12,10 @@ from envs.demo_store import DemoStore, DemoStoreConfig
 from envs.episode_spec import EpisodeSpec
 from envs.episodes import gather_episode_steps
 from spf_rl.data import STEP_KEYS
+from spf_rl.evaluation import FramesFromStore
 from spf_rl.modules import SPFConfig, make_spf_policy
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig, make_collection_env, make_collector
 from spf_rl.train.dagger import ExpertMixturePolicy
-from spf_rl.train.evaluation import FramesFromStore
 
 TINY_ENV = CollectionEnvConfig(episodes=EpisodeSpec(num_houses=1, demo_length=5, max_steps=6, image_size=32))
 

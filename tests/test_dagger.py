@@ -12,12 +12,12 @@ from tensordict.nn import TensorDictModule
 
 from envs.episode_spec import SIZE_FIELDS, EpisodeSpec
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
+from spf_rl.evaluation import EvalConfig
 from spf_rl.modules import SPFConfig
 from spf_rl.modules.registry import build_policy
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig
 from spf_rl.train.dagger import DAggerConfig, ExpertMixturePolicy, train_dagger
 from spf_rl.train.dagger_rounds import RoundConfig, RoundError, RoundStore
-from spf_rl.train.evaluation import EvalConfig
 
 
 def constant_learner(action: int) -> TensorDictModule:
@@ -380,7 +380,7 @@ def test_resuming_without_the_round_data_names_what_is_missing(tmp_path):
 
 def test_the_best_round_is_tested_from_best_pt(three_learner_driven_rounds):
     """Without a test after every round, the run still tests the checkpoint it ships (best.pt)."""
-    from spf_rl.train.evaluation import evaluate_policy
+    from spf_rl.evaluation import evaluate_policy
 
     config, results = three_learner_driven_rounds
     assert [("test_success" in r) for r in results["history"]] == [True, False, False, True]
@@ -400,7 +400,7 @@ def test_round_0_reuses_the_start_checkpoints_own_test_records(tmp_path, monkeyp
     import dataclasses
 
     import spf_rl.train.dagger as dagger_module
-    from spf_rl.train.evaluation import evaluate_policy, write_test_episodes
+    from spf_rl.evaluation import evaluate_policy, write_test_episodes
 
     start = save_bc_checkpoint(tmp_path)
     config = tiny_config(tmp_path, start, rounds=0)

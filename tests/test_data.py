@@ -170,7 +170,7 @@ def test_stale_datasets_are_refused(built, tmp_path, changes, match):
 
 def test_homing_datasets_and_evaluations_play_homing_episodes(tmp_path):
     from spf_rl.data import _chunk_env
-    from spf_rl.train.evaluation import EvalConfig, make_eval_env
+    from spf_rl.evaluation import EvalConfig, make_eval_env
 
     config = from_flat(DatasetConfig, {**TINY, "num_episodes": 2, "task": "homing"})
     dataset = EpisodeDataset.build(tmp_path / "homing", config, num_workers=1, progress=False)

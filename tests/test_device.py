@@ -20,11 +20,13 @@ from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.config import load_config
 from spf_rl.data import DatasetConfig, empty_training_episodes
 from spf_rl.device import AMP_DTYPE, autocast, exact_float32, resolve_device, to_device
+from spf_rl.evaluation import EvalConfig, evaluate_policy
 from spf_rl.hub import policy_from_checkpoint
 from spf_rl.modules import SPFConfig
 from spf_rl.modules.registry import build_policy
+from spf_rl.modules.views import episodes_to_sequence
 from spf_rl.train import collection, dagger, ppo
-from spf_rl.train.bc import BCConfig, bc_loss, default_test_config, episodes_to_sequence, train_bc
+from spf_rl.train.bc import BCConfig, bc_loss, default_test_config, train_bc
 from spf_rl.train.collection import (
     CollectionEnvConfig,
     CollectorConfig,
@@ -33,7 +35,6 @@ from spf_rl.train.collection import (
     make_collector,
 )
 from spf_rl.train.dagger import DAggerConfig, train_dagger
-from spf_rl.train.evaluation import EvalConfig, evaluate_policy
 from spf_rl.train.ppo import train_ppo
 from spf_rl.train.ppo_config import PPOConfig
 from spf_rl.train.ppo_loss import AMP_RATIO_SYNC_TOLERANCE, Autocast, make_ppo_modules, recompute_log_prob

@@ -16,13 +16,13 @@ from envs.episode_spec import EpisodeSpec
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.data import DatasetConfig, empty_training_episodes
 from spf_rl.device import resolve_device
+from spf_rl.evaluation import EvalConfig, evaluate_policy
 from spf_rl.hub import policy_from_checkpoint
 from spf_rl.modules import SPFConfig
 from spf_rl.modules.registry import ModelConfig, build_policy
 from spf_rl.train.bc import BCConfig, bc_loss, train_bc
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig, make_collector
 from spf_rl.train.dagger import DAggerConfig, train_dagger
-from spf_rl.train.evaluation import EvalConfig, evaluate_policy
 from spf_rl.train.ppo import train_ppo
 from spf_rl.train.ppo_loss import AMP_RATIO_SYNC_TOLERANCE, RATIO_SYNC_TOLERANCE, make_ppo_modules, recompute_log_prob
 from spf_rl.train.run import OptimConfig

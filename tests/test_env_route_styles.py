@@ -123,9 +123,9 @@ def test_bad_route_settings_are_refused(kwargs, match):
 
 def test_a_dataset_and_an_evaluation_of_a_route_style(tmp_path):
     from spf_rl.data import DatasetConfig, EpisodeDataset
+    from spf_rl.evaluation import EvalConfig, episode_store_name, evaluate_policy
     from spf_rl.modules.open_loop import OpenLoopPolicy
-    from spf_rl.train.bc import episodes_to_sequence
-    from spf_rl.train.evaluation import EvalConfig, episode_store_name, evaluate_policy
+    from spf_rl.modules.views import episodes_to_sequence
 
     data = DatasetConfig(episodes=EpisodeSpec(num_houses=2, demo_length=16, max_steps=None, image_size=16, route_style="driven=1,planner=1", route_lengths=[10, 16]), num_episodes=6, chunk_size=6)
     assert data.episodes.route_style == "planner=1.0,driven=1.0" and data.episodes.step_limit == default_max_steps(16)
@@ -153,12 +153,12 @@ def test_a_dataset_and_an_evaluation_of_a_route_style(tmp_path):
 
 def test_dagger_rounds_of_a_route_style(tmp_path):
     from spf_rl.checkpoint import save_checkpoint
+    from spf_rl.evaluation import EvalConfig
     from spf_rl.modules.config import SPFConfig
     from spf_rl.modules.registry import build_policy
     from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig
     from spf_rl.train.dagger import DAggerConfig, train_dagger
     from spf_rl.train.dagger_rounds import RoundStore
-    from spf_rl.train.evaluation import EvalConfig
     from spf_rl.train.run import OptimConfig
 
     torch.manual_seed(0)

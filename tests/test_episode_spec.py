@@ -12,11 +12,11 @@ from envs import DemoStore, DemoStoreConfig, EpisodeSpec, make_env
 from envs.episode_spec import SIZE_FIELDS, check_sizes_match, flat_dict, from_flat, nest_flat_keys
 from spf_rl.config import load_config
 from spf_rl.data import DatasetConfig
+from spf_rl.evaluation import EvalConfig, episode_identity
 from spf_rl.train.bc import BCConfig
 from spf_rl.train.collection import CollectionEnvConfig
 from spf_rl.train.dagger import DAggerConfig
 from spf_rl.train.dagger_rounds import RoundConfig
-from spf_rl.train.evaluation import EvalConfig, episode_identity
 
 
 @pytest.mark.parametrize(

@@ -1,6 +1,6 @@
 """Episode stores: the demonstrations of a seed's episodes rendered once, played as the same episodes.
 
-Evaluation (:func:`spf_rl.train.evaluation.evaluate_policy`) plays its episodes
+Evaluation (:func:`spf_rl.evaluation.evaluate_policy`) plays its episodes
 from such a store, kept under ``store_root`` or temporary; every record must be what
 the rendering path gives.
 """
@@ -22,9 +22,9 @@ from envs.episodes import run_episodes
 from envs.nav_env import PathFollowEnv
 from envs.scripted import ExpertPolicy
 from envs.transforms import ActuationNoise
+from spf_rl.evaluation import EvalConfig, episode_store_name, evaluate_policy, greedy, make_eval_env
 from spf_rl.modules.policy import SPFConfig
 from spf_rl.modules.registry import build_policy
-from spf_rl.train.evaluation import EvalConfig, episode_store_name, evaluate_policy, greedy, make_eval_env
 
 SIZES = dict(demo_length=6, image_size=32)
 EPISODES, AGENTS, SEED = 7, 3, 11
@@ -192,7 +192,7 @@ def test_a_kept_episode_store_is_built_once(tmp_path, monkeypatch):
 
 
 def test_no_store_without_a_store_root_or_rendering(tmp_path):
-    from spf_rl.train.evaluation import episode_store
+    from spf_rl.evaluation import episode_store
 
     assert episode_store(_eval_config()) is None
     assert episode_store(_eval_config(store_root=str(tmp_path), render=False)) is None
@@ -221,7 +221,7 @@ def test_concurrent_builds_of_one_store_take_turns(tmp_path):
 
 
 def test_episode_identity_ignores_how_episodes_are_played():
-    from spf_rl.train.evaluation import episode_identity
+    from spf_rl.evaluation import episode_identity
 
     config = _eval_config()
     assert episode_identity(dataclasses.replace(config, store_root="elsewhere")) == episode_identity(config)
@@ -243,7 +243,7 @@ def test_homing_episode_store_plays_the_homing_episodes(tmp_path):
 
 
 def test_a_store_of_another_env_version_is_never_reopened(monkeypatch):
-    import spf_rl.train.evaluation as evaluation
+    import spf_rl.evaluation as evaluation
 
     name = episode_store_name(_eval_config())
     monkeypatch.setattr(evaluation, "ENV_VERSION", evaluation.ENV_VERSION + 1)

@@ -102,7 +102,7 @@ def test_a_checkpoint_follows_routes_of_another_length_with_its_own_weights(chec
     (longer,) = module.main([*args, "--out", str(tmp_path / "longer"), "--demo-length", "9"])
     assert (own["eval"]["demo_length"], own["eval"]["max_steps"]) == (6, 10)  # the checkpoint's own length
     assert (longer["eval"]["demo_length"], longer["eval"]["max_steps"]) == (9, 15)
-    from spf_rl.train.bc import model_memory_bytes
+    from spf_rl.modules.views import model_memory_bytes
 
     assert longer["memory_bytes"] == model_memory_bytes("spf", 9, 0.5, 32) > own["memory_bytes"]  # the memory of 9 steps
     assert max(r["steps"] for r in longer["episodes_records"]) <= 15

@@ -13,10 +13,11 @@ from envs.episode_spec import EpisodeSpec
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.config import load_config
 from spf_rl.data import DEMOS_SUFFIX, DatasetConfig, format_tag
+from spf_rl.evaluation import EvalConfig
 from spf_rl.modules import SPFConfig, SPFPolicy
 from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
-from spf_rl.train.evaluation import EvalConfig
-from spf_rl.train.lengths import MixedLengthConfig, epoch_schedule, policy_for_length, train_bc_mixed
+from spf_rl.modules.views import policy_for_length
+from spf_rl.train.lengths import MixedLengthConfig, epoch_schedule, train_bc_mixed
 from spf_rl.train.run import OptimConfig
 
 TINY_MODEL = ModelConfig(sparsity=0.5, feature_dim=16, hidden_size=16)

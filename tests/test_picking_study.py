@@ -43,7 +43,7 @@ def test_study_scores_every_epoch_and_resumes(kept_run, tmp_path, monkeypatch):
     assert saved["test"]["num_episodes"] == 2 and saved["test"]["split"] == "test"
 
     calls = []
-    monkeypatch.setattr("spf_rl.train.evaluation.evaluate_policy", lambda *a, **k: calls.append(1))
+    monkeypatch.setattr("spf_rl.evaluation.evaluate_policy", lambda *a, **k: calls.append(1))
     again = picking_study.main([str(kept_run), "--episodes", "2", "--out", str(tmp_path), "--quiet", "--device", "cpu"])
     assert calls == [] and again["epochs"] == study["epochs"]  # nothing scored twice
 

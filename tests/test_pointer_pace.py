@@ -95,7 +95,7 @@ def test_table1_measures_every_seeds_checkpoint_on_validation_episodes(tmp_path,
 
 def test_pace_episodes_are_the_training_data_on_the_validation_split(tmp_path, monkeypatch):
     from spf_rl.data import EpisodeDataset
-    from spf_rl.train.evaluation import VAL_SEED
+    from spf_rl.evaluation import VAL_SEED
 
     calls = []
     monkeypatch.setattr(EpisodeDataset, "build", classmethod(lambda cls, root, config, workers, progress: calls.append(

@@ -17,11 +17,11 @@ from torchrl.objectives.value import GAE
 from envs.episode_spec import SIZE_FIELDS, EpisodeSpec
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.config import load_config
+from spf_rl.evaluation import EvalConfig
 from spf_rl.modules import SPFConfig
 from spf_rl.modules.registry import build_policy
 from spf_rl.train import ppo as ppo_module
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig, make_collector
-from spf_rl.train.evaluation import EvalConfig
 from spf_rl.train.ppo import train_ppo
 from spf_rl.train.ppo_config import PPOConfig
 from spf_rl.train.ppo_loss import SPFPPOLoss, compute_values, make_ppo_modules, recompute_log_prob
@@ -118,7 +118,7 @@ def test_store_collection_carries_ids_and_replays_with_the_frames_looked_up(tmp_
     """PPO's path: envs emit demo_id only, the actor looks the frames up; the update looks them up
     where segments start (zeros elsewhere) and replays the collected log-probabilities exactly."""
     from envs.demo_store import DemoStore, DemoStoreConfig
-    from spf_rl.train.evaluation import FramesFromStore, frames_lookup
+    from spf_rl.evaluation import FramesFromStore, frames_lookup
 
     store = DemoStore.build(tmp_path / "store", DemoStoreConfig(episodes=EpisodeSpec(num_houses=1, demo_length=5, image_size=32), num_demos=4), progress=False)
     torch.manual_seed(0)

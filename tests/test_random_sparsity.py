@@ -16,7 +16,8 @@ from spf_rl.config import load_config
 from spf_rl.eval.table1_rows import RANDOM_EVAL_SPARSITIES, RANDOM_MODEL, ROW_BY_NAME, checkpoint_name, table_lines
 from spf_rl.modules import SPFConfig, SPFPolicy, make_rpf_policy, memory_length, memory_mask
 from spf_rl.modules.registry import MODEL_NAMES, ModelConfig, build_policy, spf_config
-from spf_rl.train.bc import BCConfig, model_memory_bytes
+from spf_rl.modules.views import model_memory_bytes
+from spf_rl.train.bc import BCConfig
 
 RANGE = (0.2, 1.0)
 CFG = dataclasses.replace(FIXED_CFG, sparsity_range=RANGE)  # n = 6, 16x16 frames, D = 16

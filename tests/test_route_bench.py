@@ -7,11 +7,11 @@ import re
 import pytest
 import route_bench as recipe
 
+from spf_rl import evaluation
 from spf_rl.checkpoint import save_checkpoint
 from spf_rl.eval import route_bench
 from spf_rl.modules.policy import SPFConfig
 from spf_rl.modules.registry import build_policy
-from spf_rl.train import evaluation
 
 
 def test_buckets_are_parsed_sorted_and_checked():

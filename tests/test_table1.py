@@ -146,7 +146,7 @@ def test_a_runs_own_test_records_of_the_same_checkpoint_and_episodes_are_reused(
     """A finished run tested its best weights on the table's test episodes: the table takes those records
     (and caches them) instead of playing the episodes again, but not for another checkpoint, other episodes,
     or a random-sparsity line (which plays the checkpoint at a set sparsity)."""
-    from spf_rl.train.evaluation import TEST_EPISODES_FILE, write_test_episodes
+    from spf_rl.evaluation import TEST_EPISODES_FILE, write_test_episodes
 
     monkeypatch.chdir(tmp_path)
     sets = table1_rows.eval_sets([], quick=True)

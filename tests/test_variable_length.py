@@ -32,7 +32,7 @@ from spf_rl.modules import (
     padded_memory_mask,
     soft_action_memory,
 )
-from spf_rl.train.lengths import policy_for_length
+from spf_rl.modules.views import policy_for_length
 
 H = W = 16
 N_MAX = 12

@@ -1,7 +1,7 @@
 """Success against route length: checkpoints evaluated on demonstrations of several lengths
 (``recipes/success_by_length.py`` is the command line).
 
-Each checkpoint's weights run at every length (:func:`spf_rl.train.lengths.policy_for_length`:
+Each checkpoint's weights run at every length (:func:`spf_rl.modules.views.policy_for_length`:
 SPF's weights do not depend on the demonstration length); episodes of ``n`` steps are
 sampled in houses large enough for them and end after ``ceil(5/3 n)`` steps. Every
 checkpoint plays the same episodes at a length (same seed).
@@ -59,7 +59,7 @@ def success_by_length(policies: dict, lengths: Sequence[int], config, out: Path,
     Args:
         policies: ``{label: policy}`` (:func:`load_policies`).
         lengths: demonstration lengths, steps.
-        config: the :class:`~spf_rl.train.evaluation.EvalConfig` of every length (split, episodes,
+        config: the :class:`~spf_rl.evaluation.EvalConfig` of every length (split, episodes,
             noise, seed, agents, houses, rendering; the length's own ``demo_length`` and ``max_steps``
             are set per length).
         out: output directory (made).
@@ -68,7 +68,7 @@ def success_by_length(policies: dict, lengths: Sequence[int], config, out: Path,
     Returns:
         The JSON content: ``recipe``, ``setup``, ``render`` and ``results`` (``{label: one row per length}``).
     """
-    from spf_rl.train.lengths import evaluate_lengths
+    from spf_rl.evaluation import evaluate_lengths
     from spf_rl.viz import plot_if_available, plot_success_by_length
 
     lengths = list(lengths)

@@ -5,7 +5,7 @@
   ``*.pt`` files, sorted; :data:`OPEN_LOOP` and files or shipped names stay as given);
 * :func:`evaluate_checkpoint`: one target's results: success, SPL, 95% bootstrap intervals,
   mean distance to goal, memory bytes, the evaluation config and per-episode records
-  (:func:`spf_rl.train.evaluation.evaluate_policy`);
+  (:func:`spf_rl.evaluation.evaluate_policy`);
 * :func:`output_name`: the JSON file a target's results are written to;
 * :func:`evaluate_checkpoints`: every target in turn, each written as soon as it is scored.
 
@@ -24,8 +24,8 @@ import torch
 from envs.atomic_io import atomic_write_json
 from envs.episode_spec import EpisodeSpec
 from envs.transforms import DEFAULT_NOISE
+from spf_rl.evaluation import TEST_SEED
 from spf_rl.hub import CHECKPOINT_DIR, list_checkpoints
-from spf_rl.train.evaluation import TEST_SEED
 
 logger = logging.getLogger(__name__)
 
@@ -49,7 +49,7 @@ class EvalOptions:
             (:func:`~envs.follow.default_max_steps`).
         demo_length: route length, steps; ``None``: the checkpoint's own (30 for :data:`OPEN_LOOP`).
             A checkpoint runs at another length with the same weights
-            (:func:`~spf_rl.train.lengths.policy_for_length`): a Table 1 policy at 50 steps, or
+            (:func:`~spf_rl.modules.views.policy_for_length`): a Table 1 policy at 50 steps, or
             ``routes-spf`` (100) on 30-step routes.
         image_size: frame side, pixels, for :data:`OPEN_LOOP` only.
         sparsity: the memory sparsity to evaluate a random-sparsity (``spf_random``) model
@@ -133,8 +133,8 @@ def evaluate_checkpoint(target: str, options: EvalOptions) -> dict:
 
     Returns:
         ``checkpoint``, ``model``, ``sparsity``, ``memory_bytes``, ``device``, the summary of
-        :func:`~spf_rl.train.evaluation.evaluate_policy` (``success``, ``success_ci``, ``spl``, ...),
-        ``eval`` (the :class:`~spf_rl.train.evaluation.EvalConfig`) and ``episodes_records``.
+        :func:`~spf_rl.evaluation.evaluate_policy` (``success``, ``success_ci``, ``spl``, ...),
+        ``eval`` (the :class:`~spf_rl.evaluation.EvalConfig`) and ``episodes_records``.
 
     Raises:
         ValueError: :attr:`EvalOptions.sparsity` for a model of fixed sparsity.
@@ -143,11 +143,10 @@ def evaluate_checkpoint(target: str, options: EvalOptions) -> dict:
     import envs  # noqa: F401  (selects the headless GL back-end first)
     from envs.follow import default_max_steps
     from spf_rl.device import module_device
+    from spf_rl.evaluation import EvalConfig, config_dict, evaluate_policy
     from spf_rl.hub import policy_from_checkpoint, resolve_checkpoint
     from spf_rl.modules.open_loop import OpenLoopPolicy
-    from spf_rl.train.bc import model_memory_bytes
-    from spf_rl.train.evaluation import EvalConfig, config_dict, evaluate_policy
-    from spf_rl.train.lengths import policy_for_length
+    from spf_rl.modules.views import model_memory_bytes, policy_for_length
 
     if target == OPEN_LOOP:
         demo_length = OPEN_LOOP_DEMO_LENGTH if options.demo_length is None else options.demo_length

@@ -53,7 +53,7 @@ def pointer_pace(policy: torch.nn.Module, episodes: TensorDictBase, batch_size: 
         >>> round(pointer_pace(build_policy("spf", config), episodes), 3)  # untrained: tanh(b) is the initial step
         -0.5
     """
-    from spf_rl.train.bc import episodes_to_sequence
+    from spf_rl.modules.views import episodes_to_sequence
 
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}.")

@@ -38,7 +38,7 @@ from envs.episodes import episode_record
 from envs.factory import make_env
 from envs.follow import SUCCESS_RADIUS_M, default_max_steps
 from envs.route_expert import RouteExpert
-from spf_rl.train.evaluation import greedy_on_device
+from spf_rl.evaluation import greedy_on_device
 
 logger = logging.getLogger(__name__)
 

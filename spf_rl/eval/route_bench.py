@@ -7,11 +7,11 @@ demonstrated actions blind) play the episodes of every *cell*: an episode set
 (:data:`SETS`: the test split, and the test split on :data:`EXTENDED_HOUSES` houses) x a
 route style (:data:`~envs.route_styles.ROUTE_STYLES`) x a length bucket (routes of
 ``lo`` to ``hi`` steps). A cell's episodes are those of one
-:class:`~spf_rl.train.evaluation.EvalConfig` (``demo_length=hi``, shorter routes padded
+:class:`~spf_rl.evaluation.EvalConfig` (``demo_length=hi``, shorter routes padded
 and played at their own length; each route's own step limit ``ceil(5/3 n)``), so every
 model plays the same episodes and comparisons are paired by episode. A policy built for
 another demonstration length runs as a view at ``hi`` steps sharing its weights
-(:func:`~spf_rl.train.lengths.policy_for_length`); a random-sparsity model runs at one
+(:func:`~spf_rl.modules.views.policy_for_length`); a random-sparsity model runs at one
 sparsity (its config's by default).
 
 Per cell and model: mean success, SPL, nDTW and SDTW with house-level bootstrap intervals
@@ -42,8 +42,8 @@ from envs.atomic_io import atomic_write_json
 from envs.route_styles import ROUTE_STYLES
 from envs.transforms import DEFAULT_NOISE
 from spf_rl.eval.by_length import label_of
+from spf_rl.evaluation import TEST_SEED
 from spf_rl.stats import DEFAULT_CONFIDENCE, DEFAULT_NUM_RESAMPLES, hierarchical_bootstrap_ci, paired_bootstrap
-from spf_rl.train.evaluation import TEST_SEED
 
 logger = logging.getLogger(__name__)
 
@@ -228,7 +228,7 @@ class BenchOptions:
         buckets: length buckets ``(lo, hi)``, steps (default :data:`DEFAULT_BUCKETS`; quick :data:`QUICK_BUCKETS`).
         sets: episode sets (:data:`SETS`; quick: the test set).
         episodes: episodes per cell (default :data:`DEFAULT_EPISODES`; quick :data:`QUICK_EPISODES`).
-        seed: seed of the episodes (:data:`~spf_rl.train.evaluation.TEST_SEED`, that of the other evaluations).
+        seed: seed of the episodes (:data:`~spf_rl.evaluation.TEST_SEED`, that of the other evaluations).
         noise: actuation-noise preset.
         out: the JSON (the figure and the markdown table go next to it, ``.png`` and ``.md``);
             default :data:`DEFAULT_OUT` (quick :data:`QUICK_OUT`).
@@ -240,7 +240,7 @@ class BenchOptions:
         image_size: frame side, pixels (every model's must be this).
         num_agents: agents stepped together.
         num_collectors: processes playing a cell's episodes (how, never which: the same episodes and scores).
-        store_root: where episode stores go (``None``: :func:`~spf_rl.train.evaluation.episode_store_root`).
+        store_root: where episode stores go (``None``: :func:`~spf_rl.evaluation.episode_store_root`).
         progress: progress bars.
 
     Raises:
@@ -327,10 +327,10 @@ def cell_key(set_name: str, style: str, bucket: Sequence[int]) -> str:
 
 
 def cell_config(options: BenchOptions, set_name: str, style: str, bucket: Sequence[int]):
-    """The :class:`~spf_rl.train.evaluation.EvalConfig` of a cell: routes of ``style`` and ``bucket``
+    """The :class:`~spf_rl.evaluation.EvalConfig` of a cell: routes of ``style`` and ``bucket``
     lengths padded to the longest, each with its own step limit."""
     from envs.episode_spec import EpisodeSpec
-    from spf_rl.train.evaluation import EvalConfig, episode_store_root
+    from spf_rl.evaluation import EvalConfig, episode_store_root
 
     episodes = EpisodeSpec(
         split="test", num_houses=options.set_houses[set_name], seed=options.seed, noise=options.noise,
@@ -344,11 +344,11 @@ def cell_config(options: BenchOptions, set_name: str, style: str, bucket: Sequen
 
 def cell_identity(config) -> dict:
     """What fixes a cell's episodes and their scoring: the config's
-    :func:`~spf_rl.train.evaluation.episode_identity`, the env version and the arrival rule
+    :func:`~spf_rl.evaluation.episode_identity`, the env version and the arrival rule
     (:data:`~envs.follow.ARRIVAL_RULE`)."""
     from envs.follow import ARRIVAL_RULE
     from envs.version import ENV_VERSION
-    from spf_rl.train.evaluation import episode_identity
+    from spf_rl.evaluation import episode_identity
 
     return {**episode_identity(config), "route_lengths": list(config.episodes.route_lengths), "env_version": ENV_VERSION,
             "arrival": ARRIVAL_RULE}
@@ -373,7 +373,7 @@ class BenchModel:
     def at_length(self, demo_length: int):
         """The policy for demonstrations of ``demo_length`` steps (open-loop replay reads any length)."""
         from spf_rl.modules import OpenLoopPolicy
-        from spf_rl.train.lengths import policy_for_length
+        from spf_rl.modules.views import policy_for_length
 
         if self.policy is None:
             return OpenLoopPolicy()
@@ -413,7 +413,7 @@ def evaluate_model(model: BenchModel, config, progress: bool = False) -> list[di
     """Per-episode records of one model on a cell's episodes (open-loop replay without rendering: the same episodes)."""
     import dataclasses
 
-    from spf_rl.train import evaluation
+    from spf_rl import evaluation
 
     if model.policy is None:
         config = dataclasses.replace(config, render=False)

@@ -61,7 +61,7 @@ class Line:
 def cache_entry(line: str, seed: int | None, set_name: str, config, checkpoint: Path | None, eval_dir: Path):
     """``(path, meta)`` of the cached records of one line x seed x set: the cache is used only when
     ``meta`` (evaluation config, checkpoint file and its SHA-256, env version) is unchanged."""
-    from spf_rl.train.evaluation import records_identity
+    from spf_rl.evaluation import records_identity
 
     meta = {"line": line, "seed": seed, "set": set_name, "checkpoint": None if checkpoint is None else str(checkpoint),
             **records_identity(config, checkpoint)}
@@ -179,7 +179,7 @@ def build_table(
     Raises:
         ValueError: two evaluations of one set did not play the same episodes.
     """
-    from spf_rl.train.evaluation import config_dict
+    from spf_rl.evaluation import config_dict
 
     reference: dict = {}
     rows = []

@@ -122,7 +122,7 @@ def seed_checkpoint(checkpoints: Path, line: str, seed: int) -> Path:
 
 def table_lines(rows: list[RowSpec], demo_length: int, image_size: int) -> list[Line]:
     """The lines of the table: one per row, one per evaluated sparsity of the random model, and DAgger lines."""
-    from spf_rl.train.bc import model_memory_bytes
+    from spf_rl.modules.views import model_memory_bytes
 
     def memory(model: str, sparsity: float) -> int:
         return demo_length if model == "open_loop" else model_memory_bytes(model, demo_length, sparsity, image_size)
@@ -181,8 +181,8 @@ def pace_episodes(overrides: Sequence[str], quick: bool):
     data's config on the validation split, :data:`PACE_EPISODES` episodes (:data:`QUICK_EPISODES` with
     ``--quick``) of seed ``VAL_SEED``, built once under ``data/`` like a training dataset."""
     from spf_rl.data import EpisodeDataset
+    from spf_rl.evaluation import VAL_SEED
     from spf_rl.train.bc import BCConfig
-    from spf_rl.train.evaluation import VAL_SEED
 
     base = load_config(BCConfig, "bc", list(overrides), preset=TABLE1_PRESET)
     count = QUICK_EPISODES if quick else PACE_EPISODES
@@ -283,8 +283,8 @@ def run_weights_sha256(directory: Path) -> str | None:
     """The SHA-256 of a finished run's best weights: of its ``best.pt``, or, where a clone holds the run without
     it (a finished run's ``.pt`` files are not committed: its weights are the per-seed checkpoint), the one its
     test records name (``test_episodes.json``); ``None`` where neither is there."""
+    from spf_rl.evaluation import TEST_EPISODES_FILE
     from spf_rl.hub import file_sha256
-    from spf_rl.train.evaluation import TEST_EPISODES_FILE
 
     if (directory / "best.pt").exists():
         return file_sha256(directory / "best.pt")
@@ -406,9 +406,9 @@ def eval_config(config, line: Line):
 
 def evaluate_line(line: Line, checkpoint: Path | None, config, device: str) -> list[dict]:
     """Per-episode records of one line (and checkpoint) on one evaluation set."""
+    from spf_rl.evaluation import evaluate_policy
     from spf_rl.hub import policy_from_checkpoint
     from spf_rl.modules import OpenLoopPolicy
-    from spf_rl.train.evaluation import evaluate_policy
 
     if checkpoint is None:
         policy = OpenLoopPolicy()
@@ -426,7 +426,7 @@ def run_test_records(line: Line, seed: int | None, config, checkpoint: Path | No
     Only lines that play the checkpoint as trained: the random-sparsity lines set a sparsity first, and
     open-loop replay has no run. Evaluation is deterministic, so the records are the ones evaluating again
     would give (checked on the first runs: identical, episode by episode)."""
-    from spf_rl.train.evaluation import TEST_EPISODES_FILE, read_test_episodes
+    from spf_rl.evaluation import TEST_EPISODES_FILE, read_test_episodes
 
     if checkpoint is None or seed is None or line.model in (RANDOM_MODEL, "open_loop"):
         return None

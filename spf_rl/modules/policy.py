@@ -87,7 +87,7 @@ class SPFPolicy(TensorDictModuleBase):
     ``n_i``, ``1 <= n_i <= n = config.demo_length``; ``demo_frames`` and
     ``demo_actions`` are padded after ``n_i`` (with anything: the padding is never
     read). Each row then runs as the network built for ``n_i`` steps
-    (``spf_rl.train.lengths.policy_for_length``) would on its unpadded demonstration:
+    (``spf_rl.modules.views.policy_for_length``) would on its unpadded demonstration:
     the memory holds that demonstration's memory (fixed sparsity: the frames at
     ``memory_indices(n_i, s)``, in the first slots; random sparsity: the mask
     ``memory_mask(n_i, s)``), no slot past ``n_i`` is attended, the action window

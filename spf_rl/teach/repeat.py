@@ -4,7 +4,7 @@
   per repeat, every agent playing the taught demonstration under its own actuation
   noise (the env seed fixes each repeat's episode seed, and so its noise), driven by
   the greedy policy in one ``env.rollout`` (the path of
-  :func:`~spf_rl.train.evaluation.record_rollout`, batched); with ``task="homing"``
+  :func:`~spf_rl.evaluation.record_rollout`, batched); with ``task="homing"``
   the env plays the route's homing episode (:mod:`envs.homing`: from the route's end
   back to its start, the memory rendered looking back) and says which demonstration
   it played;
@@ -40,9 +40,9 @@ from envs.render import draw_top_down_map
 from envs.scenes import build_house, split_seeds
 from envs.transforms import DEFAULT_NOISE, NOISE_PRESETS
 from envs.user_demos import ACTION_LETTERS
+from spf_rl.evaluation import greedy_on_device
 from spf_rl.metrics import summarize
-from spf_rl.train.evaluation import greedy_on_device
-from spf_rl.train.lengths import policy_for_length
+from spf_rl.modules.views import policy_for_length
 from spf_rl.viz import figure_to_array, pyplot, write_figure
 from spf_rl.viz import write_video as write_frames
 
@@ -330,7 +330,7 @@ def teach_and_repeat(policy, demo: Demonstration, options: TeachOptions, *, imag
         policy: the policy of ``options.checkpoint`` (:func:`spf_rl.load_policy`), in eval mode.
         demo: the taught demonstration (:func:`spf_rl.teach.route.teach_route`), of any length: a
             shorter one than the policy's ``demo_length`` is padded, and the policy is built for a
-            longer one (:func:`~spf_rl.train.lengths.policy_for_length`, the same weights).
+            longer one (:func:`~spf_rl.modules.views.policy_for_length`, the same weights).
         options: the run's set-up.
         image_size: frame side, pixels (the policy's).
 

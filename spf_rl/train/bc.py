@@ -34,12 +34,8 @@ from envs.atomic_io import atomic_write_json
 from envs.checks import check_positive_ints
 from envs.episode_spec import EpisodeSpec, check_sizes_match
 from spf_rl.data import ROUTE_STEP_KEY, DatasetConfig, EpisodeDataset
-from spf_rl.device import DEFAULT_DEVICE, autocast, check_device, machine_info, module_device, to_device
-from spf_rl.modules.memory import memory_bytes
-from spf_rl.modules.policy import SPFPolicy
-from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
-from spf_rl.train.distributed import ShardedSampler, barrier, init_distributed
-from spf_rl.train.evaluation import (
+from spf_rl.device import DEFAULT_DEVICE, autocast, check_device, machine_info, module_device
+from spf_rl.evaluation import (
     TEST_EPISODES_FILE,
     TEST_SEED,
     VAL_SEED,
@@ -48,6 +44,10 @@ from spf_rl.train.evaluation import (
     evaluate_policy,
     write_test_episodes,
 )
+from spf_rl.modules.policy import SPFPolicy
+from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
+from spf_rl.modules.views import episodes_to_sequence, model_memory_bytes
+from spf_rl.train.distributed import ShardedSampler, barrier, init_distributed
 from spf_rl.train.run import OptimConfig, TrainingRun, run_on_device, start_run, trim_csv_logs
 from spf_rl.train.run_config import config_dict
 
@@ -141,55 +141,6 @@ def check_pointer_labels(optim: OptimConfig, route_style: str | None, name: str)
         )
 
 
-def episodes_to_sequence(batch: TensorDict, device: torch.device | str | None = None) -> TensorDict:
-    """Turn a batch of stored episodes ``[B]`` into the policy's sequence input ``[B, T]`` on ``device``.
-
-    Demonstration frames and actions come once per episode (looked up by ``demo_id`` at
-    sampling); they move to ``device`` once and are broadcast over time as views (no
-    copy). ``T`` is cut to the longest episode (read on the batch's device, before the move).
-
-    Args:
-        batch: stored episodes (:mod:`spf_rl.data` layout).
-        device: where the sequence goes (``None``: where the batch is).
-
-    Examples:
-        >>> from tensordict import TensorDict
-        >>> mask = torch.tensor([[True, True, False], [True, False, False]])
-        >>> steps = TensorDict({"pixels": torch.zeros(2, 3, 8, 8, 3, dtype=torch.uint8), "mask": mask,
-        ...     "is_init": torch.zeros(2, 3, 1, dtype=torch.bool), "expert_action": torch.zeros(2, 3, dtype=torch.long)}, [2, 3])
-        >>> batch = TensorDict({"steps": steps, "demo_frames": torch.zeros(2, 4, 8, 8, 3, dtype=torch.uint8),
-        ...     "demo_actions": torch.zeros(2, 4, dtype=torch.long)}, [2])
-        >>> sequence = episodes_to_sequence(batch, device="meta")
-        >>> sequence.batch_size, sequence["demo_frames"].shape, sequence["pixels"].device
-        (torch.Size([2, 2]), torch.Size([2, 2, 4, 8, 8, 3]), device(type='meta'))
-    """
-    steps = batch.get("steps")
-    length = int(steps.get("mask").sum(-1).max())
-    steps = to_device(steps[:, :length], device)
-    b, t = steps.batch_size
-    demo_frames = batch.get("demo_frames")
-    demo_actions = batch.get("demo_actions")
-    demonstration = {"demo_frames": demo_frames, "demo_actions": demo_actions}
-    if "demo_steps" in batch.keys():  # demonstrations of several lengths, padded
-        demonstration["demo_steps"] = batch.get("demo_steps")
-    sequence = {
-        key: (value if device is None else value.to(device)).unsqueeze(1).expand(b, t, *value.shape[1:])
-        for key, value in demonstration.items()
-    }
-    return TensorDict(
-        {
-            "pixels": steps.get("pixels"),
-            "is_init": steps.get("is_init"),
-            **sequence,
-            "expert_action": steps.get("expert_action"),
-            "mask": steps.get("mask"),
-            **({ROUTE_STEP_KEY: steps.get(ROUTE_STEP_KEY)} if ROUTE_STEP_KEY in steps.keys() else {}),
-        },
-        batch_size=[b, t],
-        device=device,
-    )
-
-
 def bc_loss(
     policy: SPFPolicy,
     batch: TensorDict,
@@ -268,18 +219,6 @@ def pointer_loss(sequence: TensorDict) -> torch.Tensor:
     if "demo_steps" in sequence.keys():  # the route's end pose counts as its last step
         target = torch.minimum(target, sequence.get("demo_steps")[mask].reshape(-1) - 1)
     return F.smooth_l1_loss(eta, target.to(eta.dtype))
-
-
-def model_memory_bytes(model_type: str, demo_length: int, sparsity: float, image_size: int) -> int:
-    """Bytes the agent carries for one demonstration: memory frames (uint8) plus all actions.
-
-    ``"spf_random"`` at ``sparsity`` carries what ``"spf"`` does: only the frames its
-    mask keeps, although its network holds a slot for every frame.
-    """
-    frame_shape = (3, image_size, image_size)
-    if model_type == "action_only":
-        return demo_length  # one byte per action, no frames
-    return memory_bytes(demo_length, 1.0 if model_type in ("rpf", "rpf_original") else sparsity, frame_shape)
 
 
 def train_bc(config: BCConfig) -> dict:

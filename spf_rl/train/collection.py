@@ -245,7 +245,7 @@ def make_collector(
             pass ``"cpu"`` for batches that go to disk).
         demo_store: a :class:`~envs.demo_store.DemoStore`'s directory: the envs draw their
             demonstrations from it and emit ``demo_id`` instead of the frames, which
-            ``policy`` looks up itself (:class:`~spf_rl.train.evaluation.FramesFromStore`).
+            ``policy`` looks up itself (:class:`~spf_rl.evaluation.FramesFromStore`).
             An episode store (a ``numbered`` :class:`~envs.demo_store.DemoStoreConfig`,
             :meth:`~envs.demo_store.DemoStoreConfig.of`, of env seed ``seed``) is played as numbered episodes: every env seeded with
             ``seed``, collector ``w`` of ``W`` playing episode numbers ``w, w + W, ...``

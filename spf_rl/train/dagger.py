@@ -62,6 +62,14 @@ from envs.scripted import behaviour_coins
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.data import DatasetConfig, EpisodeDataset, demos_root, step_keys
 from spf_rl.device import DEFAULT_DEVICE, check_device, exact_float32, machine_info, module_device
+from spf_rl.evaluation import (
+    TEST_EPISODES_FILE,
+    EvalConfig,
+    FramesFromStore,
+    evaluate_policy,
+    read_test_episodes,
+    write_test_episodes,
+)
 from spf_rl.hub import DEFAULT_START_CHECKPOINT, checked_checkpoint
 from spf_rl.modules.registry import build_policy
 from spf_rl.train.bc import bc_loss, check_pointer_labels, default_test_config, default_val_config
@@ -76,14 +84,6 @@ from spf_rl.train.dagger_rounds import (
     training_sources,
 )
 from spf_rl.train.distributed import Ranks, backward_on_shard, barrier, batch_mean, init_distributed, shard_indices
-from spf_rl.train.evaluation import (
-    TEST_EPISODES_FILE,
-    EvalConfig,
-    FramesFromStore,
-    evaluate_policy,
-    read_test_episodes,
-    write_test_episodes,
-)
 from spf_rl.train.run import OptimConfig, trim_csv_logs
 from spf_rl.train.run_config import DAGGER_RESUME_FREE, write_run_config
 from spf_rl.train.run_config import config_dict as run_config_dict

@@ -12,7 +12,7 @@ for them (:func:`~envs.house_grid.default_grid_size_cells`) and end after
   expert-labelled dataset per length (a batch holds episodes of one length; each epoch
   visits every batch of every dataset in a seeded random order), validated on the mean
   success over the lengths, tested at each length (``recipes/bc_lengths.py``);
-* :func:`evaluate_lengths`: success and SPL of a policy at each length, the rows of
+* :func:`spf_rl.evaluation.evaluate_lengths`: success and SPL of a policy at each length, the rows of
   :func:`spf_rl.viz.plot_success_by_length` (``recipes/success_by_length.py``).
 """
 from __future__ import annotations
@@ -30,13 +30,14 @@ from tensordict import TensorDict
 from envs.atomic_io import atomic_write_json
 from envs.checks import check_positive_int
 from envs.follow import default_max_steps
-from envs.house_grid import check_demo_length, default_grid_size_cells
+from envs.house_grid import check_demo_length
 from spf_rl.data import DatasetConfig, EpisodeDataset, format_tag
 from spf_rl.device import DEFAULT_DEVICE, check_device, machine_info
+from spf_rl.evaluation import EvalConfig, evaluate_lengths
 from spf_rl.modules.policy import SPFPolicy
 from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
-from spf_rl.train.bc import bc_loss, check_pointer_labels, default_test_config, default_val_config, model_memory_bytes
-from spf_rl.train.evaluation import EvalConfig, evaluate_policy
+from spf_rl.modules.views import model_memory_bytes, policy_for_length
+from spf_rl.train.bc import bc_loss, check_pointer_labels, default_test_config, default_val_config
 from spf_rl.train.run import OptimConfig, TrainingRun, run_on_device, start_run
 from spf_rl.train.run_config import config_dict as run_config_dict
 
@@ -47,93 +48,6 @@ DEFAULT_LENGTHS = (30, 50, 100)
 #: Training episodes per length: about the same bytes of frames per length
 #: (episodes x (n + max_steps) frames); 125 + 75 + 38 = 238 batches of 16 per epoch.
 DEFAULT_EPISODES = (2000, 1200, 600)
-
-
-def policy_for_length(policy: SPFPolicy, demo_length: int) -> SPFPolicy:
-    """``policy``'s network for demonstrations of ``demo_length`` steps, sharing its parameters.
-
-    The view is a new :class:`~spf_rl.modules.SPFPolicy` of ``policy.config`` with
-    ``demo_length`` replaced, whose parameters (and persistent buffers) are ``policy``'s
-    own tensors: training either trains both, loading weights into ``policy`` loads
-    them into the view. Only the length-dependent index buffers differ.
-
-    Raises:
-        ValueError: a non-positive length, or a policy with a custom encoder (its
-            parameters do not match a default-built network).
-
-    Examples:
-        >>> from spf_rl.modules import SPFConfig
-        >>> policy = SPFPolicy(SPFConfig(demo_length=30, feature_dim=8, hidden_size=8, image_size=(16, 16)))
-        >>> long = policy_for_length(policy, 100)
-        >>> long.config.demo_length, long.memory_length, long.cell.gru.weight_hh is policy.cell.gru.weight_hh
-        (100, 80, True)
-    """
-    check_demo_length(demo_length)
-    if demo_length == policy.config.demo_length:
-        return policy
-    parameters = policy.state_dict(keep_vars=True)
-    view = SPFPolicy(dataclasses.replace(policy.config, demo_length=demo_length))
-    if set(view.state_dict()) != set(parameters):
-        raise ValueError(
-            "policy_for_length needs a policy built from its config (the default encoder); "
-            "this policy's parameters differ from a default-built network's."
-        )
-    for name in list(view.state_dict()):
-        module_name, _, attribute = name.rpartition(".")
-        module = view.get_submodule(module_name)
-        if attribute in module._parameters:
-            module._parameters[attribute] = parameters[name]
-        else:
-            module._buffers[attribute] = parameters[name]
-    device = parameters[next(iter(parameters))].device if parameters else torch.device("cpu")
-    return view.to(device).train(policy.training)
-
-
-def length_eval_config(config: EvalConfig, demo_length: int, image_size: int) -> EvalConfig:
-    """``config`` for demonstrations of ``demo_length`` steps: the rule's ``max_steps``, the policy's frame size."""
-    episodes = config.episodes.replace(demo_length=demo_length, max_steps=default_max_steps(demo_length), image_size=image_size)
-    return dataclasses.replace(config, episodes=episodes)
-
-
-def evaluate_lengths(
-    policy: SPFPolicy, lengths: list[int], config: EvalConfig, progress: bool = False
-) -> tuple[list[dict], dict[int, list[dict]]]:
-    """Success and SPL of ``policy`` at each demonstration length (:func:`policy_for_length`).
-
-    Args:
-        policy: an SPF-family policy (any ``demo_length``).
-        lengths: the demonstration lengths, steps.
-        config: the evaluation set-up; ``demo_length``, ``max_steps`` (the rule:
-            :func:`~envs.follow.default_max_steps`) and ``image_size`` (the policy's)
-            are set per length; every length plays ``config.num_episodes`` episodes.
-        progress: show progress bars.
-
-    Returns:
-        (one row per length: ``demo_length``, ``max_steps``, ``grid_size_cells`` and the
-        summary of :func:`~spf_rl.train.evaluation.evaluate_policy`; the episode records by length).
-
-    Examples:
-        >>> from spf_rl.modules import SPFConfig
-        >>> policy = SPFPolicy(SPFConfig(demo_length=5, feature_dim=8, hidden_size=8, image_size=(16, 16)))
-        >>> from envs import EpisodeSpec
-        >>> config = EvalConfig(EpisodeSpec(split="val", num_houses=1), num_episodes=2, num_agents=2, render=False)
-        >>> rows, _ = evaluate_lengths(policy, [4, 6], config)
-        >>> [(row["demo_length"], row["max_steps"], row["episodes"]) for row in rows]
-        [(4, 7, 2), (6, 10, 2)]
-    """
-    rows, records = [], {}
-    for length in lengths:
-        length_config = length_eval_config(config, length, policy.config.image_size[0])
-        summary, records[length] = evaluate_policy(policy_for_length(policy, length), length_config, progress=progress)
-        rows.append(
-            {
-                "demo_length": length,
-                "max_steps": length_config.episodes.max_steps,
-                "grid_size_cells": default_grid_size_cells(length),
-                **summary,
-            }
-        )
-    return rows, records
 
 
 @dataclass
@@ -308,9 +222,6 @@ __all__ = [
     "DEFAULT_LENGTHS",
     "MixedLengthConfig",
     "epoch_schedule",
-    "evaluate_lengths",
-    "length_eval_config",
     "mean_over_lengths",
-    "policy_for_length",
     "train_bc_mixed",
 ]

@@ -17,7 +17,7 @@ run is configured by :class:`~spf_rl.train.ppo_config.PPOConfig`.
   the recurrent state at ``t = 0`` is the zero reset state. The weights are pushed
   to the collector (:meth:`update_policy_weights_`) before every batch. Demonstrations
   come from a store rendered once (``store_demos``): the envs emit ``demo_id``, and the
-  actor (:class:`~spf_rl.train.evaluation.FramesFromStore`) and the update look the frames up.
+  actor (:class:`~spf_rl.evaluation.FramesFromStore`) and the update look the frames up.
 * **Device.** The policy, value head, frozen reference and optimisers live on
   ``config.device``; the collector acts there (``policy_device``) with the envs on
   the CPU and stores the batch on the device, where GAE and the updates run.
@@ -62,10 +62,10 @@ from tqdm.auto import tqdm
 from envs.atomic_io import atomic_write_json
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.device import autocast, exact_float32, machine_info
+from spf_rl.evaluation import FramesFromStore, evaluate_policy, frames_lookup
 from spf_rl.hub import checked_checkpoint
 from spf_rl.modules.registry import build_policy
 from spf_rl.train.collection import collection_device, make_collector
-from spf_rl.train.evaluation import FramesFromStore, evaluate_policy, frames_lookup
 from spf_rl.train.ppo_config import PPO_RESUME_FREE, PPOConfig, checked_env_config, training_demo_store
 from spf_rl.train.ppo_loss import (
     AMP_RATIO_SYNC_TOLERANCE,

@@ -12,10 +12,10 @@ from envs.episode_spec import EpisodeSpec, check_sizes_match
 from envs.homing import FOLLOW
 from envs.version import ENV_VERSION
 from spf_rl.device import DEFAULT_DEVICE, check_device
+from spf_rl.evaluation import TEST_SEED, VAL_SEED, EvalConfig, episode_store_root
 from spf_rl.hub import DEFAULT_START_CHECKPOINT
 from spf_rl.modules import SPFConfig
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig
-from spf_rl.train.evaluation import TEST_SEED, VAL_SEED, EvalConfig, episode_store_root
 
 logger = logging.getLogger(__name__)
 

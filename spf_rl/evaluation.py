@@ -47,9 +47,13 @@ from envs.demo_store import DemoStore, DemoStoreConfig
 from envs.episode_spec import EpisodeSpec, flat_dict
 from envs.episodes import STEPS_PER_BATCH, record_episodes, run_episodes
 from envs.factory import make_env
+from envs.follow import default_max_steps
+from envs.house_grid import default_grid_size_cells
 from envs.version import ENV_VERSION
 from spf_rl.device import act_on_device, module_device
 from spf_rl.metrics import summarize
+from spf_rl.modules.policy import SPFPolicy
+from spf_rl.modules.views import policy_for_length
 
 #: Seed of the test episodes every evaluation of a trained policy plays (Table 1, the route bench, recipes/evaluate.py).
 TEST_SEED = 2
@@ -390,6 +394,53 @@ def evaluate_policy(policy: TensorDictModuleBase, config: EvalConfig, progress: 
     finally:
         policy.train(was_training)
     return summarize_episodes(records), records
+
+
+def length_eval_config(config: EvalConfig, demo_length: int, image_size: int) -> EvalConfig:
+    """``config`` for demonstrations of ``demo_length`` steps: the rule's ``max_steps``, the policy's frame size."""
+    episodes = config.episodes.replace(demo_length=demo_length, max_steps=default_max_steps(demo_length), image_size=image_size)
+    return dataclasses.replace(config, episodes=episodes)
+
+
+def evaluate_lengths(
+    policy: SPFPolicy, lengths: list[int], config: EvalConfig, progress: bool = False
+) -> tuple[list[dict], dict[int, list[dict]]]:
+    """Success and SPL of ``policy`` at each demonstration length (:func:`policy_for_length`).
+
+    Args:
+        policy: an SPF-family policy (any ``demo_length``).
+        lengths: the demonstration lengths, steps.
+        config: the evaluation set-up; ``demo_length``, ``max_steps`` (the rule:
+            :func:`~envs.follow.default_max_steps`) and ``image_size`` (the policy's)
+            are set per length; every length plays ``config.num_episodes`` episodes.
+        progress: show progress bars.
+
+    Returns:
+        (one row per length: ``demo_length``, ``max_steps``, ``grid_size_cells`` and the
+        summary of :func:`~spf_rl.evaluation.evaluate_policy`; the episode records by length).
+
+    Examples:
+        >>> from spf_rl.modules import SPFConfig
+        >>> policy = SPFPolicy(SPFConfig(demo_length=5, feature_dim=8, hidden_size=8, image_size=(16, 16)))
+        >>> from envs import EpisodeSpec
+        >>> config = EvalConfig(EpisodeSpec(split="val", num_houses=1), num_episodes=2, num_agents=2, render=False)
+        >>> rows, _ = evaluate_lengths(policy, [4, 6], config)
+        >>> [(row["demo_length"], row["max_steps"], row["episodes"]) for row in rows]
+        [(4, 7, 2), (6, 10, 2)]
+    """
+    rows, records = [], {}
+    for length in lengths:
+        length_config = length_eval_config(config, length, policy.config.image_size[0])
+        summary, records[length] = evaluate_policy(policy_for_length(policy, length), length_config, progress=progress)
+        rows.append(
+            {
+                "demo_length": length,
+                "max_steps": length_config.episodes.max_steps,
+                "grid_size_cells": default_grid_size_cells(length),
+                **summary,
+            }
+        )
+    return rows, records
 
 
 def summarize_episodes(records: list[dict]) -> dict:
