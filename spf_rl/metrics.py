@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from spf_rl.stats import bootstrap_ci
+from spf_rl.stats import DEFAULT_CONFIDENCE, bootstrap_ci
 
 logger = logging.getLogger(__name__)
 
@@ -22,15 +22,15 @@ __all__ = ["summarize"]
 #: Per-episode values summarised beside success and SPL when every record has them: the RPF
 #: lab code's success, and how closely the path followed the route (envs.path_fidelity).
 OPTIONAL_METRICS = ("success_lab", "ndtw", "sdtw", "path_length_ratio", "wall_hits")
-#: Defaults of the summaries' bootstrap intervals.
-DEFAULT_CONFIDENCE = 0.95
-DEFAULT_NUM_RESAMPLES = 2000
+#: Resamples of a run summary's bootstrap intervals (fewer than the studies' ``spf_rl.stats.DEFAULT_NUM_RESAMPLES``:
+#: a summary is written after every validation).
+SUMMARY_NUM_RESAMPLES = 2000
 
 
 def summarize(
     records: Iterable[Mapping[str, Any]],
     confidence: float = DEFAULT_CONFIDENCE,
-    num_resamples: int = DEFAULT_NUM_RESAMPLES,
+    num_resamples: int = SUMMARY_NUM_RESAMPLES,
     seed: int = 0,
 ) -> dict[str, Any]:
     """Aggregate per-episode records into mean success, SPL and their bootstrap CIs.

@@ -101,7 +101,7 @@ def test_a_tiny_run_pairs_models_by_episode_and_resumes(tmp_path, monkeypatch):
         records = cell["models"][label]["records"]
         assert all(len(records[key]) == 2 for key in route_bench.RECORD_KEYS)
         stats = cell["stats"][label]
-        assert set(route_bench.METRICS) <= set(stats) and stats["episodes"] == 2
+        assert set(route_bench.BENCH_METRICS) <= set(stats) and stats["episodes"] == 2
     assert set(cell["stats"]["tiny/best"]["vs_open_loop"]) == {"success", "ndtw"}
     floor = cell["models"]["open_loop"]["records"]
     same = route_bench.paired_against(floor, floor, cell["episodes"]["house_seed"], num_resamples=200)
@@ -164,13 +164,13 @@ def test_training_seeds_of_one_recipe_are_pooled_into_one_column():
     assert route_bench.seed_groups(list(models)) == {"r/a (3 seeds)": ["r/a-seed0", "r/a-seed1", "r/a-seed2"]}
     pooled = stats["r/a (3 seeds)"]
     per_seed = [stats[f"r/a-seed{s}"] for s in range(3)]
-    for metric in route_bench.METRICS:
+    for metric in route_bench.BENCH_METRICS:
         means = [row[metric]["mean"] for row in per_seed]
         assert pooled["per_seed"][metric] == pytest.approx(means)
         assert pooled[metric]["mean"] == pytest.approx(sum(means) / 3)
         low, high = pooled[metric]["ci"]
         assert low <= pooled[metric]["mean"] <= high
-    for metric in route_bench.PAIRED_METRICS:
+    for metric in route_bench.BENCH_PAIRED_METRICS:
         differences = [row["vs_open_loop"][metric]["difference"] for row in per_seed]
         assert pooled["vs_open_loop"][metric]["difference"] == pytest.approx(sum(differences) / 3)
 

@@ -19,7 +19,7 @@ from spf_rl.stats import paired_bootstrap
 
 #: Per-episode fields compared (each where every record has it; the path-fidelity ones
 #: where the episodes followed a demonstrated path).
-METRICS = ("success", "spl", "success_lab", "ndtw", "sdtw")
+COMPARED_METRICS = ("success", "spl", "success_lab", "ndtw", "sdtw")
 #: Where the per-episode records lie: ``recipes/evaluate.py``'s key, then ``recipes/bc.py``'s test records.
 RECORD_KEYS = ("episodes_records", "episodes")
 
@@ -72,7 +72,7 @@ def compare(path_a: Path | str | list, path_b: Path | str | list, num_resamples:
     records_a = [r for _, records in loaded["a"] for r in records]
     records_b = [r for _, records in loaded["b"] for r in records]
     metrics = {}
-    for name in METRICS:
+    for name in COMPARED_METRICS:
         if not all(name in r for r in records_a + records_b):
             continue
         result = paired_bootstrap(

@@ -68,8 +68,8 @@ QUICK_SETS = ("test",)
 DEFAULT_OUT = Path("results/route_bench.json")
 QUICK_OUT = Path("results/route_bench_quick.json")
 #: Per-episode scores reported (mean and interval), and those compared with open-loop replay.
-METRICS = ("success", "spl", "ndtw", "sdtw")
-PAIRED_METRICS = ("success", "ndtw")
+BENCH_METRICS = ("success", "spl", "ndtw", "sdtw")
+BENCH_PAIRED_METRICS = ("success", "ndtw")
 #: Per-episode fields kept per model (columns), and per cell (the episodes, the same for every model).
 RECORD_KEYS = ("success", "success_lab", "spl", "ndtw", "sdtw", "path_length_ratio", "wall_hits", "steps",
                "goal_distance", "path_length", "shortest_path_length")
@@ -421,7 +421,7 @@ def evaluate_model(model: BenchModel, config, progress: bool = False) -> list[di
 
 
 # --------------------------------------------------------------------- statistics
-def paired_against(a: dict, b: dict, houses: Sequence, num_resamples: int, metrics: Sequence[str] = PAIRED_METRICS) -> dict:
+def paired_against(a: dict, b: dict, houses: Sequence, num_resamples: int, metrics: Sequence[str] = BENCH_PAIRED_METRICS) -> dict:
     """Paired bootstrap of ``a`` - ``b`` (per-episode columns ``{metric: values}`` of the same episodes) per metric.
 
     Returns:
@@ -442,7 +442,7 @@ def paired_against(a: dict, b: dict, houses: Sequence, num_resamples: int, metri
 
 
 def cell_stats(cell: dict, num_resamples: int) -> dict:
-    """Per model of a complete cell: the mean and house-level interval of each of :data:`METRICS`,
+    """Per model of a complete cell: the mean and house-level interval of each of :data:`BENCH_METRICS`,
     and (models other than open-loop replay) ``vs_open_loop``: :func:`paired_against` open-loop replay."""
     stats = {label: _scores(cell, [label], num_resamples, paired=label != OPEN_LOOP) for label in cell["models"]}
     for group, members in seed_groups(list(cell["models"])).items():
@@ -485,7 +485,7 @@ def pooled_stats(cell: dict, members: Sequence[str], num_resamples: int) -> dict
     row = _scores(cell, members, num_resamples, paired=True)
     row["seeds"] = list(members)
     row["per_seed"] = {metric: [float(v) for v in np.asarray([cell["models"][m]["records"][metric] for m in members],
-                                                               dtype=float).mean(axis=1)] for metric in METRICS}
+                                                               dtype=float).mean(axis=1)] for metric in BENCH_METRICS}
     return row
 
 
@@ -493,7 +493,7 @@ def _scores(cell: dict, members: Sequence[str], num_resamples: int, paired: bool
     """Means over ``members``' seeds and the cell's episodes, house-level intervals and (``paired``) the
     difference from open-loop replay: one model is one member."""
     houses = np.asarray(cell["episodes"]["house_seed"])
-    columns = {metric: np.asarray([cell["models"][m]["records"][metric] for m in members], dtype=float) for metric in METRICS}
+    columns = {metric: np.asarray([cell["models"][m]["records"][metric] for m in members], dtype=float) for metric in BENCH_METRICS}
     row = {"episodes": int(houses.size), "houses": int(np.unique(houses).size)}
     for metric, values in columns.items():
         row[metric] = {"mean": float(values.mean()),
@@ -542,7 +542,7 @@ def format_table(content: dict) -> str:
                 entries.append("-")
                 continue
             paired = row.get("vs_open_loop", {})
-            marks = {m: "*" if m in paired and paired[m]["p_two_sided"] < ALPHA else "" for m in PAIRED_METRICS}
+            marks = {m: "*" if m in paired and paired[m]["p_two_sided"] < ALPHA else "" for m in BENCH_PAIRED_METRICS}
             entries.append(f"{row['success']['mean']:.2f}{marks['success']} / {row['ndtw']['mean']:.2f}{marks['ndtw']}")
         lines.append(f"| {cell['set']} | {cell['style']} | {bucket_name(cell['bucket'])} | " + " | ".join(entries) + " |")
     lines += ["", f"success / nDTW, mean over {content['setup']['episodes']} episodes per cell; * after a number: paired "

@@ -25,7 +25,7 @@ from spf_rl.stats import hierarchical_bootstrap_ci, paired_bootstrap, seed_summa
 logger = logging.getLogger("table1")
 
 #: Scores reported per episode: our geodesic success (the headline), SPL, and the RPF lab code's Euclidean success.
-METRICS = ("success", "spl", "success_lab")
+TABLE1_METRICS = ("success", "spl", "success_lab")
 CONFIDENCE = 0.95
 #: A claim "a beats b" holds when the one-sided paired p-value is below this.
 ALPHA = 0.05
@@ -124,7 +124,7 @@ def shared_episodes(reference: dict, set_name: str, where: str, records: list[di
 
 def metric_arrays(per_seed: dict) -> dict[str, np.ndarray]:
     """``{metric: (seeds, episodes) array}`` of ``{seed: records}``."""
-    return {m: np.asarray([[float(r[m]) for r in recs] for recs in per_seed.values()]) for m in METRICS}
+    return {m: np.asarray([[float(r[m]) for r in recs] for recs in per_seed.values()]) for m in TABLE1_METRICS}
 
 
 def summarize_set(per_seed: dict, houses: np.ndarray, num_resamples: int) -> dict:
@@ -134,9 +134,9 @@ def summarize_set(per_seed: dict, houses: np.ndarray, num_resamples: int) -> dic
         "episodes": int(houses.size),
         "houses": int(np.unique(houses).size),
         "seeds": list(per_seed),
-        "per_seed": {str(seed): {m: float(arrays[m][i].mean()) for m in METRICS} for i, seed in enumerate(per_seed)},
+        "per_seed": {str(seed): {m: float(arrays[m][i].mean()) for m in TABLE1_METRICS} for i, seed in enumerate(per_seed)},
     }
-    for m in METRICS:
+    for m in TABLE1_METRICS:
         summary = seed_summary(arrays[m].mean(axis=1))
         ci = hierarchical_bootstrap_ci(arrays[m], houses, CONFIDENCE, num_resamples)
         out[m] = {"mean": summary.mean, "sd": summary.sd, "ci": list(ci)}
@@ -154,7 +154,7 @@ def check_claims(claims, evaluations: dict, houses: dict, num_resamples: int) ->
                 results.append({"claim": text, "a": a, "b": b, "set": set_name, "skipped": f"no records of {', '.join(missing)}"})
                 continue
             arrays = [metric_arrays(side) for side in sides]
-            for m in METRICS:
+            for m in TABLE1_METRICS:
                 test = paired_bootstrap(arrays[0][m], arrays[1][m], set_houses, CONFIDENCE, num_resamples)
                 results.append({
                     "claim": text, "a": a, "b": b, "set": set_name, "metric": m,
