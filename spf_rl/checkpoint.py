@@ -11,9 +11,19 @@ half-written checkpoint behind.
 Checkpoints are device-neutral: every tensor is saved from a CPU copy (a run on a
 GPU writes the same file a CPU run would), and :func:`load_checkpoint` maps the
 tensors onto any device (``map_location``, the CPU by default).
+
+Every checkpoint :func:`save_checkpoint` writes carries the SHA-256 of its own content
+(:data:`CHECKSUM_KEY`, :func:`content_sha256`: every tensor's dtype, shape and bytes and every
+other value, in a fixed order), and :func:`load_checkpoint` refuses a file whose content no
+longer matches it, wherever the file lives: a flipped byte in the weights is an error that
+names the file, not a silently different policy. Files written before the checksum existed
+load as before (the shipped ones are checked against ``checkpoints/manifest.json``).
 """
 from __future__ import annotations
 
+import hashlib
+import json
+import logging
 import os
 from dataclasses import asdict
 from pathlib import Path
@@ -25,8 +35,12 @@ from envs.atomic_io import atomic_write
 from spf_rl.modules import SPFConfig
 from spf_rl.modules.registry import MODEL_NAMES
 
+logger = logging.getLogger(__name__)
+
 #: Version of the checkpoint layout.
 CHECKPOINT_FORMAT_VERSION = 1
+#: The payload key of a checkpoint's embedded SHA-256 of the rest of its content (:func:`content_sha256`).
+CHECKSUM_KEY = "content_sha256"
 #: Model types a checkpoint may hold.
 MODEL_TYPES = MODEL_NAMES
 
@@ -69,6 +83,52 @@ def first_sentence(err: BaseException) -> str:
     return first.split(". ")[0] if len(first) > 100 else first
 
 
+def _moved(value: Any, device: torch.device) -> Any:
+    """``value`` with every tensor (in nested dicts, lists and tuples) on ``device``."""
+    if isinstance(value, torch.Tensor):
+        return value.to(device)
+    if isinstance(value, dict):
+        return type(value)((key, _moved(item, device)) for key, item in value.items())
+    if isinstance(value, (list, tuple)):
+        return type(value)(_moved(item, device) for item in value)
+    return value
+
+
+def content_sha256(value: Any) -> str:
+    """The SHA-256 of a checkpoint's content, as hex: every tensor's dtype, shape and bytes, every
+    other value as JSON, dict entries in the order of their keys. It does not depend on the file
+    (``torch.save``'s container), the tensors' devices or the dicts' insertion order.
+
+    Examples:
+        >>> a = content_sha256({"w": torch.ones(2), "step": 3})
+        >>> a == content_sha256({"step": 3, "w": torch.ones(2)}), a == content_sha256({"w": torch.ones(2), "step": 4})
+        (True, False)
+        >>> content_sha256({"w": torch.ones(2)}) == content_sha256({"w": torch.ones(2, dtype=torch.float64)})
+        False
+    """
+    digest = hashlib.sha256()
+    _feed(digest, value)
+    return digest.hexdigest()
+
+
+def _feed(digest: Any, value: Any) -> None:
+    if isinstance(value, torch.Tensor):
+        tensor = value.detach().cpu().contiguous()
+        digest.update(f"tensor {tensor.dtype} {tuple(tensor.shape)}:".encode())
+        digest.update(tensor.reshape(-1).view(torch.uint8).numpy().tobytes())
+    elif isinstance(value, dict):
+        digest.update(f"dict {len(value)}:".encode())
+        for key in sorted(value, key=repr):
+            digest.update(f"{key!r}=".encode())
+            _feed(digest, value[key])
+    elif isinstance(value, (list, tuple)):
+        digest.update(f"list {len(value)}:".encode())
+        for item in value:
+            _feed(digest, item)
+    else:
+        digest.update(f"{json.dumps(value, default=repr)};".encode())
+
+
 def save_checkpoint(path: str | os.PathLike, model_type: str, config: SPFConfig, state: dict[str, Any]) -> None:
     """Write ``state`` (``model`` state dict plus anything weights-only-safe) atomically.
 
@@ -93,6 +153,7 @@ def save_checkpoint(path: str | os.PathLike, model_type: str, config: SPFConfig,
         "model_config": config_dict,
         **cpu_copy(state),
     }
+    payload[CHECKSUM_KEY] = content_sha256(payload)
     atomic_write(path, lambda handle: torch.save(payload, handle), binary=True)
 
 
@@ -113,17 +174,28 @@ def load_checkpoint(
         the payload, with ``model_config`` turned back into an :class:`SPFConfig`.
 
     Raises:
-        CheckpointError: missing or corrupt file, unknown format, wrong model type.
+        CheckpointError: missing, corrupt or damaged file (content unlike its embedded SHA-256), unknown
+            format, wrong model type.
     """
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist.")
     try:
-        payload = torch.load(path, map_location=map_location, weights_only=True)
+        payload = torch.load(path, map_location="cpu", weights_only=True)  # checked on the CPU, then moved
     except Exception as err:  # any unpickling failure means a bad file
         raise CheckpointError(f"checkpoint {path} is corrupt or not a checkpoint ({type(err).__name__}: {first_sentence(err)}).") from err
     if not isinstance(payload, dict) or payload.get("format_version") != CHECKPOINT_FORMAT_VERSION:
         raise CheckpointError(f"checkpoint {path} has an unknown format (expected version {CHECKPOINT_FORMAT_VERSION}).")
+    stored = payload.pop(CHECKSUM_KEY, None)
+    if stored is None:
+        logger.debug("checkpoint %s carries no checksum (written before checkpoints had one)", path)
+    elif content_sha256(payload) != stored:
+        raise CheckpointError(
+            f"checkpoint {path} is damaged: its content no longer matches the SHA-256 written into it "
+            "(a changed or corrupted file); restore it, or train it again."
+        )
+    if torch.device(map_location).type != "cpu":
+        payload = _moved(payload, torch.device(map_location))
     model_type = payload.get("model_type")
     if model_type not in MODEL_TYPES:
         raise CheckpointError(f"checkpoint {path} holds an unknown model type {model_type!r}; allowed: {MODEL_TYPES}.")

@@ -221,6 +221,32 @@ def exact_float32(device: torch.device | str, enabled: bool = True) -> Iterator[
         torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = saved
 
 
+@contextlib.contextmanager
+def torch_threads_kept() -> Iterator[None]:
+    """Keep this process's torch intra-op threads across the block.
+
+    TorchRL's multi-process collectors lower the parent's threads when they start (to the
+    threads left beside their workers) and, when they shut down, set them to the threads they
+    found plus one per worker, up to the count at import. A process that ran with fewer threads
+    than that (one of several sharing a machine, ``OMP_NUM_THREADS=1``) then trains on more
+    threads after a multi-process evaluation or DAgger round than before it, and its float
+    sums, ordered otherwise, differ: a resumed run would not end where an uninterrupted one does.
+
+    Examples:
+        >>> threads = torch.get_num_threads()
+        >>> with torch_threads_kept():
+        ...     torch.set_num_threads(threads + 1)
+        >>> torch.get_num_threads() == threads
+        True
+    """
+    threads = torch.get_num_threads()
+    try:
+        yield
+    finally:
+        if torch.get_num_threads() != threads:
+            torch.set_num_threads(threads)
+
+
 def act_on_device(
     policy: Callable[[TensorDictBase], TensorDictBase],
     device: torch.device | None,

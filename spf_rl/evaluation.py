@@ -50,7 +50,7 @@ from envs.factory import make_env
 from envs.follow import default_max_steps
 from envs.house_grid import default_grid_size_cells
 from envs.version import ENV_VERSION
-from spf_rl.device import act_on_device, module_device
+from spf_rl.device import act_on_device, module_device, torch_threads_kept
 from spf_rl.metrics import summarize
 from spf_rl.modules.policy import SPFPolicy
 from spf_rl.modules.views import policy_for_length
@@ -388,6 +388,7 @@ def evaluate_policy(policy: TensorDictModuleBase, config: EvalConfig, progress: 
                     act = with_store_lookup(greedy_on_device(policy), policy, store)
                     records = run_episodes(env, act, config.num_episodes, progress=progress)
                 else:
+                    stack.enter_context(torch_threads_kept())  # restored after the shutdown below
                     collector = _worker_collector(policy, config, store)
                     stack.callback(collector.shutdown)
                     records = record_episodes(collector, config.num_episodes, progress=progress)

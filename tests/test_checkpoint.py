@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from spf_rl.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from spf_rl.checkpoint import CHECKSUM_KEY, CheckpointError, content_sha256, load_checkpoint, save_checkpoint
 from spf_rl.modules.policy import SPFConfig
 from spf_rl.modules.registry import build_policy
 
@@ -47,3 +47,54 @@ def test_corrupt_and_missing_checkpoints(tmp_path):
         load_checkpoint(tmp_path / "missing.pt")
     with pytest.raises(ValueError, match="model_type must be one of"):
         save_checkpoint(good, "transformer", CONFIG, {})
+
+
+def test_a_checkpoint_carries_the_sha256_of_its_content(tmp_path):
+    path = tmp_path / "model.pt"
+    state = {"model": build_policy("spf", CONFIG).state_dict(), "epoch": 3}
+    save_checkpoint(path, "spf", CONFIG, state)
+    raw = torch.load(path, weights_only=True)
+    stored = raw.pop(CHECKSUM_KEY)
+    assert stored == content_sha256(raw) and len(stored) == 64
+    again = tmp_path / "again.pt"
+    save_checkpoint(again, "spf", CONFIG, state)
+    assert again.read_bytes() == path.read_bytes()  # deterministic, checksum included
+    assert CHECKSUM_KEY not in load_checkpoint(path)
+
+
+def test_a_changed_weight_is_refused_naming_the_file(tmp_path):
+    path = tmp_path / "model.pt"
+    save_checkpoint(path, "spf", CONFIG, {"model": build_policy("spf", CONFIG).state_dict()})
+    raw = torch.load(path, weights_only=True)
+    name = next(iter(raw["model"]))
+    raw["model"][name].view(-1)[0] += 1.0  # the content changed, the embedded checksum did not
+    torch.save(raw, path)
+    with pytest.raises(CheckpointError, match=f"checkpoint {path} is damaged"):
+        load_checkpoint(path)
+
+
+def test_a_byte_flipped_in_the_weights_of_a_file_anywhere_is_refused(tmp_path):
+    """A checkpoint the recipes wrote, kept outside checkpoints/: spf_rl.load_policy must not load
+    it silently once one byte in the middle of its weights has changed."""
+    import spf_rl
+
+    policy = build_policy("spf", CONFIG)
+    path = tmp_path / "elsewhere" / "best.pt"
+    save_checkpoint(path, "spf", CONFIG, {"model": policy.state_dict()})
+    weights = max(policy.state_dict().values(), key=lambda t: t.numel())
+    data = bytearray(path.read_bytes())
+    at = bytes(data).find(weights.contiguous().numpy().tobytes())
+    assert at > 0
+    data[at + weights.numel() * weights.element_size() // 2] ^= 0xFF
+    path.write_bytes(bytes(data))
+    with pytest.raises(CheckpointError, match=f"checkpoint {path} is (damaged|corrupt)"):
+        spf_rl.load_policy(path)
+
+
+def test_a_checkpoint_without_a_checksum_still_loads(tmp_path):
+    path = tmp_path / "old.pt"
+    save_checkpoint(path, "spf", CONFIG, {"model": build_policy("spf", CONFIG).state_dict()})
+    raw = torch.load(path, weights_only=True)
+    raw.pop(CHECKSUM_KEY)
+    torch.save(raw, path)  # as written before checkpoints carried one
+    assert load_checkpoint(path)["model_config"] == CONFIG

@@ -61,7 +61,7 @@ from envs.episodes import STEPS_PER_BATCH, gather_episode_steps
 from envs.scripted import behaviour_coins
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.data import DatasetConfig, EpisodeDataset, demos_root, step_keys
-from spf_rl.device import DEFAULT_DEVICE, check_device, exact_float32, machine_info, module_device
+from spf_rl.device import DEFAULT_DEVICE, check_device, exact_float32, machine_info, module_device, torch_threads_kept
 from spf_rl.evaluation import (
     TEST_EPISODES_FILE,
     EvalConfig,
@@ -501,10 +501,18 @@ def _collect_round(policy: TensorDictModuleBase, config: DAggerConfig, round_con
     """The round's episodes: numbered episodes ``0 .. E - 1`` of its seed, their demonstrations
     rendered first into ``round-XX-demos``, played by the beta-mixture through the run's
     collectors (:func:`~spf_rl.train.collection.make_collector` with the store), each kept whole."""
-    env, layout = config.env, config.collector
     demos = DemoStore.build(demos_root(round_dir), round_demo_config(round_config), progress=False)
     policy.eval()
     behaviour = ExpertMixturePolicy(FramesFromStore(policy, demos), round_config.beta)
+    with torch_threads_kept():  # a multi-process collector changes them (retraining must not see it)
+        return _play_round(policy, behaviour, config, round_config, demos)
+
+
+def _play_round(
+    policy: TensorDictModuleBase, behaviour: TensorDictModuleBase, config: DAggerConfig, round_config: RoundConfig, demos: DemoStore
+) -> TensorDict:
+    """``behaviour`` plays the round's numbered episodes through the run's collectors; ``policy`` back in training mode after."""
+    env, layout = config.env, config.collector
     collector = make_collector(
         behaviour,
         env,
