@@ -6,7 +6,7 @@ applied. Shorthands: ``model=NAME``, ``sparsity=X``, ``noise=PRESET`` and
 ``task=follow|homing`` (training data, validation and test), ``epochs=N``.
 
 The YAML files live in ``recipes/configs/`` of a clone, beside the recipes that read
-them (:data:`CONFIG_DIR`).
+them, and travel in the wheel as ``spf_rl/presets`` (:data:`CONFIG_DIR`).
 
 Episodes are described by one :class:`~envs.episode_spec.EpisodeSpec` per config
 (``data.episodes``, ``val.episodes``, ...); YAML files and overrides write its keys flat
@@ -26,8 +26,10 @@ from omegaconf import OmegaConf
 
 from envs.episode_spec import SIZE_FIELDS, nest_flat_keys
 
-#: The YAML defaults and presets of the recipes.
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "recipes" / "configs"
+_PACKAGE = Path(__file__).resolve().parent
+#: The YAML defaults and presets of the recipes: inside the package when it is installed from a
+#: wheel (``spf_rl/presets``, setup.py), else ``recipes/configs/`` of the clone.
+CONFIG_DIR = _PACKAGE / "presets" if (_PACKAGE / "presets").is_dir() else _PACKAGE.parent / "recipes" / "configs"
 #: Command-line shorthands: one key that sets several config keys.
 SHORTHANDS = {
     "model": ["model.name"],

@@ -1,7 +1,7 @@
 """Shipped checkpoints by name, and a ready policy from a checkpoint in one call.
 
-The repository ships trained policies in ``checkpoints/`` (next to the
-``spf_rl`` package in a clone installed with ``pip install -e .``). Every file there is
+The repository ships trained policies in ``checkpoints/`` (next to the ``spf_rl``
+package in a clone; inside it, as ``spf_rl/checkpoints``, in a wheel). Every file there is
 stored once and listed in ``checkpoints/manifest.json`` with its SHA-256; the manifest
 also maps each shipped name to its file: ``"spf-s0.8"`` is the Table 1 seed that was
 best by validation, ``checkpoints/table1/spf-s0.8-seed2.pt``. A listed file whose bytes
@@ -31,8 +31,11 @@ from spf_rl.device import resolve_device
 from spf_rl.modules.policy import SPFConfig, SPFPolicy
 from spf_rl.modules.registry import build_policy
 
-#: Where the shipped checkpoints live: ``checkpoints/`` at the root of the repository.
-CHECKPOINT_DIR = Path(__file__).resolve().parent.parent / "checkpoints"
+_PACKAGE = Path(__file__).resolve().parent
+#: Where the shipped checkpoints live: inside the package when it is installed from a wheel
+#: (``spf_rl/checkpoints``: the manifest and the files its names load, setup.py), else
+#: ``checkpoints/`` at the root of the clone.
+CHECKPOINT_DIR = _PACKAGE / "checkpoints" if (_PACKAGE / "checkpoints").is_dir() else _PACKAGE.parent / "checkpoints"
 #: The shipped checkpoint that DAgger and PPO start from by default.
 DEFAULT_START_CHECKPOINT = "spf-s0.8"
 #: The manifest of a checkpoint directory: ``{"names": {name: file}, "files": {file: sha256}}``,
@@ -53,14 +56,13 @@ def checkpoint_dir() -> Path:
     """The directory of the shipped checkpoints.
 
     Raises:
-        FileNotFoundError: the package is not installed from a clone of the repository,
-            so there is no ``checkpoints/`` directory next to it.
+        FileNotFoundError: neither the installed package nor a clone holds them.
     """
     if not CHECKPOINT_DIR.is_dir():
         raise FileNotFoundError(
-            f"the shipped checkpoints are not available: {CHECKPOINT_DIR} does not exist. They ship in the "
-            "repository's checkpoints/ directory; install spf-rl from a clone (pip install -e .) to load them "
-            "by name, or pass the path of a checkpoint file."
+            f"the shipped checkpoints are not available: {CHECKPOINT_DIR} does not exist. They ship inside the "
+            "wheel (spf_rl/checkpoints) and in a clone's checkpoints/ directory; reinstall spf-rl, or pass the "
+            "path of a checkpoint file."
         )
     return CHECKPOINT_DIR
 

@@ -104,9 +104,9 @@ def test_corrupt_file_is_a_checkpoint_error(tmp_path):
 
 def test_without_a_checkpoint_directory_names_fail_clearly(monkeypatch, tmp_path):
     monkeypatch.setattr(hub, "CHECKPOINT_DIR", tmp_path / "absent")
-    with pytest.raises(FileNotFoundError, match="install spf-rl from a clone"):
+    with pytest.raises(FileNotFoundError, match="reinstall spf-rl, or pass the path of a checkpoint file"):
         spf_rl.list_checkpoints()
-    with pytest.raises(FileNotFoundError, match="install spf-rl from a clone"):
+    with pytest.raises(FileNotFoundError, match="reinstall spf-rl, or pass the path of a checkpoint file"):
         spf_rl.load_policy("spf-s0.8")
 
 
