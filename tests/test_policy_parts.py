@@ -1,4 +1,4 @@
-"""The SPF policy's parts as TensorDict modules: keys, recombination, legacy checkpoints."""
+"""The SPF policy's parts as TensorDict modules: keys, recombination, parameter names."""
 from __future__ import annotations
 
 import dataclasses
@@ -102,19 +102,14 @@ def test_sequence_mode_matches_step_mode_through_the_parts() -> None:
             state = out["next"].select("spf_hidden", "eta", "memory_features")
 
 
-def test_legacy_parameter_names_load() -> None:
-    torch.manual_seed(0)
+def test_parameter_names_from_before_the_split_into_parts_are_refused() -> None:
+    """Every shipped file uses today's names (the last legacy ones were rewritten), so old names are
+    an error naming the keys, not silently renamed."""
     policy = SPFPolicy(CFG)
-    legacy = {}
-    for key, value in policy.state_dict().items():
-        key = key.replace("encoder.module.", "encoder.", 1) if key.startswith("encoder.module.") else key
-        key = key.replace("memory.encoder.encoder.", "memory_encoder.encoder.")
-        key = key.replace("attention.attention.psi.", "attention.psi.").replace("cell.", "", 1)
-        legacy[key] = value
-    assert "gru.weight_ih" in legacy and "encoder.conv.0.weight" in legacy
-    fresh = SPFPolicy(CFG)
-    fresh.load_state_dict(legacy)
-    torch.testing.assert_close(fresh(_inputs())["logits"], policy(_inputs())["logits"])
+    legacy = {key.replace("cell.", "", 1): value for key, value in policy.state_dict().items()}
+    assert "gru.weight_ih" in legacy
+    with pytest.raises(RuntimeError, match="gru.weight_ih"):
+        SPFPolicy(CFG).load_state_dict(legacy)
 
 
 def test_rpf_original_memory_network() -> None:

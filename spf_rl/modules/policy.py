@@ -22,7 +22,6 @@ sparsity 1, the RPF lab code's memory network, and action-only.
 from __future__ import annotations
 
 import logging
-import re
 from collections.abc import Sequence
 
 import torch
@@ -44,15 +43,6 @@ from spf_rl.modules.td_utils import DEMO_STEPS_KEY, demo_lengths, flat_or_zeros,
 logger = logging.getLogger(__name__)
 
 __all__ = ["SPFPolicy"]
-
-#: Parameter names of checkpoints saved before the policy was split into parts -> today's.
-_LEGACY_PARAMETER_PREFIXES = (
-    (re.compile(r"^encoder\.(?!module\.)"), "encoder.module."),
-    (re.compile(r"^memory_encoder\.encoder\."), "memory.encoder.encoder."),
-    (re.compile(r"^attention\.psi\."), "attention.attention.psi."),
-    (re.compile(r"^(gru|logits_head|pointer_head)\."), r"cell.\1."),
-)
-
 
 class SPFPolicy(TensorDictModuleBase):
     """Sparse-memory path-following policy (SPF), a recurrent TensorDict module built from four parts.
@@ -284,7 +274,6 @@ class SPFPolicy(TensorDictModuleBase):
             + [pixel_features_key, self.attention.mu_key, self.attention.action_window_key]
             + [next_key(key) for key in state_keys]
         )
-        self.register_load_state_dict_pre_hook(_rename_legacy_parameters)
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -507,13 +496,3 @@ class SPFPolicy(TensorDictModuleBase):
             self.memory._forward_step(td)
         self.attention._forward_step(td)
         return self.cell._forward_step(td)
-
-
-def _rename_legacy_parameters(module, state_dict, prefix, *args) -> None:
-    """Load-state-dict pre-hook: parameter names of checkpoints saved before the split into parts."""
-    for key in [k for k in state_dict if k.startswith(prefix)]:
-        local = key[len(prefix):]
-        for pattern, replacement in _LEGACY_PARAMETER_PREFIXES:
-            if pattern.match(local):
-                state_dict[prefix + pattern.sub(replacement, local, count=1)] = state_dict.pop(key)
-                break
