@@ -20,7 +20,7 @@ A finished run's ``best.pt`` is copied to ``checkpoints/table1/<line>-seed<S>.pt
 file there), and once every seed of a line has finished (seeds 0, 1 and 2, and any other ``--seeds``: a run of
 ``--seeds 2`` alone still ships the best of the three), the seed with the best validation success becomes the
 line's shipped name (``checkpoints/manifest.json`` maps the name to that file). Per-seed files that are not this
-recipe's runs (earlier runs, on other budgets or code) are still scored, and the table marks their lines.
+recipe's runs are scored as they are.
 ``--from-checkpoints`` trains nothing, but still copies and ships what finished runs left. ``key=value``
 overrides reach every BC run; ``device=`` and ``optim.amp=`` reach the DAgger runs too.
 

@@ -70,7 +70,7 @@ def test_table_from_cached_records_counts_seeds_and_tests_the_claims(tmp_path, m
     paces = {"spf-s0.8": {"0": 0.9, "1": 0.85, "2": -0.8}, "action_only-s0": {"0": 0.99, "1": 0.98}}
     monkeypatch.setattr(table1_rows, "pointer_paces", lambda lines, seeds, *a: (paces, {"episodes": 8}))
     table = table1.main(options(tmp_path, "--from-checkpoints", "--rows", ROWS, "--sets", "test"))
-    # the checkpoints are no finished runs of this recipe: scored and marked as earlier runs', nothing re-shipped
+    # the checkpoints are no finished runs of this recipe: scored as they are, nothing re-shipped
     assert table["shipped"] == {}
 
     saved = json.loads((tmp_path / "out" / "table1.json").read_text())
@@ -79,8 +79,8 @@ def test_table_from_cached_records_counts_seeds_and_tests_the_claims(tmp_path, m
     assert rows["spf-s0.8"]["seeds"] == [0, 1, 2] and rows["spf-s0.8"]["missing_seeds"] == []
     assert rows["action_only-s0"]["seeds"] == [0, 1] and rows["action_only-s0"]["missing_seeds"] == [2]
     assert rows["dagger-spf-s0.8"]["dagger_of"] == "spf-s0.8" and rows["dagger-spf-s0.8"]["missing_seeds"] == [1, 2]
-    assert rows["spf-s0.8"]["earlier_seeds"] == [0, 1, 2] and rows["dagger-spf-s0.8"]["earlier_seeds"] == [0]
-    assert rows["open_loop"]["earlier_seeds"] == [] and saved["budget"] == {"preset": "bc_quick"}
+    assert rows["spf-s0.8"]["trained_on"] == {} and rows["dagger-spf-s0.8"]["trained_on"] == {}  # no run of this recipe
+    assert "earlier_seeds" not in rows["spf-s0.8"] and saved["budget"] == {"preset": "bc_quick"}
     test = rows["spf-s0.8"]["sets"]["test"]
     per_seed = [test["per_seed"][str(s)]["success"] for s in (0, 1, 2)]
     assert test["success"]["mean"] == pytest.approx(np.mean(per_seed))
@@ -100,10 +100,10 @@ def test_table_from_cached_records_counts_seeds_and_tests_the_claims(tmp_path, m
     assert {c["metric"] for c in saved["claims"] if "metric" in c} == {"success", "spl", "success_lab"}
 
     text = (tmp_path / "out" / "table1.md").read_text()
-    assert "| SPF sparsity 0.8 † ‡ | 3 of 3 |" in text and table1_report.EARLIER_NOTE in text
+    assert "| SPF sparsity 0.8 ‡ | 3 of 3 |" in text and "†" not in text
     assert "‡ pointer runs backwards (SPF sparsity 0.8: seed 2; `pointer_pace`)" in text  # its pace below 0
     assert rows["spf-s0.8"]["pointer_pace"]["2"] == -0.8 and saved["pointer_pace"] == {"episodes": 8}
-    assert "| RPF action only † | 2 of 3 (missing: 2) |" in text
+    assert "| RPF action only | 2 of 3 (missing: 2) |" in text
     assert "| open-loop replay | - (not trained) |" in text
     assert "(1 of 3 (missing: 1, 2) seeds)" in text  # the DAgger column
     assert "| SPF 0.8 beats action-only | test | success |" in text and "| yes |" in text
@@ -258,7 +258,7 @@ def test_training_one_seed_ships_the_best_of_every_seed_not_that_seed_alone(tmp_
     assert shipped_file(checkpoints, "action_only-s0").read_text() == "bc action_only-s0-seed2"
 
 
-def test_a_finished_run_replaces_an_earlier_runs_file_and_the_rest_stay_marked(tmp_path, monkeypatch):
+def test_a_finished_run_replaces_an_earlier_runs_file_and_ships_once_every_seed_is_this_recipes(tmp_path, monkeypatch):
     """Per-seed files of earlier runs (another budget) are scored until this recipe's runs replace them; the
     shipped name moves only once every seed of the line is this recipe's."""
     monkeypatch.chdir(tmp_path)
@@ -285,10 +285,9 @@ def test_a_finished_run_replaces_an_earlier_runs_file_and_the_rest_stay_marked(t
     assert (checkpoints / "table1" / "spf-s0.4-seed0.pt").read_text() == "this recipe's seed 0"
     assert shipped_file(checkpoints, "spf-s0.4").read_text() == "earlier 2"  # not every seed is this recipe's yet
     lines = table1_rows.table_lines([row], 30, 64)
-    sources = table1_rows.seed_sources(lines, [0, 1, 2], checkpoints, False)
-    assert sources == {"spf-s0.4": {"this_recipe": [0], "earlier": [1, 2], "trained_on": {"0": "Some CPU"}}}
+    assert table1_rows.trained_on(lines, [0, 1, 2], checkpoints, False) == {"spf-s0.4": {"0": "Some CPU"}}  # not 1, 2
     (run / "results.json").write_text(json.dumps({"val_best": {"success": 0.9, "spl": 0.9, "epoch": 30}}))  # an older run
-    assert table1_rows.seed_sources(lines, [0, 1, 2], checkpoints, False)["spf-s0.4"]["trained_on"] == {"0": None}
+    assert table1_rows.trained_on(lines, [0, 1, 2], checkpoints, False)["spf-s0.4"] == {"0": None}
 
 
 def test_a_clean_clone_finds_a_finished_runs_weights_in_its_per_seed_checkpoint(tmp_path, monkeypatch):
@@ -310,9 +309,9 @@ def test_a_clean_clone_finds_a_finished_runs_weights_in_its_per_seed_checkpoint(
     assert (run / "best.pt").read_text() == "the run's weights" and target.read_text() == "the run's weights"
     lines = table1_rows.table_lines([table1_rows.ROW_BY_NAME["spf-s0.8"]], 30, 64)
     (run / "best.pt").unlink()
-    assert table1_rows.seed_sources(lines, [0], checkpoints, False)["spf-s0.8"]["this_recipe"] == [0]
+    assert list(table1_rows.trained_on(lines, [0], checkpoints, False)["spf-s0.8"]) == ["0"]
     target.write_text("an earlier run's weights")
-    assert table1_rows.seed_sources(lines, [0], checkpoints, False)["spf-s0.8"]["earlier"] == [0]
+    assert table1_rows.trained_on(lines, [0], checkpoints, False)["spf-s0.8"] == {}
     with pytest.raises(FileNotFoundError, match=r"spf-s0\.8-seed0 finished, but its weights are neither in .*best\.pt nor in .*spf-s0\.8-seed0\.pt"):
         table1_rows.keep_run(checkpoints, "spf-s0.8", 0, run, "val_best")
     assert target.read_text() == "an earlier run's weights" and not (run / "best.pt").exists()  # nothing overwritten
@@ -402,25 +401,6 @@ def test_the_pointer_row_trains_spf_with_rpfs_pointer_rule():
     config = table1_rows.row_config(table1_rows.ROW_BY_NAME["spf_rpf_pointer-s0.8"], 1, [], quick=False)
     assert (config.model.name, config.model.sparsity, config.model.pointer_update) == ("spf", 0.8, "rpf")
     assert config.output_dir.endswith("spf_rpf_pointer-s0.8-seed1")
-
-
-def test_summary_marks_lines_holding_earlier_runs():
-    from spf_rl.eval.table1 import EARLIER_MARK, EARLIER_NOTE, summary_markdown
-
-    stats = {"success": {"mean": 0.8, "sd": 0.01}, "spl": {"mean": 0.7, "sd": 0.02}}
-    base = {"model": "spf", "dagger_of": None, "seeds": [0, 1, 2], "seeds_expected": [0, 1, 2], "missing_seeds": [],
-            "paper_success": None, "paper_spl": None, "sets": {"test": stats}}
-    rows = [
-        {**base, "name": "a", "row": "a", "checkpoint_stem": "a", "label": "A", "earlier_seeds": []},
-        {**base, "name": "b", "row": "b", "checkpoint_stem": "b", "label": "B", "earlier_seeds": []},
-        {**base, "name": "dagger-b", "row": "b", "checkpoint_stem": "dagger-b", "label": "DAgger", "dagger_of": "b",
-         "earlier_seeds": [2]},
-    ]
-    lines = summary_markdown({"rows": rows, "claims": []}).splitlines()
-    assert lines[2].startswith("| A | ") and lines[3].startswith(f"| B {EARLIER_MARK} | ")  # its DAgger column is earlier
-    assert lines[-1] == f"{EARLIER_MARK} {EARLIER_NOTE}"
-    rows[2]["earlier_seeds"] = []
-    assert EARLIER_MARK not in summary_markdown({"rows": rows, "claims": []})
 
 
 def test_seed_by_seed_gives_each_seeds_success_pace_and_the_shipped_seed():

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import sysconfig
@@ -17,6 +18,8 @@ import pytest
 import spf_rl
 
 CLONE = Path(spf_rl.__file__).resolve().parents[1]
+#: What the wheel's build does not read (run state, results, virtual environments, build leftovers).
+BUILD_IGNORES = (".git", ".venv*", "runs", "data", "results", "build", "*.egg-info", "__pycache__", ".pytest_cache")
 
 pytestmark = pytest.mark.skipif(
     not (CLONE / "pyproject.toml").is_file() or not (CLONE / "checkpoints" / "manifest.json").is_file(),
@@ -45,8 +48,10 @@ USE = textwrap.dedent(
 def installed(tmp_path_factory) -> Path:
     """A fresh virtual environment holding only the wheel; this environment's packages behind it."""
     root = tmp_path_factory.mktemp("wheel")
+    source = root / "source"  # a copy of what the wheel is built from: the build leaves the clone as it is
+    shutil.copytree(CLONE, source, ignore=shutil.ignore_patterns(*BUILD_IGNORES))
     subprocess.run(
-        [sys.executable, "-m", "pip", "wheel", str(CLONE), "--no-deps", "--no-build-isolation", "--quiet",
+        [sys.executable, "-m", "pip", "wheel", str(source), "--no-deps", "--no-build-isolation", "--quiet",
          "--disable-pip-version-check", "--wheel-dir", str(root / "dist")],
         check=True, cwd=root,
     )

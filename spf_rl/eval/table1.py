@@ -296,16 +296,6 @@ def markdown(table: dict) -> str:
     return "\n".join(out) + "\n"
 
 
-#: Marks a line whose checkpoints include an earlier run's (``earlier_seeds``), and what it means.
-EARLIER_MARK = "†"
-EARLIER_NOTE = "the row's (or its DAgger column's) seeds under `earlier_seeds` in `results/table1.json` are earlier runs, not `recipes/table1.py`'s."
-
-
-def earlier(*rows: dict | None) -> bool:
-    """Whether any of ``rows`` (table lines) holds an earlier run's checkpoint for some seed."""
-    return any(row and row.get("earlier_seeds") for row in rows)
-
-
 #: Marks a line with a seed whose pointer runs backwards (its ``pointer_pace`` below ``BACKWARD_PACE``).
 BACKWARD_MARK = "‡"
 #: What ``pointer_pace`` in ``results/table1.json`` is.
@@ -322,16 +312,13 @@ def backward_seeds(row: dict | None) -> list[int]:
 
 
 def marks(*rows: dict | None) -> str:
-    """The footnote marks of a line (``rows``: the line and its DAgger column): earlier runs, backward pointers."""
-    text = f" {EARLIER_MARK}" if earlier(*rows) else ""
-    return text + (f" {BACKWARD_MARK}" if any(backward_seeds(row) for row in rows) else "")
+    """The footnote mark of a line (``rows``: the line and its DAgger column): a pointer that runs backwards."""
+    return f" {BACKWARD_MARK}" if any(backward_seeds(row) for row in rows) else ""
 
 
 def footnotes(table: dict) -> list[str]:
     """The notes of the marks that some line carries (:func:`marks`), one paragraph each."""
     out = []
-    if any(earlier(row) for row in table["rows"]):
-        out += ["", f"{EARLIER_MARK} {EARLIER_NOTE}"]
     found: dict[str, list[int]] = {}
     for row in table["rows"]:
         if backward_seeds(row):

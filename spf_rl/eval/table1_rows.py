@@ -331,8 +331,8 @@ def train_missing(
 
     The seeds a name ships from are ``seeds`` and :data:`DEFAULT_SEEDS` together: ``--seeds 2`` trains seed 2
     only, yet ships the best of seeds 0, 1 and 2, never seed 2 alone. A line whose ship seeds are not all
-    finished runs of this recipe keeps its shipped name as it is (its per-seed files may be earlier runs', see
-    :func:`seed_sources`)."""
+    finished runs of this recipe keeps its shipped name as it is (its per-seed files may be other runs', see
+    :func:`trained_on`)."""
     from spf_rl.train.bc import train_bc
     from spf_rl.train.dagger import train_dagger
 
@@ -373,28 +373,24 @@ def train_missing(
     return shipped
 
 
-def seed_sources(lines: Sequence[Line], seeds: Sequence[int], checkpoints: Path, quick: bool) -> dict:
-    """``{line: {"this_recipe": [seeds], "earlier": [seeds], "trained_on": {seed: CPU}}}`` for the trained lines:
-    whether each seed's per-seed checkpoint is the best of this recipe's finished run, or an earlier run's file
-    (another budget or older code: the table says so), and for this recipe's runs the CPU model that trained them
-    (``machine_this_run`` of their ``results.json``; ``None`` where the run did not record it). A seed's result
-    depends on the CPU model, so a rerun elsewhere matches the table only on the same model."""
+def trained_on(lines: Sequence[Line], seeds: Sequence[int], checkpoints: Path, quick: bool) -> dict:
+    """``{line: {seed: CPU}}`` for the trained lines: the seeds whose per-seed checkpoint is the best of this
+    recipe's finished run, each with the CPU model that trained it (``machine_this_run`` of its
+    ``results.json``; ``None`` where the run did not record it). A seed's result depends on the CPU model, so a
+    rerun elsewhere matches the table only on the same model. A per-seed file of another run is scored as it
+    is and has no entry."""
     from spf_rl.hub import file_sha256
 
     sources: dict = {}
     for line in lines:
         if line.model == "open_loop" or line.checkpoint_stem in sources:
             continue
-        entry = sources.setdefault(line.checkpoint_stem, {"this_recipe": [], "earlier": [], "trained_on": {}})
+        entry = sources.setdefault(line.checkpoint_stem, {})
         for seed in seeds:
             target = seed_checkpoint(checkpoints, line.checkpoint_stem, seed)
-            if not target.exists():
-                continue
             results = run_dir(line.checkpoint_stem, seed, quick) / "results.json"
-            ours = results.exists() and file_sha256(target) == run_weights_sha256(results.parent)
-            entry["this_recipe" if ours else "earlier"].append(seed)
-            if ours:
-                entry["trained_on"][str(seed)] = json.loads(results.read_text()).get("machine_this_run", {}).get("cpu_model")
+            if target.exists() and results.exists() and file_sha256(target) == run_weights_sha256(results.parent):
+                entry[str(seed)] = json.loads(results.read_text()).get("machine_this_run", {}).get("cpu_model")
     return sources
 
 
@@ -592,8 +588,7 @@ def reproduce(options: Table1Options) -> dict:
     Returns:
         The table (:func:`spf_rl.eval.table1.build_table`), with ``shipped`` (line -> the seed shipped and
         its validation scores), ``budget`` (:func:`budgets`; ``bc_quick`` with ``--quick``) and each line's
-        ``earlier_seeds`` (seeds whose checkpoint is an earlier run's, not this recipe's) and ``trained_on``
-        (seed -> the CPU model of this recipe's run: :func:`seed_sources`); each line's ``pointer_pace`` (seed ->
+        ``trained_on`` (seed -> the CPU model of this recipe's run: :func:`trained_on`); each line's ``pointer_pace`` (seed ->
         its checkpoint's pointer pace) and the table's ``pointer_pace`` (what it was measured on): :func:`pointer_paces`.
     """
     from spf_rl.device import resolve_device
@@ -611,10 +606,9 @@ def reproduce(options: Table1Options) -> dict:
     paces, table["pointer_pace"] = pointer_paces(lines, seeds, options.checkpoints, overrides, options.quick, device)
     table["shipped"] = shipped
     table["budget"] = {"preset": "bc_quick"} if options.quick else budgets(overrides)
-    sources = seed_sources(lines, seeds, options.checkpoints, options.quick)
+    sources = trained_on(lines, seeds, options.checkpoints, options.quick)
     for row in table["rows"]:
-        row["earlier_seeds"] = sources.get(row["checkpoint_stem"], {}).get("earlier", [])
-        row["trained_on"] = sources.get(row["checkpoint_stem"], {}).get("trained_on", {})
+        row["trained_on"] = sources.get(row["checkpoint_stem"], {})
         row["pointer_pace"] = paces.get(row["checkpoint_stem"], {})
     write_reports(table, options.out)
     logger.info("wrote %s/table1.{json,md,png}%s", options.out.as_posix(),
