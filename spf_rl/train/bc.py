@@ -34,7 +34,7 @@ from envs.atomic_io import atomic_write_json
 from envs.checks import check_positive_ints
 from envs.episode_spec import EpisodeSpec, check_sizes_match
 from spf_rl.data import ROUTE_STEP_KEY, DatasetConfig, EpisodeDataset
-from spf_rl.device import DEFAULT_DEVICE, autocast, check_device, machine_info, module_device
+from spf_rl.device import DEFAULT_DEVICE, autocast, check_device, module_device
 from spf_rl.evaluation import (
     TEST_EPISODES_FILE,
     TEST_SEED,
@@ -48,8 +48,7 @@ from spf_rl.modules.policy import SPFPolicy
 from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
 from spf_rl.modules.views import episodes_to_sequence, model_memory_bytes
 from spf_rl.train.distributed import ShardedSampler, barrier, init_distributed
-from spf_rl.train.run import OptimConfig, TrainingRun, run_on_device, start_run, trim_csv_logs
-from spf_rl.train.run_config import config_dict
+from spf_rl.train.run import OptimConfig, TrainingRun, run_on_device, run_results, start_run, trim_csv_logs
 
 logger = logging.getLogger(__name__)
 
@@ -286,10 +285,7 @@ def _train_bc(config: BCConfig, device: torch.device) -> dict:
         "val_best": best,
         "history": history,
         "dataset": dataset.statistics(),
-        "seed": config.seed,
-        "wall_seconds_this_run": time.time() - start_time,
-        "machine_this_run": machine_info(),
-        "config": config_dict(config),
+        **run_results(config, time.time() - start_time),
     }
     atomic_write_json(output / "results.json", results, default=str)
     write_test_episodes(output / TEST_EPISODES_FILE, records, test_config, run.best_path)

@@ -61,7 +61,7 @@ from envs.episodes import STEPS_PER_BATCH, gather_episode_steps
 from envs.scripted import behaviour_coins
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.data import DatasetConfig, EpisodeDataset, demos_root, step_keys
-from spf_rl.device import DEFAULT_DEVICE, check_device, exact_float32, machine_info, module_device, torch_threads_kept
+from spf_rl.device import DEFAULT_DEVICE, check_device, exact_float32, module_device, torch_threads_kept
 from spf_rl.evaluation import (
     TEST_EPISODES_FILE,
     EvalConfig,
@@ -84,9 +84,8 @@ from spf_rl.train.dagger_rounds import (
     training_sources,
 )
 from spf_rl.train.distributed import Ranks, backward_on_shard, barrier, batch_mean, init_distributed, shard_indices
-from spf_rl.train.run import OptimConfig, trim_csv_logs
+from spf_rl.train.run import OptimConfig, run_results, trim_csv_logs
 from spf_rl.train.run_config import DAGGER_RESUME_FREE, write_run_config
-from spf_rl.train.run_config import config_dict as run_config_dict
 from spf_rl.viz import plot_if_available, pyplot, write_figure
 
 logger = logging.getLogger(__name__)
@@ -462,9 +461,7 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
         "best": best,
         "best_round_by_val": best["round"],
         "history": history,
-        "wall_seconds_this_run": time.time() - start_time,
-        "machine_this_run": machine_info(),
-        "config": run_config_dict(config),
+        **run_results(config, time.time() - start_time),
     }
     atomic_write_json(output / "results.json", results, default=str)
     plot_if_available(plot_rounds, history, output / "dagger.png", title=f"DAgger from {Path(config.checkpoint).name}")

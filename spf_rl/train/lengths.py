@@ -32,14 +32,13 @@ from envs.checks import check_positive_int
 from envs.follow import default_max_steps
 from envs.house_grid import check_demo_length
 from spf_rl.data import DatasetConfig, EpisodeDataset, format_tag
-from spf_rl.device import DEFAULT_DEVICE, check_device, machine_info
+from spf_rl.device import DEFAULT_DEVICE, check_device
 from spf_rl.evaluation import EvalConfig, evaluate_lengths
 from spf_rl.modules.policy import SPFPolicy
 from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
 from spf_rl.modules.views import model_memory_bytes, policy_for_length
 from spf_rl.train.bc import bc_loss, check_pointer_labels, default_test_config, default_val_config
-from spf_rl.train.run import OptimConfig, TrainingRun, run_on_device, start_run
-from spf_rl.train.run_config import config_dict as run_config_dict
+from spf_rl.train.run import OptimConfig, TrainingRun, run_on_device, run_results, start_run
 
 logger = logging.getLogger(__name__)
 
@@ -189,10 +188,7 @@ def _train_mixed(config: MixedLengthConfig, device: torch.device) -> dict:
         "val_best": run.best,
         "history": run.history,
         "datasets": [dataset.statistics() for dataset in datasets],
-        "seed": config.seed,
-        "wall_seconds_this_run": time.time() - start_time,
-        "machine_this_run": machine_info(),
-        "config": run_config_dict(config),
+        **run_results(config, time.time() - start_time),
     }
     atomic_write_json(output / "results.json", results, default=str)
     atomic_write_json(output / "test_episodes.json", {"episodes_by_length": records}, default=str)

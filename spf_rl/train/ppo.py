@@ -61,7 +61,7 @@ from tqdm.auto import tqdm
 
 from envs.atomic_io import atomic_write_json
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
-from spf_rl.device import autocast, exact_float32, machine_info
+from spf_rl.device import autocast, exact_float32
 from spf_rl.evaluation import FramesFromStore, evaluate_policy, frames_lookup
 from spf_rl.hub import checked_checkpoint
 from spf_rl.modules.registry import build_policy
@@ -79,7 +79,7 @@ from spf_rl.train.ppo_loss import (
     episode_statistics,
     make_ppo_modules,
 )
-from spf_rl.train.run_config import config_dict as run_config_dict
+from spf_rl.train.run import run_results
 from spf_rl.train.run_config import write_run_config
 from spf_rl.viz import plot_if_available, pyplot, write_figure
 
@@ -373,10 +373,7 @@ class _PPORun:
             "frames": self.iteration * self.config.frames_per_batch,
             "val_history": val_history,
             "history": self.history,
-            "seed": self.config.seed,
-            "wall_seconds_this_run": seconds,
-            "machine_this_run": machine_info(),
-            "config": run_config_dict(self.config),
+            **run_results(self.config, seconds),
         }
         atomic_write_json(self.output / "results.json", results, default=str)
         plot_if_available(

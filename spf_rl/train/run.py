@@ -21,10 +21,10 @@ from tqdm.auto import tqdm
 
 from envs.atomic_io import atomic_write_text
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
-from spf_rl.device import exact_float32, resolve_device
+from spf_rl.device import exact_float32, machine_info, resolve_device
 from spf_rl.modules.policy import SPFPolicy
 from spf_rl.train.distributed import Ranks, backward_on_shard, barrier, batch_mean
-from spf_rl.train.run_config import BC_RESUME_FREE, write_run_config
+from spf_rl.train.run_config import BC_RESUME_FREE, config_dict, write_run_config
 
 logger = logging.getLogger(__name__)
 
@@ -255,6 +255,20 @@ def trim_csv_logs(log_dir: str | os.PathLike, last_step: int) -> int:
 def epoch_checkpoint(run_dir: str | os.PathLike, epoch: int) -> Path:
     """The path of epoch ``epoch``'s (from 1) weights in a run kept with ``keep_epochs``."""
     return Path(run_dir) / EPOCHS_DIR / f"epoch-{epoch:03d}.pt"
+
+
+def run_results(config, seconds: float) -> dict:
+    """The fields every run's ``results.json`` holds beside its own (BC, the lengths run, DAgger, PPO):
+    ``seed``, ``wall_seconds_this_run`` (``seconds``: this process's part of the run, a resumed run's
+    earlier parts not counted), ``machine_this_run`` (:func:`~spf_rl.device.machine_info`) and ``config``
+    (flat, as ``config.json`` writes it).
+
+    Examples:
+        >>> from spf_rl.train.dagger import DAggerConfig
+        >>> sorted(run_results(DAggerConfig(seed=3), 1.5))
+        ['config', 'machine_this_run', 'seed', 'wall_seconds_this_run']
+    """
+    return {"seed": config.seed, "wall_seconds_this_run": seconds, "machine_this_run": machine_info(), "config": config_dict(config)}
 
 
 def run_on_device(train, config) -> dict:
