@@ -44,6 +44,7 @@ from torchrl.data.replay_buffers import ImmutableDatasetWriter
 from envs.checks import check_positive_ints
 from envs.demo_store import DemoStore, DemoStoreConfig
 from envs.episode_spec import EpisodeSpec, flat_dict, from_flat
+from envs.follow import default_max_steps
 from envs.homing import FOLLOW
 from envs.specs import NUM_RGB_CHANNELS
 from envs.tensor_store import StoreError, TensorStore, worker_pool
@@ -120,10 +121,14 @@ class DatasetConfig:
 
     def default_dir(self) -> Path:
         """The dataset's directory unless a recipe names one: ``data/<split>-<episodes>ep-<noise>-...``,
-        with the data format and, for homing, the task in the name.
+        with the data format and, for homing, the task in the name; the step limit is in it where it
+        is not the rule's for ``demo_length`` (``-T<max_steps>``), so datasets that differ only in it
+        never share a directory.
 
         Examples:
             >>> str(DatasetConfig().default_dir()).startswith("data/train-2000ep-paper-rand0.2-n30-64px-s0-")
+            True
+            >>> DatasetConfig(EpisodeSpec(max_steps=60)).default_dir().name.startswith("train-2000ep-paper-rand0.2-n30-T60-64px")
             True
         """
         d, e = self, self.episodes
@@ -131,7 +136,8 @@ class DatasetConfig:
         # route styles are labelled by the route expert (envs.route_expert), which the name says
         routes = "" if e.route_style is None else f"-{e.route_style.replace('=', '').replace(',', '+')}-{e.route_lengths[0]}to{e.route_lengths[1]}-routeexpert"
         houses = "" if e.house_seeds is None else "-houses" + "+".join(map(str, e.house_seeds))
-        name = f"{e.split}{houses}-{d.num_episodes}ep-{e.noise}-rand{d.random_action_prob}-n{e.demo_length}{routes}-{e.image_size}px-s{e.seed}"
+        limit = "" if e.max_steps in (None, default_max_steps(e.demo_length)) else f"-T{e.max_steps}"
+        name = f"{e.split}{houses}-{d.num_episodes}ep-{e.noise}-rand{d.random_action_prob}-n{e.demo_length}{limit}{routes}-{e.image_size}px-s{e.seed}"
         return Path("data") / f"{name}-{format_tag()}{task}"
 
 

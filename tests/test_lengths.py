@@ -124,7 +124,7 @@ def test_mixed_length_training_resumes_and_reports_by_length(tmp_path):
     assert sorted(saved["test"]["by_length"]) == ["4", "6"]
     assert (run / "success_by_length.png").stat().st_size > 1000
     tag = format_tag()
-    names = [f"train-4ep-paper-rand0.2-n4-T7-32px-s0-{tag}", f"train-4ep-paper-rand0.2-n6-T10-32px-s0-{tag}"]
+    names = [f"train-4ep-paper-rand0.2-n4-32px-s0-{tag}", f"train-4ep-paper-rand0.2-n6-32px-s0-{tag}"]  # each limit the rule's
     stored = sorted(p.name for p in (tmp_path / "data").iterdir() if not p.name.endswith(".lock"))
     assert stored == sorted(names + [name + DEMOS_SUFFIX for name in names])  # each dataset beside its demonstrations
     payload = load_checkpoint(run / "best.pt", expected_model_type="spf")

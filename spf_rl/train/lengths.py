@@ -31,7 +31,7 @@ from envs.atomic_io import atomic_write_json
 from envs.checks import check_positive_int
 from envs.follow import default_max_steps
 from envs.house_grid import check_demo_length
-from spf_rl.data import DatasetConfig, EpisodeDataset, format_tag
+from spf_rl.data import DatasetConfig, EpisodeDataset
 from spf_rl.device import DEFAULT_DEVICE, check_device
 from spf_rl.evaluation import EvalConfig, evaluate_lengths
 from spf_rl.modules.policy import SPFPolicy
@@ -112,10 +112,9 @@ class MixedLengthConfig:
         return dataclasses.replace(self.data, num_episodes=self.episodes[index], episodes=episodes)
 
     def dataset_dir(self, index: int) -> Path:
-        d = self.dataset_config(index)
-        e = d.episodes
-        name = f"{e.split}-{d.num_episodes}ep-{e.noise}-rand{d.random_action_prob}-n{e.demo_length}-T{e.max_steps}-{e.image_size}px-s{e.seed}-{format_tag()}"
-        return Path(self.data_root) / name
+        """The dataset of ``lengths[index]`` under ``data_root``, named as every dataset is
+        (:meth:`~spf_rl.data.DatasetConfig.default_dir`)."""
+        return Path(self.data_root) / self.dataset_config(index).default_dir().name
 
 
 def epoch_schedule(batches_per_length: list[int], seed: int) -> np.ndarray:
