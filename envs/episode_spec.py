@@ -23,6 +23,7 @@ Configs that hold a spec are written flat in JSON and YAML (``split: val`` besid
 from __future__ import annotations
 
 import dataclasses
+import typing
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, TypeVar
@@ -125,6 +126,23 @@ class EpisodeSpec:
     def mixture(self) -> RouteMixture | None:
         """The routes' :class:`~envs.route_styles.RouteMixture` (``None``: the planner's, of ``demo_length`` steps)."""
         return route_mixture_for(self.route_style, self.route_lengths, self.demo_length)
+
+    @property
+    def routes_tag(self) -> str:
+        """The routes in a directory name: ``""`` for the planner's, else ``"-<style>-<shortest>to<longest>"``.
+
+        Examples:
+            >>> EpisodeSpec(demo_length=40, route_style="planner=1,driven=1", route_lengths=(10, 40)).routes_tag
+            '-planner1.0+driven1.0-10to40'
+        """
+        if self.route_style is None:
+            return ""
+        return f"-{self.route_style.replace('=', '').replace(',', '+')}-{self.route_lengths[0]}to{self.route_lengths[1]}"
+
+    @property
+    def house_seeds_tag(self) -> str:
+        """Explicit houses in a directory name: ``""`` for a split's, else ``"-houses<seed>+<seed>..."``."""
+        return "" if self.house_seeds is None else "-houses" + "+".join(map(str, self.house_seeds))
 
     def identity(self) -> dict:
         """The fields that fix the episodes, as JSON writes them: the optional fields
@@ -256,8 +274,6 @@ def nest_flat_keys(node: Any, schema: Any) -> Any:
 
 
 def _field_types(schema: Any) -> dict[str, Any]:
-    import typing
-
     if not (isinstance(schema, type) and dataclasses.is_dataclass(schema)):
         return {}
     return typing.get_type_hints(schema)

@@ -134,8 +134,8 @@ class DatasetConfig:
         d, e = self, self.episodes
         task = "" if e.task == FOLLOW else f"-{e.task}"
         # route styles are labelled by the route expert (envs.route_expert), which the name says
-        routes = "" if e.route_style is None else f"-{e.route_style.replace('=', '').replace(',', '+')}-{e.route_lengths[0]}to{e.route_lengths[1]}-routeexpert"
-        houses = "" if e.house_seeds is None else "-houses" + "+".join(map(str, e.house_seeds))
+        routes = "" if e.route_style is None else f"{e.routes_tag}-routeexpert"
+        houses = e.house_seeds_tag
         limit = "" if e.max_steps in (None, default_max_steps(e.demo_length)) else f"-T{e.max_steps}"
         name = f"{e.split}{houses}-{d.num_episodes}ep-{e.noise}-rand{d.random_action_prob}-n{e.demo_length}{limit}{routes}-{e.image_size}px-s{e.seed}"
         return Path("data") / f"{name}-{format_tag()}{task}"

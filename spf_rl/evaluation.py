@@ -300,12 +300,8 @@ def episode_store_name(config: EvalConfig) -> str:
         True
     """
     e = config.episodes
-    houses = "" if e.num_houses is None else f"-{e.num_houses}houses"
-    if e.house_seeds is not None:
-        houses = "-houses" + "+".join(map(str, e.house_seeds))
-    routes = ""
-    if e.route_style is not None:  # "planner=0.5,driven=0.5" -> "-planner0.5+driven0.5-10to30"
-        routes = f"-{e.route_style.replace('=', '').replace(',', '+')}-{e.route_lengths[0]}to{e.route_lengths[1]}"
+    houses = e.house_seeds_tag or ("" if e.num_houses is None else f"-{e.num_houses}houses")
+    routes = e.routes_tag
     return (
         f"{e.split}{houses}-{e.task}-n{e.demo_length}{routes}-{e.image_size}px"
         f"-seed{e.seed}-{config.num_episodes}ep-env{ENV_VERSION}"
