@@ -26,9 +26,10 @@ overrides reach every BC run; ``device=`` and ``optim.amp=`` reach the DAgger ru
 
 Every checkpoint is scored on the same episodes: the ``test`` set (``bc_long``'s test config: 1,000 episodes of
 the 18 test houses, seed 2, ``paper`` noise) and the ``extended`` set (the same with 100 test-split houses).
-Per-episode records are cached in ``results/eval/table1/<set>/<line>-seed<S>.json``, keyed by the evaluation
-config and the checkpoint's SHA-256, so a rerun evaluates only what is missing or changed; a finished run's own
-test records of the same checkpoint on the same episodes (its ``test_episodes.json``) are taken as they are. Seeds
+Per-episode records are cached in ``results/eval/table1/<set>/<line>-seed<S>.json`` (:mod:`spf_rl.records_cache`:
+keyed by the episodes and a hash of the weights, not of the file), so a rerun evaluates only what is missing or
+changed; a finished run's own test records of the same weights on the same episodes (its ``test_episodes.json``)
+are taken as they are. Seeds
 without a checkpoint are listed as missing, never silently dropped.
 
 Writes ``results/table1.json``, ``results/table1.md`` and ``results/table1.png`` (:mod:`spf_rl.eval.table1`); a

@@ -448,51 +448,6 @@ def summarize_episodes(records: list[dict]) -> dict:
     return summary
 
 
-def records_identity(config: EvalConfig, checkpoint: str | os.PathLike | None) -> dict:
-    """What per-episode records of ``checkpoint`` (``None``: no weights, e.g. open-loop replay) on
-    ``config``'s episodes are of, as JSON would store it: the episodes' :func:`episode_identity`, the
-    checkpoint's SHA-256 and the env version. Stored records are reused only where it is unchanged."""
-    import json
-
-    from spf_rl.hub import file_sha256
-
-    return {
-        "eval": json.loads(json.dumps(episode_identity(config))),
-        "checkpoint_sha256": None if checkpoint is None else file_sha256(checkpoint),
-        "env_version": ENV_VERSION,
-    }
-
-
-#: A run's per-episode test records, beside its ``results.json`` (``recipes/bc.py``, ``recipes/dagger.py``).
-TEST_EPISODES_FILE = "test_episodes.json"
-
-
-def write_test_episodes(path: str | os.PathLike, records: list[dict], config: EvalConfig,
-                        checkpoint: str | os.PathLike, **extra) -> None:
-    """Write ``checkpoint``'s per-episode test records on ``config``'s episodes, with what they are of (the
-    episodes' :func:`episode_identity`, the checkpoint's SHA-256), so that :func:`read_test_episodes` can
-    give them to a later run that tests the same file on the same episodes; ``extra`` keys go beside them."""
-    from envs.atomic_io import atomic_write_json
-
-    atomic_write_json(path, {**extra, **records_identity(config, checkpoint), "episodes": records}, default=str)
-
-
-def read_test_episodes(path: str | os.PathLike, config: EvalConfig, checkpoint: str | os.PathLike) -> tuple[dict, list[dict]] | None:
-    """``(summary, records)`` of ``checkpoint`` on ``config``'s episodes from a file of
-    :func:`write_test_episodes`, or ``None`` where the file is missing or holds other episodes, another
-    checkpoint or another env version (:func:`records_identity`; an older file without that record too)."""
-    import json
-
-    path = Path(path)
-    if not path.is_file():
-        return None
-    payload = json.loads(path.read_text())
-    identity = records_identity(config, checkpoint)
-    if any(payload.get(key) != value for key, value in identity.items()) or not payload.get("episodes"):
-        return None
-    return summarize_episodes(payload["episodes"]), payload["episodes"]
-
-
 def _worker_collector(policy: TensorDictModuleBase, config: EvalConfig, store: DemoStore | None) -> Collector:
     """A multi-process collector of ``config.num_collectors`` workers, each stepping a batched
     env (episode numbers ``w, w + W, ...``) with a CPU copy of ``policy`` (:class:`GreedyActor`)."""

@@ -66,14 +66,21 @@ def test_train_resume_and_results(tmp_path):
     assert results["machine_this_run"]["cpu_count"] >= 1 and results["machine_this_run"]["cpu_model"]  # results depend on the CPU
     assert (run / "training_curves.png").stat().st_size > 1000
     assert (run / "best.pt").exists() and (run / "last.pt").exists()
-    # the test records say what they are of, so a DAgger run from best.pt reuses them (tests/test_dagger.py)
-    from spf_rl.evaluation import read_test_episodes
+    # the test records say what they are of (the weights, not the file), so a DAgger run from best.pt reuses them
+    # (tests/test_dagger.py), and so does Table 1 from a copy of the file elsewhere
+    import shutil
 
-    config = tiny_config(tmp_path, epochs=2)
-    test_config = config.test
-    summary, records = read_test_episodes(run / "test_episodes.json", test_config, run / "best.pt")
-    assert summary["success"] == results["test"]["success"] and len(records) == 2
-    assert read_test_episodes(run / "test_episodes.json", test_config, run / "last.pt") is None  # another file
+    from spf_rl.evaluation import summarize_episodes
+    from spf_rl.hub import policy_from_checkpoint
+    from spf_rl.records_cache import read_records, records_key
+
+    test_config = tiny_config(tmp_path, epochs=2).test
+    shutil.copy(run / "best.pt", tmp_path / "moved.pt")
+    for path in (run / "best.pt", tmp_path / "moved.pt"):
+        records = read_records(run / "test_episodes.json", records_key(test_config, policy_from_checkpoint(path)[0]))
+        assert summarize_episodes(records)["success"] == results["test"]["success"] and len(records) == 2
+    last = records_key(test_config, policy_from_checkpoint(run / "last.pt")[0])
+    assert read_records(run / "test_episodes.json", last) is None  # other weights
 
 
 def test_rows_logged_after_the_last_checkpoint_are_not_logged_twice(tmp_path):

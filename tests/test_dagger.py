@@ -15,6 +15,7 @@ from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.evaluation import EvalConfig
 from spf_rl.modules import SPFConfig
 from spf_rl.modules.registry import build_policy
+from spf_rl.records_cache import from_columns, records_key, write_records
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig
 from spf_rl.train.dagger import DAggerConfig, ExpertMixturePolicy, train_dagger
 from spf_rl.train.dagger_rounds import RoundConfig, RoundError, RoundStore
@@ -172,7 +173,7 @@ def test_rounds_aggregate_retrain_and_report(two_rounds, shared_checkpoint):
     assert written["best_round_by_val"] == results["best_round_by_val"] == results["best"]["round"]
     assert written["machine_this_run"]["cpu_count"] >= 1 and written["machine_this_run"]["cpu_model"]  # results depend on the CPU
     shipped = json.loads((output / "test_episodes.json").read_text())  # the best round's own test records
-    successes = [float(r["success"]) for r in shipped["episodes"]]
+    successes = [float(ok) for ok in shipped["columns"]["success"]]
     assert shipped["round"] == results["best"]["round"] and sum(successes) / len(successes) == pytest.approx(results["best"]["test_success"])
     best_record = history[results["best"]["round"]]
     assert results["best"]["val_success"] == best_record["val_success"] and "test_success" in results["best"]
@@ -391,7 +392,8 @@ def test_the_best_round_is_tested_from_best_pt(three_learner_driven_rounds):
     summary, records = evaluate_policy(policy, config.test)
     assert results["best"]["test_success"] == summary["success"] and results["best"]["test_spl"] == summary["spl"]
     shipped = json.loads((Path(config.output_dir) / "test_episodes.json").read_text())  # for recipes/paired.py
-    assert shipped["round"] == best["round"] and shipped["episodes"] == json.loads(json.dumps(records, default=str))
+    assert shipped["round"] == best["round"] and from_columns(shipped["columns"]) == json.loads(json.dumps(records, default=str))
+    assert shipped["key"] == records_key(config.test, policy)  # of the best round's weights
 
 
 def test_round_0_reuses_the_start_checkpoints_own_test_records(tmp_path, monkeypatch):
@@ -400,7 +402,7 @@ def test_round_0_reuses_the_start_checkpoints_own_test_records(tmp_path, monkeyp
     import dataclasses
 
     import spf_rl.train.dagger as dagger_module
-    from spf_rl.evaluation import evaluate_policy, write_test_episodes
+    from spf_rl.evaluation import evaluate_policy
 
     start = save_bc_checkpoint(tmp_path)
     config = tiny_config(tmp_path, start, rounds=0)
@@ -408,7 +410,7 @@ def test_round_0_reuses_the_start_checkpoints_own_test_records(tmp_path, monkeyp
     policy = build_policy("spf", load_checkpoint(start)["model_config"])
     policy.load_state_dict(load_checkpoint(start)["model"])
     summary, records = evaluate_policy(policy, test_config)
-    write_test_episodes(tmp_path / "test_episodes.json", records, test_config, start)
+    write_records(tmp_path / "test_episodes.json", records_key(test_config, policy), records)
     played = []
     monkeypatch.setattr(dagger_module, "evaluate_policy", lambda p, c, progress=False: played.append(c) or evaluate_policy(p, c))
 
@@ -416,10 +418,10 @@ def test_round_0_reuses_the_start_checkpoints_own_test_records(tmp_path, monkeyp
     assert [c.episodes.split for c in played] == ["val"]  # round 0's test came from the file
     assert (results["start"]["test_success"], results["start"]["test_spl"]) == (summary["success"], summary["spl"])
     shipped = json.loads((Path(config.output_dir) / "test_episodes.json").read_text())
-    assert shipped["round"] == 0 and shipped["episodes"] == json.loads(json.dumps(records, default=str))
+    assert shipped["round"] == 0 and from_columns(shipped["columns"]) == json.loads(json.dumps(records, default=str))
 
     other = dataclasses.replace(test_config, episodes=test_config.episodes.replace(seed=9))  # records of other episodes: played again
-    write_test_episodes(tmp_path / "test_episodes.json", records, other, start)
+    write_records(tmp_path / "test_episodes.json", records_key(other, policy), records)
     played.clear()
     train_dagger(dataclasses.replace(config, output_dir=str(tmp_path / "again")))
     assert [c.episodes.split for c in played] == ["val", "test"]

@@ -129,6 +129,19 @@ def test_mixed_length_training_resumes_and_reports_by_length(tmp_path):
     assert stored == sorted(names + [name + DEMOS_SUFFIX for name in names])  # each dataset beside its demonstrations
     payload = load_checkpoint(run / "best.pt", expected_model_type="spf")
     assert payload["model_config"].demo_length == 4 and "by_length" in payload["val"]
+    # one result-cache file per length, keyed by that length's view of the best weights
+    from spf_rl.evaluation import length_eval_config
+    from spf_rl.hub import policy_from_checkpoint
+    from spf_rl.modules.views import policy_for_length
+    from spf_rl.records_cache import length_test_episodes_file, read_records, records_key
+
+    best = policy_from_checkpoint(run / "best.pt")[0]
+    config = tiny_mixed(tmp_path, epochs=2).test
+    for row in rows:
+        length = row["demo_length"]
+        key = records_key(length_eval_config(config, length, 32), policy_for_length(best, length))
+        records = read_records(run / length_test_episodes_file(length), key)
+        assert len(records) == row["episodes"] and sum(r["success"] for r in records) / len(records) == pytest.approx(row["success"])
 
 
 def test_success_by_length_recipe(tmp_path, capsys):

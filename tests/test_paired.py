@@ -73,14 +73,17 @@ def test_seeds_are_pooled_when_a_side_names_several_files(tmp_path):
 
 
 def test_a_training_runs_test_records_compare_with_path_fidelity(tmp_path):
-    """recipes/bc.py's test_episodes.json ({"episodes": [...]}, with nDTW and SDTW) pairs as evaluate.py's JSONs do."""
+    """recipes/bc.py's test_episodes.json (a result-cache file: key and columns, with nDTW and SDTW) pairs as
+    evaluate.py's JSONs do."""
+    from spf_rl.records_cache import write_records
+
     def run_records(path: Path, successes: list[bool]) -> Path:
         records = [
             {"episode_seed": seed, "house_seed": seed % 4, "success": ok, "spl": 0.8 * ok, "success_lab": ok,
              "ndtw": 0.3 + 0.5 * ok, "sdtw": 0.8 * ok}
             for seed, ok in enumerate(successes)
         ]
-        path.write_text(json.dumps({"episodes": records}))
+        write_records(path, {"policy_sha256": path.stem}, records, checkpoint=str(path.with_suffix(".pt")))
         return path
 
     a = run_records(tmp_path / "a.json", [True] * 70 + [False] * 30)
@@ -92,13 +95,15 @@ def test_a_training_runs_test_records_compare_with_path_fidelity(tmp_path):
 
 
 def test_table1s_per_episode_cache_pairs_with_an_evaluation(tmp_path):
-    """recipes/table1.py's cache ({"meta", "columns"}) holds the same records, column by column."""
-    from spf_rl.eval.table1 import write_cached
+    """recipes/table1.py's cache files (only some fields of each record) pair with an evaluation."""
+    from spf_rl.eval.table1 import CACHED_FIELDS
+    from spf_rl.records_cache import write_records
 
     successes = [True] * 30 + [False] * 70
     records = [{"episode_index": i, "episode_seed": i, "house_seed": i % 3, "success": ok, "success_lab": ok,
                 "spl": 0.9 * ok, "steps": 20} for i, ok in enumerate(successes)]
-    write_cached(tmp_path / "cache.json", {"line": "x", "seed": 0, "checkpoint": "ckpt/x-seed0.pt"}, records)
+    write_records(tmp_path / "cache.json", {"policy_sha256": "x"}, records, CACHED_FIELDS, line="x", seed=0,
+                  checkpoint="ckpt/x-seed0.pt")
     a = _evaluation(tmp_path / "a.json", [True] * 80 + [False] * 20)
     result = _module().compare(a, tmp_path / "cache.json", num_resamples=200, seed=0)
     assert result["metrics"]["success"]["b"] == pytest.approx(0.3)

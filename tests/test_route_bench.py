@@ -95,15 +95,15 @@ def test_a_tiny_run_pairs_models_by_episode_and_resumes(tmp_path, monkeypatch):
     assert saved["setup"]["episodes"] == 2 and saved["setup"]["sets"] == {"test": 2} and saved["setup"]["seed"] == 2
     assert list(saved["setup"]["models"]) == ["open_loop", "tiny/best"]
     cell = saved["cells"]["test/driven/10-12"]
-    assert cell["identity"]["route_lengths"] == [10, 12] and cell["identity"]["demo_length"] == 12
+    assert cell["key"]["episodes"]["route_lengths"] == [10, 12] and cell["key"]["episodes"]["demo_length"] == 12
     assert len(cell["episodes"]["episode_seed"]) == 2 and len(set(cell["episodes"]["house_seed"])) <= 2
     for label in ("open_loop", "tiny/best"):
-        records = cell["models"][label]["records"]
-        assert all(len(records[key]) == 2 for key in route_bench.RECORD_KEYS)
+        records = cell["models"][label]["columns"]
+        assert all(len(records[key]) == 2 for key in route_bench.BENCH_RECORD_FIELDS)
         stats = cell["stats"][label]
         assert set(route_bench.BENCH_METRICS) <= set(stats) and stats["episodes"] == 2
     assert set(cell["stats"]["tiny/best"]["vs_open_loop"]) == {"success", "ndtw"}
-    floor = cell["models"]["open_loop"]["records"]
+    floor = cell["models"]["open_loop"]["columns"]
     same = route_bench.paired_against(floor, floor, cell["episodes"]["house_seed"], num_resamples=200)
     assert same["success"]["difference"] == 0.0 and same["ndtw"]["difference"] == 0.0
     assert "| test | driven | 10-12 |" in content["table"] and (tmp_path / "bench.png").is_file()
@@ -137,7 +137,7 @@ def test_a_tiny_run_pairs_models_by_episode_and_resumes(tmp_path, monkeypatch):
     more = route_bench.run_bench(route_bench.BenchOptions(**{**_fields(options), "models": (str(checkpoint), str(twin))}))
     assert played == ["SPFPolicy"]
     cell = more["cells"]["test/driven/10-12"]
-    assert cell["models"]["twin/best"]["records"] == cell["models"]["tiny/best"]["records"]  # same weights, same episodes
+    assert cell["models"]["twin/best"]["columns"] == cell["models"]["tiny/best"]["columns"]  # same weights, same episodes
     assert cell["stats"]["twin/best"]["vs_open_loop"] == cell["stats"]["tiny/best"]["vs_open_loop"]
 
 
@@ -158,7 +158,7 @@ def test_training_seeds_of_one_recipe_are_pooled_into_one_column():
     models = {"open_loop": records(0.3), "r/a-seed0": records(0.9), "r/a-seed2": records(0.6), "r/a-seed1": records(0.8),
               "r/b-seed0": records(0.5)}
     cell = {"set": "test", "style": "tour", "bucket": [10, 30], "episodes": {"house_seed": houses},
-            "models": {label: {"records": rec} for label, rec in models.items()}}
+            "models": {label: {"columns": rec} for label, rec in models.items()}}
     stats = route_bench.cell_stats(cell, num_resamples=500)
 
     assert route_bench.seed_groups(list(models)) == {"r/a (3 seeds)": ["r/a-seed0", "r/a-seed1", "r/a-seed2"]}

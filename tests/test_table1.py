@@ -13,8 +13,9 @@ import table1
 from spf_rl.config import load_config
 from spf_rl.eval import table1 as table1_report
 from spf_rl.eval import table1_rows
-from spf_rl.eval.table1 import build_table, load_cached, write_cached
+from spf_rl.eval.table1 import CACHED_FIELDS, build_table
 from spf_rl.hub import read_manifest, write_manifest
+from spf_rl.records_cache import TEST_EPISODES_FILE, read_records, records_key, write_records
 
 ROWS = "spf-s0.8,action_only-s0,open_loop"
 HOUSES = np.repeat(np.arange(12), 10) + 400  # 120 episodes in 12 houses
@@ -37,13 +38,29 @@ def fake_records(rate: float, seed: int) -> list[dict]:
     ]
 
 
+def tiny_checkpoint(path: Path, model_type: str, seed: int = 0) -> Path:
+    """A real checkpoint of a small policy of ``model_type`` (its weights drawn from ``seed``) at ``path``."""
+    import torch
+
+    from spf_rl.checkpoint import save_checkpoint
+    from spf_rl.modules import SPFConfig
+    from spf_rl.modules.registry import build_policy
+
+    torch.manual_seed(seed)
+    config = SPFConfig(demo_length=30, feature_dim=8, hidden_size=8, image_size=(64, 64),
+                       sparsity_range=(0.2, 1.0) if model_type == "spf_random" else None)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    save_checkpoint(path, model_type, config, {"model": build_policy(model_type, config).state_dict()})
+    return path
+
+
 def options(tmp_path: Path, *more: str) -> list[str]:
     return ["--quick", "--checkpoints", str(tmp_path / "ckpt"), "--eval-dir", str(tmp_path / "eval"),
             "--out", str(tmp_path / "out"), "--num-resamples", "300", *more]
 
 
 def cache_fake_evaluations(tmp_path: Path, plan: dict[str, tuple[float, list]]) -> None:
-    """Fake checkpoints and cached records, exactly where and as table1.py looks for them."""
+    """Small checkpoints and cached records, exactly where and as table1.py looks for them."""
     sets = table1_rows.eval_sets([], quick=True)
     lines = {line.name: line for line in table1_rows.table_lines(list(table1_rows.ROWS), 30, 64)}
     for name, (rate, seeds) in plan.items():
@@ -52,11 +69,11 @@ def cache_fake_evaluations(tmp_path: Path, plan: dict[str, tuple[float, list]]) 
             checkpoint = None
             if seed is not None:
                 checkpoint = table1_rows.seed_checkpoint(tmp_path / "ckpt", line.checkpoint_stem, seed)
-                checkpoint.parent.mkdir(parents=True, exist_ok=True)
-                checkpoint.write_bytes(f"weights of {line.checkpoint_stem} {seed}".encode())
+                tiny_checkpoint(checkpoint, line.model, seed)
             config = table1_rows.eval_config(sets["test"], line)
-            path, meta = table1_rows.cache_entry(line.name, seed, "test", config, checkpoint, tmp_path / "eval")
-            write_cached(path, meta, fake_records(rate, seed or 0))
+            key = records_key(config, table1_rows.line_policy(line, checkpoint, "cpu"))
+            path = table1_rows.cache_path(tmp_path / "eval", "test", line.name, seed)
+            write_records(path, key, fake_records(rate, seed or 0), CACHED_FIELDS)
 
 
 def test_table_from_cached_records_counts_seeds_and_tests_the_claims(tmp_path, monkeypatch):
@@ -131,46 +148,37 @@ def test_bad_options_are_refused_before_any_work(tmp_path, capsys, argv, message
     assert not any(tmp_path.iterdir())  # nothing written
 
 
-def test_the_cache_is_used_only_for_the_same_evaluation(tmp_path):
-    meta = {"line": "spf-s0.8", "seed": 0, "eval": {"num_episodes": 120}, "checkpoint_sha256": "abc"}
-    path = tmp_path / "test" / "spf-s0.8-seed0.json"
-    write_cached(path, meta, fake_records(0.7, 0))
-    assert load_cached(path, meta) == fake_records(0.7, 0)
-    assert load_cached(path, {**meta, "checkpoint_sha256": "other"}) is None  # a new checkpoint
-    assert load_cached(path, {**meta, "eval": {"num_episodes": 1000}}) is None
-    assert load_cached(tmp_path / "absent.json", meta) is None
-    assert not list(path.parent.glob(".*"))  # no temporary file left behind
-
-
-def test_a_runs_own_test_records_of_the_same_checkpoint_and_episodes_are_reused(tmp_path, monkeypatch):
+def test_a_runs_own_test_records_of_the_same_weights_and_episodes_are_reused(tmp_path, monkeypatch):
     """A finished run tested its best weights on the table's test episodes: the table takes those records
-    (and caches them) instead of playing the episodes again, but not for another checkpoint, other episodes,
-    or a random-sparsity line (which plays the checkpoint at a set sparsity)."""
-    from spf_rl.evaluation import TEST_EPISODES_FILE, write_test_episodes
+    (and caches them) instead of playing the episodes again, also from the per-seed copy of the file, but not
+    for other weights or a random-sparsity line played at another sparsity than the run tested."""
+    from spf_rl.hub import policy_from_checkpoint
 
     monkeypatch.chdir(tmp_path)
     sets = table1_rows.eval_sets([], quick=True)
     checkpoints = tmp_path / "ckpt"
     lines = {line.name: line for line in table1_rows.table_lines(list(table1_rows.ROWS), 30, 64)}
-    for stem in ("spf-s0.8", "spf_random-s0.2-1"):
-        checkpoint = table1_rows.seed_checkpoint(checkpoints, stem, 0)
-        checkpoint.parent.mkdir(parents=True, exist_ok=True)
-        checkpoint.write_bytes(f"weights of {stem}".encode())
+    for stem, model in (("spf-s0.8", "spf"), ("spf_random-s0.2-1", "spf_random")):
         run = table1_rows.run_dir(stem, 0)
-        run.mkdir(parents=True)
+        tiny_checkpoint(run / "best.pt", model)
+        table1_rows.copy_atomic(run / "best.pt", table1_rows.seed_checkpoint(checkpoints, stem, 0))
         records = [{**record, "goal_distance": 0.4} for record in fake_records(0.7, 0)]  # a run's records hold more keys
-        write_test_episodes(run / TEST_EPISODES_FILE, records, sets["test"], checkpoint)
+        key = records_key(sets["test"], policy_from_checkpoint(run / "best.pt")[0])  # as trained: sparsity 0.8
+        write_records(run / TEST_EPISODES_FILE, key, records, checkpoint=str(run / "best.pt"))
     played = []
     monkeypatch.setattr(table1_rows, "evaluate_line", lambda line, *a: played.append(line.name) or fake_records(0.5, 1))
-    chosen = [lines["spf-s0.8"], lines["spf_random-s0.2-1@0.4"]]
+    chosen = [lines["spf-s0.8"], lines["spf_random-s0.2-1@0.4"], lines["spf_random-s0.2-1@0.8"]]
     evaluations, missing = table1_rows.evaluate_all(chosen, [0], {"test": sets["test"]}, checkpoints, tmp_path / "eval", "cpu")
     assert missing == [] and played == ["spf_random-s0.2-1@0.4"]
     reused = evaluations["spf-s0.8"]["test"][0]
-    assert [{key: r[key] for key in table1_report.RECORD_KEYS} for r in reused] == fake_records(0.7, 0)  # now cached too
-    path, meta = table1_rows.cache_entry("spf-s0.8", 0, "test", sets["test"], checkpoints / "table1" / "spf-s0.8-seed0.pt", tmp_path / "eval")
-    assert load_cached(path, meta) == fake_records(0.7, 0)
-    path.unlink()
-    table1_rows.seed_checkpoint(checkpoints, "spf-s0.8", 0).write_bytes(b"other weights")  # not what the run tested
+    assert [{key: r[key] for key in CACHED_FIELDS} for r in reused] == fake_records(0.7, 0)
+    assert [{key: r[key] for key in CACHED_FIELDS} for r in evaluations["spf_random-s0.2-1@0.8"]["test"][0]] == fake_records(0.7, 0)
+    cached = table1_rows.cache_path(tmp_path / "eval", "test", "spf-s0.8", 0)
+    policy = table1_rows.line_policy(lines["spf-s0.8"], table1_rows.seed_checkpoint(checkpoints, "spf-s0.8", 0), "cpu")
+    assert read_records(cached, records_key(sets["test"], policy)) == fake_records(0.7, 0)  # now cached too
+    assert json.loads(cached.read_text())["checkpoint"] == str(table1_rows.seed_checkpoint(checkpoints, "spf-s0.8", 0))
+    cached.unlink()
+    tiny_checkpoint(table1_rows.seed_checkpoint(checkpoints, "spf-s0.8", 0), "spf", seed=1)  # not what the run tested
     evaluations, _ = table1_rows.evaluate_all(chosen[:1], [0], {"test": sets["test"]}, checkpoints, tmp_path / "eval", "cpu")
     assert played[-1] == "spf-s0.8" and evaluations["spf-s0.8"]["test"][0] == fake_records(0.5, 1)
 
@@ -191,7 +199,10 @@ def test_quick_open_loop_run_plays_real_episodes_once(tmp_path, monkeypatch):
     assert row["sets"]["test"]["episodes"] == table1_rows.QUICK_EPISODES
     line = table1_rows.table_lines([table1_rows.ROW_BY_NAME["open_loop"]], 30, 64)[0]
     config = table1_rows.eval_config(table1_rows.eval_sets([], quick=True)["extended"], line)
-    records = load_cached(*table1_rows.cache_entry(line.name, None, "extended", config, None, tmp_path / "eval"))
+    from spf_rl.modules import OpenLoopPolicy
+
+    records = read_records(table1_rows.cache_path(tmp_path / "eval", "extended", line.name, None),
+                           records_key(config, OpenLoopPolicy()))
     assert len(records) == table1_rows.QUICK_EPISODES and not config.render
     assert {r["house_seed"] for r in records} <= set(split_seeds("test", table1_rows.EXTENDED_HOUSES))
     monkeypatch.setattr(table1_rows, "evaluate_line", lambda *a: pytest.fail("a rerun must read the cache"))
@@ -291,30 +302,31 @@ def test_a_finished_run_replaces_an_earlier_runs_file_and_ships_once_every_seed_
 
 
 def test_a_clean_clone_finds_a_finished_runs_weights_in_its_per_seed_checkpoint(tmp_path, monkeypatch):
-    """A finished run is committed without its ``.pt`` files: its weights are the per-seed checkpoint, which its
-    test records name by SHA-256. A clone gets ``best.pt`` back from there (its DAgger column starts from it),
-    counts the seed as this recipe's, and refuses, naming both files, where the per-seed file is another."""
-    from spf_rl.hub import file_sha256
+    """A finished run is committed without its ``.pt`` files: its weights are the per-seed checkpoint, whose
+    weights its test records are keyed by. A clone gets ``best.pt`` back from there (its DAgger column starts
+    from it), counts the seed as this recipe's, and refuses, naming both files, where the per-seed file holds
+    other weights."""
+    from spf_rl.hub import policy_from_checkpoint
 
     monkeypatch.chdir(tmp_path)
     checkpoints = tmp_path / "checkpoints"
-    (checkpoints / "table1").mkdir(parents=True)
-    target = checkpoints / "table1" / "spf-s0.8-seed0.pt"
-    target.write_text("the run's weights")
+    target = tiny_checkpoint(checkpoints / "table1" / "spf-s0.8-seed0.pt", "spf", seed=0)
+    weights = target.read_bytes()
     run = Path("runs/table1/spf-s0.8-seed0")
     run.mkdir(parents=True)
     (run / "results.json").write_text(json.dumps({"val_best": {"success": 0.8, "spl": 0.7, "epoch": 30}}))
-    (run / "test_episodes.json").write_text(json.dumps({"checkpoint_sha256": file_sha256(target), "episodes": []}))
+    sets = table1_rows.eval_sets([], quick=True)
+    write_records(run / TEST_EPISODES_FILE, records_key(sets["test"], policy_from_checkpoint(target)[0]), fake_records(0.7, 0))
     assert table1_rows.keep_run(checkpoints, "spf-s0.8", 0, run, "val_best") == (0.8, 0.7)
-    assert (run / "best.pt").read_text() == "the run's weights" and target.read_text() == "the run's weights"
+    assert (run / "best.pt").read_bytes() == weights and target.read_bytes() == weights
     lines = table1_rows.table_lines([table1_rows.ROW_BY_NAME["spf-s0.8"]], 30, 64)
     (run / "best.pt").unlink()
     assert list(table1_rows.trained_on(lines, [0], checkpoints, False)["spf-s0.8"]) == ["0"]
-    target.write_text("an earlier run's weights")
+    tiny_checkpoint(target, "spf", seed=1)  # an earlier run's weights
     assert table1_rows.trained_on(lines, [0], checkpoints, False)["spf-s0.8"] == {}
     with pytest.raises(FileNotFoundError, match=r"spf-s0\.8-seed0 finished, but its weights are neither in .*best\.pt nor in .*spf-s0\.8-seed0\.pt"):
         table1_rows.keep_run(checkpoints, "spf-s0.8", 0, run, "val_best")
-    assert target.read_text() == "an earlier run's weights" and not (run / "best.pt").exists()  # nothing overwritten
+    assert target.read_bytes() != weights and not (run / "best.pt").exists()  # nothing overwritten
 
 
 def test_every_row_trains_on_one_budget_and_every_dagger_column_by_one_rule():

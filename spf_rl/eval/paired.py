@@ -20,32 +20,35 @@ from spf_rl.stats import paired_bootstrap
 #: Per-episode fields compared (each where every record has it; the path-fidelity ones
 #: where the episodes followed a demonstrated path).
 COMPARED_METRICS = ("success", "spl", "success_lab", "ndtw", "sdtw")
-#: Where the per-episode records lie: ``recipes/evaluate.py``'s key, then ``recipes/bc.py``'s test records.
-RECORD_KEYS = ("episodes_records", "episodes")
+#: Where ``recipes/evaluate.py``'s JSON lists its per-episode records.
+EVALUATE_RECORDS_KEY = "episodes_records"
 
 
 def load_records(path: Path) -> tuple[dict, list[dict]]:
     """``(evaluation JSON, its per-episode records)``; a clear error for a file without records.
 
-    Records are a list under one of :data:`RECORD_KEYS`, or per-episode columns (``{"columns": {key:
-    [...]}}``, the per-episode cache of ``recipes/table1.py``, ``results/eval/table1/<set>/<line>-seed<S>.json``).
+    Records are a list under :data:`EVALUATE_RECORDS_KEY` (``recipes/evaluate.py``), or per-episode columns
+    (``{"columns": {field: [...]}}``: a file of the per-episode result cache, :mod:`spf_rl.records_cache`,
+    such as a run's ``test_episodes.json`` or ``results/eval/table1/<set>/<line>-seed<S>.json``).
     """
+    from spf_rl.records_cache import from_columns
+
     payload = json.loads(Path(path).read_text())
-    records = next((payload[key] for key in RECORD_KEYS if isinstance(payload.get(key), list) and payload[key]), None)
+    records = payload.get(EVALUATE_RECORDS_KEY) if isinstance(payload.get(EVALUATE_RECORDS_KEY), list) else None
     columns = payload.get("columns")
     if not records and isinstance(columns, dict) and columns:
-        records = [dict(zip(columns, values)) for values in zip(*columns.values())]
+        records = from_columns(columns)
     if not records:
         raise ValueError(
-            f"{path} has no per-episode records (a list under one of {RECORD_KEYS}, or per-episode 'columns'): "
+            f"{path} has no per-episode records (a list under {EVALUATE_RECORDS_KEY!r}, or per-episode 'columns'): "
             "write it with recipes/evaluate.py."
         )
     return payload, records
 
 
 def checkpoint_of(payload: dict) -> str | None:
-    """The checkpoint an evaluation file is of (``evaluate.py``'s key, or the table cache's ``meta``)."""
-    return payload.get("checkpoint") or payload.get("meta", {}).get("checkpoint")
+    """The checkpoint an evaluation file is of (``evaluate.py``'s key, or a cache file's ``checkpoint``)."""
+    return payload.get("checkpoint")
 
 
 def split_paths(paths: Path | str | list) -> list[Path]:

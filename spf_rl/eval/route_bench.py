@@ -43,6 +43,7 @@ from envs.route_styles import ROUTE_STYLES
 from envs.transforms import DEFAULT_NOISE
 from spf_rl.eval.by_length import label_of
 from spf_rl.evaluation import TEST_SEED
+from spf_rl.records_cache import changed_fields, episodes_key, to_columns
 from spf_rl.stats import DEFAULT_CONFIDENCE, DEFAULT_NUM_RESAMPLES, hierarchical_bootstrap_ci, paired_bootstrap
 
 logger = logging.getLogger(__name__)
@@ -71,7 +72,7 @@ QUICK_OUT = Path("results/route_bench_quick.json")
 BENCH_METRICS = ("success", "spl", "ndtw", "sdtw")
 BENCH_PAIRED_METRICS = ("success", "ndtw")
 #: Per-episode fields kept per model (columns), and per cell (the episodes, the same for every model).
-RECORD_KEYS = ("success", "success_lab", "spl", "ndtw", "sdtw", "path_length_ratio", "wall_hits", "steps",
+BENCH_RECORD_FIELDS = ("success", "success_lab", "spl", "ndtw", "sdtw", "path_length_ratio", "wall_hits", "steps",
                "goal_distance", "path_length", "shortest_path_length")
 EPISODE_KEYS = ("episode_index", "episode_seed", "house_seed", "demo_steps")
 #: A label of one training seed of a recipe (see :func:`seed_groups`).
@@ -342,31 +343,25 @@ def cell_config(options: BenchOptions, set_name: str, style: str, bucket: Sequen
     )
 
 
-def cell_identity(config) -> dict:
-    """What fixes a cell's episodes and their scoring: the config's
-    :func:`~spf_rl.evaluation.episode_identity`, the env version and the arrival rule
-    (:data:`~envs.follow.ARRIVAL_RULE`)."""
-    from envs.follow import ARRIVAL_RULE
-    from envs.version import ENV_VERSION
-    from spf_rl.evaluation import episode_identity
-
-    return {**episode_identity(config), "route_lengths": list(config.episodes.route_lengths), "env_version": ENV_VERSION,
-            "arrival": ARRIVAL_RULE}
-
-
 @dataclass
 class BenchModel:
-    """A model of the benchmark: its label, policy (``None`` for open-loop replay, made per cell) and identity.
+    """A model of the benchmark: its label, policy (``None`` for open-loop replay, made per cell), the
+    sparsity a random-sparsity model reads its memory at (``None``: the model's own) and what the JSON
+    says of it.
+
+    Its records in a cell are keyed by the :func:`~spf_rl.records_cache.policy_sha256` of its view at the
+    cell's demonstration length (:meth:`policy_sha256`), the cell by the episodes'
+    :func:`~spf_rl.records_cache.episodes_key`.
 
     Examples:
-        >>> replay = BenchModel(OPEN_LOOP, None, {"checkpoint_sha256": None, "sparsity": None}, {"checkpoint": None})
-        >>> type(replay.at_length(40)).__name__
-        'OpenLoopPolicy'
+        >>> replay = BenchModel(OPEN_LOOP, None, None, {"checkpoint": None})
+        >>> type(replay.at_length(40)).__name__, replay.policy_sha256(40)
+        ('OpenLoopPolicy', None)
     """
 
     label: str
     policy: object | None
-    identity: dict
+    sparsity: float | None
     info: dict
     views: dict = field(default_factory=dict)
 
@@ -379,10 +374,16 @@ class BenchModel:
             return OpenLoopPolicy()
         if demo_length not in self.views:
             view = policy_for_length(self.policy, demo_length)
-            if self.info.get("sparsity_range") is not None:  # set_sparsity is not part of the weights: set it on the view
-                view.set_sparsity(self.identity["sparsity"])
+            if self.sparsity is not None:  # set_sparsity is not part of the weights: set it on the view
+                view.set_sparsity(self.sparsity)
             self.views[demo_length] = view
         return self.views[demo_length]
+
+    def policy_sha256(self, demo_length: int) -> str | None:
+        """The key of this model's records on a cell of ``demo_length``-step demonstrations."""
+        from spf_rl.records_cache import policy_sha256
+
+        return policy_sha256(self.at_length(demo_length))
 
 
 def load_models(options: BenchOptions) -> list[BenchModel]:
@@ -391,10 +392,9 @@ def load_models(options: BenchOptions) -> list[BenchModel]:
     Raises:
         ValueError: a model whose frames are not ``options.image_size`` pixels.
     """
-    from spf_rl.hub import checked_checkpoint, file_sha256, policy_from_checkpoint
+    from spf_rl.hub import checked_checkpoint, policy_from_checkpoint
 
-    models = [BenchModel(OPEN_LOOP, None, {"checkpoint_sha256": None, "sparsity": None},
-                         {"checkpoint": None, "model_type": OPEN_LOOP})]
+    models = [BenchModel(OPEN_LOOP, None, None, {"checkpoint": None, "model_type": OPEN_LOOP})]
     for name in options.models:
         path = checked_checkpoint(name)
         policy, payload = policy_from_checkpoint(path, device=options.device)
@@ -404,8 +404,9 @@ def load_models(options: BenchOptions) -> list[BenchModel]:
         random = getattr(config, "sparsity_range", None) is not None
         sparsity = (float(options.random_sparsity) if options.random_sparsity is not None else float(config.sparsity)) if random else None
         info = {"checkpoint": str(path), "model_type": payload["model_type"], "demo_length": config.demo_length,
-                "sparsity": float(config.sparsity), "sparsity_range": list(config.sparsity_range) if random else None}
-        models.append(BenchModel(label_of(name), policy, {"checkpoint_sha256": file_sha256(path), "sparsity": sparsity}, info))
+                "sparsity": float(config.sparsity), "sparsity_range": list(config.sparsity_range) if random else None,
+                "played_at_sparsity": sparsity}
+        models.append(BenchModel(label_of(name), policy, sparsity, info))
     return models
 
 
@@ -475,16 +476,16 @@ def pooled_stats(cell: dict, members: Sequence[str], num_resamples: int) -> dict
 
     Examples:
         >>> cell = {"episodes": {"house_seed": [0, 0, 1, 1]}, "models": {
-        ...     "open_loop": {"records": {"success": [0, 0, 1, 0], "spl": [0, 0, 1, 0], "ndtw": [0.2] * 4, "sdtw": [0] * 4}},
-        ...     "m-seed0": {"records": {"success": [1, 1, 1, 0], "spl": [1, 1, 1, 0], "ndtw": [0.8] * 4, "sdtw": [0] * 4}},
-        ...     "m-seed1": {"records": {"success": [1, 0, 1, 1], "spl": [1, 0, 1, 1], "ndtw": [0.6] * 4, "sdtw": [0] * 4}}}}
+        ...     "open_loop": {"columns": {"success": [0, 0, 1, 0], "spl": [0, 0, 1, 0], "ndtw": [0.2] * 4, "sdtw": [0] * 4}},
+        ...     "m-seed0": {"columns": {"success": [1, 1, 1, 0], "spl": [1, 1, 1, 0], "ndtw": [0.8] * 4, "sdtw": [0] * 4}},
+        ...     "m-seed1": {"columns": {"success": [1, 0, 1, 1], "spl": [1, 0, 1, 1], "ndtw": [0.6] * 4, "sdtw": [0] * 4}}}}
         >>> row = pooled_stats(cell, ["m-seed0", "m-seed1"], num_resamples=200)
         >>> row["success"]["mean"], row["per_seed"]["success"], round(row["vs_open_loop"]["ndtw"]["difference"], 6)
         (0.75, [0.75, 0.75], 0.5)
     """
     row = _scores(cell, members, num_resamples, paired=True)
     row["seeds"] = list(members)
-    row["per_seed"] = {metric: [float(v) for v in np.asarray([cell["models"][m]["records"][metric] for m in members],
+    row["per_seed"] = {metric: [float(v) for v in np.asarray([cell["models"][m]["columns"][metric] for m in members],
                                                                dtype=float).mean(axis=1)] for metric in BENCH_METRICS}
     return row
 
@@ -493,13 +494,13 @@ def _scores(cell: dict, members: Sequence[str], num_resamples: int, paired: bool
     """Means over ``members``' seeds and the cell's episodes, house-level intervals and (``paired``) the
     difference from open-loop replay: one model is one member."""
     houses = np.asarray(cell["episodes"]["house_seed"])
-    columns = {metric: np.asarray([cell["models"][m]["records"][metric] for m in members], dtype=float) for metric in BENCH_METRICS}
+    columns = {metric: np.asarray([cell["models"][m]["columns"][metric] for m in members], dtype=float) for metric in BENCH_METRICS}
     row = {"episodes": int(houses.size), "houses": int(np.unique(houses).size)}
     for metric, values in columns.items():
         row[metric] = {"mean": float(values.mean()),
                        "ci": list(hierarchical_bootstrap_ci(values.mean(axis=0), houses, DEFAULT_CONFIDENCE, num_resamples))}
     if paired:
-        row["vs_open_loop"] = paired_against(columns, cell["models"][OPEN_LOOP]["records"], houses, num_resamples)
+        row["vs_open_loop"] = paired_against(columns, cell["models"][OPEN_LOOP]["columns"], houses, num_resamples)
     return row
 
 
@@ -680,7 +681,7 @@ def setup_of(options: BenchOptions, models: list[BenchModel]) -> dict:
         "sets": dict(options.set_houses), "styles": list(options.styles), "buckets": [list(b) for b in options.buckets],
         "max_steps": "each route's own: ceil(5/3 n)", "image_size": options.image_size, "num_resamples": options.num_resamples,
         "random_sparsity": options.random_sparsity, "env_version": ENV_VERSION,
-        "models": {m.label: {**m.info, **m.identity} for m in models},
+        "models": {m.label: dict(m.info) for m in models},
         "seed_groups": seed_groups([m.label for m in models]),
     }
 
@@ -713,7 +714,7 @@ def run_bench(options: BenchOptions, models: list[BenchModel] | None = None) -> 
 
     Returns:
         The JSON content: ``recipe``, ``setup``, ``statistics``, ``cells`` (``{key: {set, style, bucket,
-        identity, episodes, models: {label: {identity, records}}, stats}}``, records as per-episode columns in
+        key, episodes, models: {label: {policy_sha256, columns}}, stats}}``, records as per-episode columns in
         the order of ``episodes``), ``by_style`` (:func:`by_style`), ``table`` and ``table_by_model`` (markdown) and ``figure``.
 
     Raises:
@@ -727,17 +728,18 @@ def run_bench(options: BenchOptions, models: list[BenchModel] | None = None) -> 
     for set_name, style, bucket in plan:
         key = cell_key(set_name, style, bucket)
         config = cell_config(options, set_name, style, bucket)
-        identity = cell_identity(config)
+        identity = episodes_key(config)
         old = previous.pop(key, None)
-        if old is not None and old.get("identity") != identity:
-            logger.info("%s: the file's episodes differ (other set-up): evaluating again", key)
+        if old is not None and (changed := changed_fields(old.get("key"), identity)):
+            logger.info("%s: the file's episodes were made with other %s: evaluating again", key, ", ".join(changed))
             old = None
-        cell = {"set": set_name, "style": style, "bucket": list(bucket), "identity": identity,
+        cell = {"set": set_name, "style": style, "bucket": list(bucket), "key": identity,
                 "episodes": (old or {}).get("episodes"), "models": {}, "stats": None}
         content["cells"][key] = cell
         for model in models:
             done = (old or {}).get("models", {}).get(model.label)
-            if done is not None and done.get("identity") == model.identity:
+            weights = model.policy_sha256(config.episodes.demo_length)
+            if done is not None and done.get("policy_sha256") == weights:
                 cell["models"][model.label] = done
                 continue
             logger.info("%s: %s on %d episodes", key, model.label, options.episodes)
@@ -747,8 +749,7 @@ def run_bench(options: BenchOptions, models: list[BenchModel] | None = None) -> 
                 cell["episodes"] = episodes
             elif episodes != cell["episodes"]:
                 raise ValueError(f"{key}: {model.label} played other episodes than the cell's first model")
-            cell["models"][model.label] = {"identity": model.identity,
-                                           "records": {k: [r[k] for r in records] for k in RECORD_KEYS}}
+            cell["models"][model.label] = {"policy_sha256": weights, "columns": to_columns(records, BENCH_RECORD_FIELDS)}
             atomic_write_json(out, content, indent=1)
         cell["stats"] = cell_stats(cell, options.num_resamples)
         logger.info("%s: success %s", key, ", ".join(f"{label} {row['success']['mean']:.2f}" for label, row in cell["stats"].items()))

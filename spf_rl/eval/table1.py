@@ -4,15 +4,15 @@
 collects them) into the table's dict: per-seed scores, mean +- sample sd over seeds,
 house-level bootstrap intervals of the pooled mean, and paired bootstrap tests of the
 ordering claims on the shared episodes (:mod:`spf_rl.stats`). :func:`write_reports`
-writes it as ``table1.json``, ``table1.md`` and ``table1.png``; the per-episode cache
-is read and written by :func:`load_cached` and :func:`write_cached`.
+writes it as ``table1.json``, ``table1.md`` and ``table1.png``; the per-episode records
+are cached with :mod:`spf_rl.records_cache`.
 """
 from __future__ import annotations
 
 import dataclasses
 import json
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,8 +29,8 @@ TABLE1_METRICS = ("success", "spl", "success_lab")
 CONFIDENCE = 0.95
 #: A claim "a beats b" holds when the one-sided paired p-value is below this.
 ALPHA = 0.05
-#: Per-episode keys kept in the cache.
-RECORD_KEYS = ("episode_index", "episode_seed", "house_seed", "success", "success_lab", "spl", "steps")
+#: Per-episode fields kept in Table 1's cache files (:mod:`spf_rl.records_cache`).
+CACHED_FIELDS = ("episode_index", "episode_seed", "house_seed", "success", "success_lab", "spl", "steps")
 STATISTICS = (
     "mean: over seeds and episodes (every seed plays the same episodes); sd: sample sd (ddof=1) of the "
     "per-seed means; ci: 95% percentile bootstrap of the pooled mean that resamples houses, then episodes "
@@ -58,55 +58,12 @@ class Line:
 
 
 # ------------------------------------------------------------------------- files
-def cache_entry(line: str, seed: int | None, set_name: str, config, checkpoint: Path | None, eval_dir: Path):
-    """``(path, meta)`` of the cached records of one line x seed x set: the cache is used only when
-    ``meta`` (evaluation config, checkpoint file and its SHA-256, env version) is unchanged."""
-    from spf_rl.evaluation import records_identity
-
-    meta = {"line": line, "seed": seed, "set": set_name, "checkpoint": None if checkpoint is None else str(checkpoint),
-            **records_identity(config, checkpoint)}
-    return eval_dir / set_name / (line + ("" if seed is None else f"-seed{seed}") + ".json"), meta
-
-
 def write_table_json(path: Path, payload: dict) -> None:
     """The Table 1 JSON files are indented by one space (they are long)."""
     atomic_write_json(path, payload, indent=1)
 
 
-def write_cached(path: Path, meta: dict, records: Sequence[dict]) -> None:
-    """Cache an evaluation: ``meta`` (what was evaluated, how) and the records, one list per key."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    columns = {key: [record[key] for record in records] for key in RECORD_KEYS}
-    write_table_json(path, {"meta": meta, "columns": columns})
-
-
-def load_cached(path: Path, meta: dict) -> list[dict] | None:
-    """The records cached at ``path`` if they were made as ``meta`` says (else ``None``, with the reason logged)."""
-    if not path.exists():
-        return None
-    try:
-        payload = json.loads(path.read_text())
-        columns = payload["columns"]
-        stored = payload["meta"]
-    except (ValueError, KeyError) as err:
-        logger.warning("%s is unreadable (%s): evaluating again", path, err)
-        return None
-    changed = sorted(key for key in set(meta) | set(stored) if meta.get(key) != stored.get(key))
-    if changed:
-        logger.info("%s was made with other %s: evaluating again", path, ", ".join(changed))
-        return None
-    return [dict(zip(columns, values)) for values in zip(*columns.values())]
-
-
 # ------------------------------------------------------------------- statistics
-
-def cached_records(path: Path, meta: dict, evaluate: Callable[[], list[dict]]) -> list[dict]:
-    """The records cached at ``path`` for ``meta``, else ``evaluate()``'s, cached there first."""
-    records = load_cached(path, meta)
-    if records is None:
-        records = evaluate()
-        write_cached(path, meta, records)
-    return records
 
 def shared_episodes(reference: dict, set_name: str, where: str, records: list[dict]) -> np.ndarray:
     """The houses of a set's episodes, after checking that ``records`` play the same episodes as the others."""

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from envs.atomic_io import atomic_write
 from spf_rl.config import load_config
-from spf_rl.eval.table1 import PACE_NOTE, Line, build_table, cache_entry, cached_records, write_reports
+from spf_rl.eval.table1 import CACHED_FIELDS, PACE_NOTE, Line, build_table, write_reports
 
 logger = logging.getLogger(__name__)
 
@@ -279,17 +279,28 @@ def ship_best(checkpoints: Path, line: str, scores: dict) -> dict | None:
     return {"seed": seed, "val_success": scores[seed][0], "val_spl": scores[seed][1]}
 
 
-def run_weights_sha256(directory: Path) -> str | None:
-    """The SHA-256 of a finished run's best weights: of its ``best.pt``, or, where a clone holds the run without
-    it (a finished run's ``.pt`` files are not committed: its weights are the per-seed checkpoint), the one its
-    test records name (``test_episodes.json``); ``None`` where neither is there."""
-    from spf_rl.evaluation import TEST_EPISODES_FILE
-    from spf_rl.hub import file_sha256
+def checkpoint_policy_sha256(path: Path) -> str | None:
+    """The :func:`~spf_rl.records_cache.policy_sha256` of the policy a checkpoint file holds."""
+    from spf_rl.hub import policy_from_checkpoint
+    from spf_rl.records_cache import policy_sha256
 
+    return policy_sha256(policy_from_checkpoint(path)[0])
+
+
+def holds_run_weights(target: Path, directory: Path) -> bool:
+    """Whether the per-seed checkpoint ``target`` holds a finished run's best weights: the same bytes as the
+    run's ``best.pt``, or, where a clone holds the run without it (a finished run's ``.pt`` files are not
+    committed: its weights are the per-seed checkpoint), the weights its test records are keyed by
+    (``test_episodes.json``, :func:`~spf_rl.records_cache.policy_sha256`)."""
+    from spf_rl.records_cache import TEST_EPISODES_FILE
+
+    if not target.exists():
+        return False
     if (directory / "best.pt").exists():
-        return file_sha256(directory / "best.pt")
+        return target.read_bytes() == (directory / "best.pt").read_bytes()
     records = directory / TEST_EPISODES_FILE
-    return json.loads(records.read_text()).get("checkpoint_sha256") if records.exists() else None
+    stored = (json.loads(records.read_text()).get("key") or {}).get("policy_sha256") if records.exists() else None
+    return stored is not None and checkpoint_policy_sha256(target) == stored
 
 
 def keep_run(checkpoints: Path, line: str, seed: int, directory: Path, best_key: str) -> tuple[float, float] | None:
@@ -298,16 +309,16 @@ def keep_run(checkpoints: Path, line: str, seed: int, directory: Path, best_key:
     and the manifest rewritten to list that file's hash (the names it ships stay as they are).
 
     A finished run without its ``best.pt`` (a clean clone) gets it back from the per-seed checkpoint when that
-    file holds the run's weights (:func:`run_weights_sha256`), so that its DAgger column can start from it;
+    file holds the run's weights (:func:`holds_run_weights`), so that its DAgger column can start from it;
     otherwise the run's weights are lost, and a ``FileNotFoundError`` names both files."""
-    from spf_rl.hub import file_sha256, write_manifest
+    from spf_rl.hub import write_manifest
 
     results = directory / "results.json"
     if not results.exists():
         return None
     target, best = seed_checkpoint(checkpoints, line, seed), directory / "best.pt"
     if not best.exists():
-        if not target.exists() or file_sha256(target) != run_weights_sha256(directory):
+        if not holds_run_weights(target, directory):
             raise FileNotFoundError(
                 f"{directory} finished, but its weights are neither in {best} nor in {target}: restore one of them "
                 f"(git history keeps the checkpoint), or delete {results} to train the run again"
@@ -379,8 +390,6 @@ def trained_on(lines: Sequence[Line], seeds: Sequence[int], checkpoints: Path, q
     ``results.json``; ``None`` where the run did not record it). A seed's result depends on the CPU model, so a
     rerun elsewhere matches the table only on the same model. A per-seed file of another run is scored as it
     is and has no entry."""
-    from spf_rl.hub import file_sha256
-
     sources: dict = {}
     for line in lines:
         if line.model == "open_loop" or line.checkpoint_stem in sources:
@@ -389,7 +398,7 @@ def trained_on(lines: Sequence[Line], seeds: Sequence[int], checkpoints: Path, q
         for seed in seeds:
             target = seed_checkpoint(checkpoints, line.checkpoint_stem, seed)
             results = run_dir(line.checkpoint_stem, seed, quick) / "results.json"
-            if target.exists() and results.exists() and file_sha256(target) == run_weights_sha256(results.parent):
+            if results.exists() and holds_run_weights(target, results.parent):
                 entry[str(seed)] = json.loads(results.read_text()).get("machine_this_run", {}).get("cpu_model")
     return sources
 
@@ -400,44 +409,55 @@ def eval_config(config, line: Line):
     return dataclasses.replace(config, render=False) if line.model == "open_loop" else config
 
 
-def evaluate_line(line: Line, checkpoint: Path | None, config, device: str) -> list[dict]:
-    """Per-episode records of one line (and checkpoint) on one evaluation set."""
-    from spf_rl.evaluation import evaluate_policy
+def line_policy(line: Line, checkpoint: Path | None, device: str):
+    """The policy a line plays: open-loop replay, or the checkpoint's on ``device`` (a random-sparsity
+    line's at the line's sparsity)."""
     from spf_rl.hub import policy_from_checkpoint
     from spf_rl.modules import OpenLoopPolicy
 
     if checkpoint is None:
-        policy = OpenLoopPolicy()
-    else:
-        policy = policy_from_checkpoint(checkpoint, expected_model_type=line.model, device=device)[0]
-        if line.model == RANDOM_MODEL:
-            policy.set_sparsity(line.sparsity)
+        return OpenLoopPolicy()
+    policy = policy_from_checkpoint(checkpoint, expected_model_type=line.model, device=device)[0]
+    if line.model == RANDOM_MODEL:
+        policy.set_sparsity(line.sparsity)
+    return policy
+
+
+def evaluate_line(line: Line, policy, config) -> list[dict]:
+    """Per-episode records of one line's policy (:func:`line_policy`) on one evaluation set."""
+    from spf_rl.evaluation import evaluate_policy
+
     return evaluate_policy(policy, config, progress=False)[1]
 
 
-def run_test_records(line: Line, seed: int | None, config, checkpoint: Path | None) -> list[dict] | None:
-    """The per-episode records a run left of this very checkpoint on these very episodes (its
-    ``test_episodes.json``: a finished run tests its best weights on ``bc_table1``'s test set), or ``None``.
+def run_test_records(line: Line, seed: int | None, key: dict) -> list[dict] | None:
+    """The per-episode records a run left under ``key`` (the same weights, as played, on the same episodes:
+    its ``test_episodes.json``; a finished run tests its best weights on ``bc_table1``'s test set), or ``None``.
+    Evaluation is deterministic, so the records are the ones evaluating again would give (checked on the first
+    runs: identical, episode by episode)."""
+    from spf_rl.records_cache import TEST_EPISODES_FILE, read_records
 
-    Only lines that play the checkpoint as trained: the random-sparsity lines set a sparsity first, and
-    open-loop replay has no run. Evaluation is deterministic, so the records are the ones evaluating again
-    would give (checked on the first runs: identical, episode by episode)."""
-    from spf_rl.evaluation import TEST_EPISODES_FILE, read_test_episodes
+    if seed is None:
+        return None
+    found = read_records(run_dir(line.checkpoint_stem, seed) / TEST_EPISODES_FILE, key)
+    if found is not None:
+        logger.info("%s seed %d: reusing its run's test records of these weights on these episodes", line.name, seed)
+    return found
 
-    if checkpoint is None or seed is None or line.model in (RANDOM_MODEL, "open_loop"):
-        return None
-    found = read_test_episodes(run_dir(line.checkpoint_stem, seed) / TEST_EPISODES_FILE, config, checkpoint)
-    if found is None:
-        return None
-    logger.info("%s seed %d: reusing its run's test records of this checkpoint on these episodes", line.name, seed)
-    return found[1]
+
+def cache_path(eval_dir: Path, set_name: str, line: str, seed: int | None) -> Path:
+    """Where the records of one line x seed x set are cached: ``<eval_dir>/<set>/<line>[-seed<S>].json``."""
+    return eval_dir / set_name / (line + ("" if seed is None else f"-seed{seed}") + ".json")
 
 
 def evaluate_all(
     lines: list[Line], seeds: list[int], sets: dict, checkpoints: Path, eval_dir: Path, device: str
 ) -> tuple[dict, list[dict]]:
     """Records ``{line: {set: {seed: records}}}`` of every line x seed x set whose checkpoint exists, from
-    the cache or evaluated now (then cached), and the list of what is missing."""
+    the cache (:mod:`spf_rl.records_cache`: the same weights on the same episodes) or evaluated now (then
+    cached), and the list of what is missing."""
+    from spf_rl.records_cache import cached_records, records_key
+
     evaluations: dict = {line.name: {name: {} for name in sets} for line in lines}
     missing = []
     for line in lines:
@@ -448,17 +468,22 @@ def evaluate_all(
                 entry = {"line": line.checkpoint_stem, "seed": seed, "checkpoint": str(checkpoint)}
                 missing += [entry] if entry not in missing else []  # the random model's lines share checkpoints
                 continue
+            policy = line_policy(line, checkpoint, device)
             for set_name, config in sets.items():
                 config = eval_config(config, line)
-                def evaluate(line=line, seed=seed, set_name=set_name, config=config, checkpoint=checkpoint):
-                    if (records := run_test_records(line, seed, config, checkpoint)) is not None:
+                key = records_key(config, policy)
+
+                def evaluate(line=line, seed=seed, set_name=set_name, config=config, key=key, policy=policy) -> list[dict]:
+                    if (records := run_test_records(line, seed, key)) is not None:
                         return records
                     logger.info("evaluating %s seed %s on the %s set (%d episodes)", line.name, seed, set_name,
                                 config.num_episodes)
-                    return evaluate_line(line, checkpoint, config, device)
+                    return evaluate_line(line, policy, config)
 
-                entry = cache_entry(line.name, seed, set_name, config, checkpoint, eval_dir)
-                evaluations[line.name][set_name][seed] = cached_records(*entry, evaluate)
+                evaluations[line.name][set_name][seed] = cached_records(
+                    cache_path(eval_dir, set_name, line.name, seed), key, evaluate, CACHED_FIELDS,
+                    line=line.name, seed=seed, set=set_name, checkpoint=None if checkpoint is None else str(checkpoint),
+                )
     return evaluations, missing
 
 

@@ -35,18 +35,11 @@ from envs.checks import check_positive_ints
 from envs.episode_spec import EpisodeSpec, check_sizes_match
 from spf_rl.data import ROUTE_STEP_KEY, DatasetConfig, EpisodeDataset
 from spf_rl.device import DEFAULT_DEVICE, autocast, check_device, module_device
-from spf_rl.evaluation import (
-    TEST_EPISODES_FILE,
-    TEST_SEED,
-    VAL_SEED,
-    EvalConfig,
-    episode_store_root,
-    evaluate_policy,
-    write_test_episodes,
-)
+from spf_rl.evaluation import TEST_SEED, VAL_SEED, EvalConfig, episode_store_root, evaluate_policy
 from spf_rl.modules.policy import SPFPolicy
 from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
 from spf_rl.modules.views import episodes_to_sequence, model_memory_bytes
+from spf_rl.records_cache import TEST_EPISODES_FILE, records_key, write_records
 from spf_rl.train.distributed import ShardedSampler, barrier, init_distributed
 from spf_rl.train.run import OptimConfig, TrainingRun, run_on_device, run_results, start_run, trim_csv_logs
 
@@ -288,7 +281,7 @@ def _train_bc(config: BCConfig, device: torch.device) -> dict:
         **run_results(config, time.time() - start_time),
     }
     atomic_write_json(output / "results.json", results, default=str)
-    write_test_episodes(output / TEST_EPISODES_FILE, records, test_config, run.best_path)
+    write_records(output / TEST_EPISODES_FILE, records_key(test_config, policy), records, checkpoint=str(run.best_path))
     from spf_rl.viz import plot_if_available, plot_training_curves
 
     plot_if_available(plot_training_curves, history, output / "training_curves.png", title=f"BC {model_type}")

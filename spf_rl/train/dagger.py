@@ -62,16 +62,10 @@ from envs.scripted import behaviour_coins
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.data import DatasetConfig, EpisodeDataset, demos_root, step_keys
 from spf_rl.device import DEFAULT_DEVICE, check_device, exact_float32, module_device, torch_threads_kept
-from spf_rl.evaluation import (
-    TEST_EPISODES_FILE,
-    EvalConfig,
-    FramesFromStore,
-    evaluate_policy,
-    read_test_episodes,
-    write_test_episodes,
-)
+from spf_rl.evaluation import EvalConfig, FramesFromStore, evaluate_policy, summarize_episodes
 from spf_rl.hub import DEFAULT_START_CHECKPOINT, checked_checkpoint
 from spf_rl.modules.registry import build_policy
+from spf_rl.records_cache import TEST_EPISODES_FILE, read_records, records_key, write_records
 from spf_rl.train.bc import bc_loss, check_pointer_labels, default_test_config, default_val_config
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig, collection_device, make_collector
 from spf_rl.train.dagger_rounds import (
@@ -334,21 +328,23 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
         else None
     )
 
-    tested: dict[int, list[dict]] = {}  # the per-episode test records of rounds tested in this process
+    # the (key, per-episode test records) of rounds tested in this process
+    tested: dict[int, tuple[dict, list[dict]]] = {}
 
     def keep_test_records(round_index: int) -> None:
         """The new best round's test records, if it was tested, as ``test_episodes.json`` (of ``best.pt``)."""
         if round_index in tested:
-            write_test_episodes(output / TEST_EPISODES_FILE, tested[round_index], test_config, best_path, round=round_index)
+            key, records = tested[round_index]
+            write_records(output / TEST_EPISODES_FILE, key, records, round=round_index, checkpoint=str(best_path))
 
     def start_test() -> tuple[dict, list[dict]]:
         """Round 0's test: the start checkpoint's test records beside it (its BC run's ``test_episodes.json``)
-        where they are of the same file on the same episodes, else played now."""
-        reused = read_test_episodes(start_path.parent / TEST_EPISODES_FILE, test_config, start_path)
+        where they are of the same weights on the same episodes, else played now."""
+        reused = read_records(start_path.parent / TEST_EPISODES_FILE, records_key(test_config, policy))
         if reused is None:
             return evaluate_policy(policy, test_config, progress=config.progress)
         logger.info("round 0: the test of %s on these episodes is in %s: reused", start_path, start_path.parent / TEST_EPISODES_FILE)
-        return reused
+        return summarize_episodes(reused), reused
 
     def score(round_index: int, extra: dict) -> dict:
         val, _ = evaluate_policy(policy, val_config)
@@ -359,7 +355,7 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
             else:
                 summary, records = evaluate_policy(policy, test_config, progress=config.progress)
             record.update(_test_fields(summary))
-            tested[round_index] = records
+            tested[round_index] = records_key(test_config, policy), records
         logger.info("round %d: %s", round_index, record)
         if run_logger is not None:
             for key, value in record.items():
@@ -450,7 +446,8 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
             )
         policy.load_state_dict(shipped["model"])
         summary, records = evaluate_policy(policy, test_config, progress=config.progress)
-        write_test_episodes(output / TEST_EPISODES_FILE, records, test_config, best_path, round=best["round"])
+        write_records(output / TEST_EPISODES_FILE, records_key(test_config, policy), records, round=best["round"],
+                      checkpoint=str(best_path))
         best = {**best, **_test_fields(summary)}
         logger.info("best round %d (best.pt): %s", best["round"], best)
     results = {

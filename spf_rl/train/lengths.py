@@ -33,10 +33,11 @@ from envs.follow import default_max_steps
 from envs.house_grid import check_demo_length
 from spf_rl.data import DatasetConfig, EpisodeDataset
 from spf_rl.device import DEFAULT_DEVICE, check_device
-from spf_rl.evaluation import EvalConfig, evaluate_lengths
+from spf_rl.evaluation import EvalConfig, evaluate_lengths, length_eval_config
 from spf_rl.modules.policy import SPFPolicy
 from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
 from spf_rl.modules.views import model_memory_bytes, policy_for_length
+from spf_rl.records_cache import length_test_episodes_file, records_key, write_records
 from spf_rl.train.bc import bc_loss, check_pointer_labels, default_test_config, default_val_config
 from spf_rl.train.run import OptimConfig, TrainingRun, run_on_device, run_results, start_run
 
@@ -190,7 +191,10 @@ def _train_mixed(config: MixedLengthConfig, device: torch.device) -> dict:
         **run_results(config, time.time() - start_time),
     }
     atomic_write_json(output / "results.json", results, default=str)
-    atomic_write_json(output / "test_episodes.json", {"episodes_by_length": records}, default=str)
+    for length in config.lengths:  # one records file per length, keyed by that length's view of the weights
+        test_config = length_eval_config(config.test, length, policy_config.image_size[0])
+        write_records(output / length_test_episodes_file(length), records_key(test_config, policy_for_length(policy, length)),
+                      records[length], checkpoint=str(run.best_path))
     from spf_rl.viz import plot_if_available, plot_success_by_length, plot_training_curves
 
     plot_if_available(plot_training_curves, run.history, output / "training_curves.png", title=f"BC {model_type}, mixed lengths")
