@@ -16,8 +16,9 @@ Every checkpoint :func:`save_checkpoint` writes carries the SHA-256 of its own c
 (:data:`CHECKSUM_KEY`, :func:`content_sha256`: every tensor's dtype, shape and bytes and every
 other value, in a fixed order), and :func:`load_checkpoint` refuses a file whose content no
 longer matches it, wherever the file lives: a flipped byte in the weights is an error that
-names the file, not a silently different policy. Files written before the checksum existed
-load as before (the shipped ones are checked against ``checkpoints/manifest.json``).
+names the file, not a silently different policy. A file written before the checksum existed is
+accepted where its bytes are a shipped file's (``known_file_sha256``: the manifest's hashes, so a copy of a
+shipped checkpoint anywhere is checked too); any other such file loads with a warning that names it.
 """
 from __future__ import annotations
 
@@ -27,6 +28,7 @@ import logging
 import os
 from dataclasses import asdict
 from pathlib import Path
+from collections.abc import Container
 from typing import Any
 
 import torch
@@ -111,6 +113,15 @@ def content_sha256(value: Any) -> str:
     return digest.hexdigest()
 
 
+def file_sha256(path: str | os.PathLike) -> str:
+    """The SHA-256 of a file's bytes, as hex (the shipped manifest lists each file's)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
 def _feed(digest: Any, value: Any) -> None:
     if isinstance(value, torch.Tensor):
         tensor = value.detach().cpu().contiguous()
@@ -161,14 +172,21 @@ def load_checkpoint(
     path: str | os.PathLike,
     expected_model_type: str | None = None,
     map_location: str | torch.device = "cpu",
+    known_file_sha256: Container[str] = (),
 ) -> dict[str, Any]:
     """Load a checkpoint with ``weights_only=True`` and check its header.
+
+    A file with an embedded checksum (:data:`CHECKSUM_KEY`, every file :func:`save_checkpoint` writes) is
+    verified against it. A file from before checksums existed is accepted as it is where its SHA-256 is one
+    of ``known_file_sha256`` (the shipped manifest's, :mod:`spf_rl.hub`: a copy of a shipped file anywhere);
+    any other such file loads with a warning that names it: it cannot be verified.
 
     Args:
         path: the checkpoint file.
         expected_model_type: if given, refuse a checkpoint of another model type.
         map_location: the device its tensors are loaded onto (the CPU by default;
             ``module.load_state_dict`` copies them to the module's device anyway).
+        known_file_sha256: SHA-256s of files known to be intact, for files without a checksum.
 
     Returns:
         the payload, with ``model_config`` turned back into an :class:`SPFConfig`.
@@ -188,7 +206,9 @@ def load_checkpoint(
         raise CheckpointError(f"checkpoint {path} has an unknown format (expected version {CHECKPOINT_FORMAT_VERSION}).")
     stored = payload.pop(CHECKSUM_KEY, None)
     if stored is None:
-        logger.debug("checkpoint %s carries no checksum (written before checkpoints had one)", path)
+        if file_sha256(path) not in known_file_sha256:
+            logger.warning("checkpoint %s carries no checksum (written before checkpoints had one) and is no shipped "
+                           "file: it cannot be verified", path)
     elif content_sha256(payload) != stored:
         raise CheckpointError(
             f"checkpoint {path} is damaged: its content no longer matches the SHA-256 written into it "

@@ -17,7 +17,6 @@ Examples:
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 from pathlib import Path
@@ -26,7 +25,7 @@ from typing import Any, NamedTuple
 import torch
 
 from envs.atomic_io import atomic_write_json
-from spf_rl.checkpoint import CheckpointError, load_checkpoint
+from spf_rl.checkpoint import CheckpointError, file_sha256, load_checkpoint
 from spf_rl.device import resolve_device
 from spf_rl.modules.policy import SPFConfig, SPFPolicy
 from spf_rl.modules.registry import build_policy
@@ -65,15 +64,6 @@ def checkpoint_dir() -> Path:
             "path of a checkpoint file."
         )
     return CHECKPOINT_DIR
-
-
-def file_sha256(path: str | os.PathLike) -> str:
-    """The SHA-256 of a file's bytes, as hex."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def read_manifest(directory: str | os.PathLike | None = None) -> dict[str, dict[str, str]]:
@@ -129,6 +119,16 @@ def verify_checkpoint_file(path: str | os.PathLike, directory: str | os.PathLike
             f"{path} differs from {MANIFEST_NAME} (sha256 {actual[:12]}..., listed {expected[:12]}...): "
             "restore it (git checkout -- checkpoints) or list it again with write_manifest."
         )
+
+
+def shipped_file_sha256() -> frozenset[str]:
+    """The SHA-256 of every shipped file (the manifest's; none where no checkpoints are shipped here): a file
+    without an embedded checksum that is one of these is intact, wherever it lies
+    (:func:`~spf_rl.checkpoint.load_checkpoint`)."""
+    try:
+        return frozenset(read_manifest()["files"].values())
+    except FileNotFoundError:
+        return frozenset()
 
 
 def list_checkpoints() -> list[str]:
@@ -205,7 +205,9 @@ def policy_from_checkpoint(
     """
     device = resolve_device(device)
     verify_checkpoint_file(path)
-    payload = load_checkpoint(path, expected_model_type=expected_model_type, map_location=device)
+    payload = load_checkpoint(path, expected_model_type=expected_model_type, map_location=device,
+                              known_file_sha256=shipped_file_sha256())
+
     def refused(err: Exception) -> CheckpointError:  # on one line: load_state_dict lists the keys over many
         reason = " ".join(line.strip() for line in str(err).splitlines() if line.strip())
         return CheckpointError(f"checkpoint {path} does not load into its {payload['model_type']!r} model ({type(err).__name__}: {reason}).")

@@ -91,10 +91,31 @@ def test_a_byte_flipped_in_the_weights_of_a_file_anywhere_is_refused(tmp_path):
         spf_rl.load_policy(path)
 
 
-def test_a_checkpoint_without_a_checksum_still_loads(tmp_path):
+def test_a_checkpoint_without_a_checksum_still_loads_with_a_warning_unless_it_is_a_known_file(tmp_path, caplog):
+    from spf_rl.checkpoint import file_sha256
+
     path = tmp_path / "old.pt"
     save_checkpoint(path, "spf", CONFIG, {"model": build_policy("spf", CONFIG).state_dict()})
     raw = torch.load(path, weights_only=True)
     raw.pop(CHECKSUM_KEY)
     torch.save(raw, path)  # as written before checkpoints carried one
-    assert load_checkpoint(path)["model_config"] == CONFIG
+    with caplog.at_level("WARNING", logger="spf_rl.checkpoint"):
+        assert load_checkpoint(path)["model_config"] == CONFIG
+    assert f"checkpoint {path} carries no checksum" in caplog.text and "cannot be verified" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="spf_rl.checkpoint"):
+        assert load_checkpoint(path, known_file_sha256={file_sha256(path)})["model_config"] == CONFIG
+    assert caplog.text == ""  # the bytes of a shipped file: intact wherever it lies
+
+
+def test_a_copy_of_a_shipped_file_loads_by_path_without_a_warning(tmp_path, caplog):
+    import shutil
+
+    import spf_rl
+    from spf_rl.hub import checked_checkpoint
+
+    copy = tmp_path / "copied.pt"
+    shutil.copy(checked_checkpoint("spf-s0.8"), copy)
+    with caplog.at_level("WARNING", logger="spf_rl.checkpoint"):
+        spf_rl.load_policy(copy)
+    assert "cannot be verified" not in caplog.text

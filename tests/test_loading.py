@@ -8,7 +8,7 @@ import torch
 
 import spf_rl
 from spf_rl import hub
-from spf_rl.checkpoint import CheckpointError, save_checkpoint
+from spf_rl.checkpoint import CheckpointError, file_sha256, save_checkpoint
 from spf_rl.modules.policy import SPFConfig, SPFPolicy
 from spf_rl.modules.registry import build_policy
 
@@ -122,7 +122,7 @@ def test_the_manifest_lists_every_shipped_file_once_with_its_hash():
     on_disk = {path.relative_to(hub.CHECKPOINT_DIR).as_posix() for path in hub.CHECKPOINT_DIR.rglob("*.pt")}
     assert set(manifest["files"]) == on_disk
     for relative, digest in manifest["files"].items():
-        assert hub.file_sha256(hub.CHECKPOINT_DIR / relative) == digest, relative
+        assert file_sha256(hub.CHECKPOINT_DIR / relative) == digest, relative
     hashes = list(manifest["files"].values())
     assert len(set(hashes)) == len(hashes)  # each file's bytes are stored once
     assert set(manifest["names"].values()) <= set(manifest["files"])

@@ -287,7 +287,8 @@ def test_a_finished_run_replaces_an_earlier_runs_file_and_ships_once_every_seed_
     (run / "results.json").write_text(json.dumps({"val_best": {"success": 0.9, "spl": 0.9, "epoch": 30}, "machine_this_run": machine}))
     row = table1_rows.ROW_BY_NAME["spf-s0.4"]
     assert table1_rows.keep_run(checkpoints, "spf-s0.4", 0, run, "val_best") == (0.9, 0.9)
-    from spf_rl.hub import file_sha256, read_manifest
+    from spf_rl.checkpoint import file_sha256
+    from spf_rl.hub import read_manifest
 
     manifest = read_manifest(checkpoints)  # lists the copy's hash at once, shipping nothing new
     assert manifest["files"]["table1/spf-s0.4-seed0.pt"] == file_sha256(run / "best.pt")

@@ -63,7 +63,7 @@ from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.data import DatasetConfig, EpisodeDataset, demos_root, step_keys
 from spf_rl.device import DEFAULT_DEVICE, check_device, exact_float32, module_device, torch_threads_kept
 from spf_rl.evaluation import EvalConfig, FramesFromStore, evaluate_policy, summarize_episodes
-from spf_rl.hub import DEFAULT_START_CHECKPOINT, checked_checkpoint
+from spf_rl.hub import DEFAULT_START_CHECKPOINT, checked_checkpoint, shipped_file_sha256
 from spf_rl.modules.registry import build_policy
 from spf_rl.records_cache import TEST_EPISODES_FILE, read_records, records_key, write_records
 from spf_rl.train.bc import bc_loss, check_pointer_labels, default_test_config, default_val_config
@@ -291,7 +291,7 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
     last_path, best_path = output / "last.pt", output / "best.pt"
     # a resumed run needs only its own state (last.pt, learners/), not the starting checkpoint
     start_path = None if last_path.exists() else checked_checkpoint(config.checkpoint)
-    payload = load_checkpoint(last_path if start_path is None else start_path)
+    payload = load_checkpoint(last_path if start_path is None else start_path, known_file_sha256=shipped_file_sha256())
     model_type, policy_config = payload["model_type"], payload["model_config"]
     env = config.env
     if (policy_config.demo_length, policy_config.image_size) != (env.episodes.demo_length, (env.episodes.image_size,) * 2):

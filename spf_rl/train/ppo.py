@@ -63,7 +63,7 @@ from envs.atomic_io import atomic_write_json
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
 from spf_rl.device import autocast, exact_float32
 from spf_rl.evaluation import FramesFromStore, evaluate_policy, frames_lookup
-from spf_rl.hub import checked_checkpoint
+from spf_rl.hub import checked_checkpoint, shipped_file_sha256
 from spf_rl.modules.registry import build_policy
 from spf_rl.train.collection import collection_device, make_collector
 from spf_rl.train.ppo_config import PPO_RESUME_FREE, PPOConfig, checked_env_config, training_demo_store
@@ -134,7 +134,7 @@ class _PPORun:
         write_run_config(self.output, config, free=PPO_RESUME_FREE)  # a resume under other settings fails here
         self.last_path, self.best_path = self.output / "last.pt", self.output / "best.pt"
 
-        payload = load_checkpoint(checked_checkpoint(config.checkpoint))
+        payload = load_checkpoint(checked_checkpoint(config.checkpoint), known_file_sha256=shipped_file_sha256())
         self.model_type, self.policy_config = payload["model_type"], payload["model_config"]
         self.env_config = checked_env_config(config, self.policy_config)
         self.val_config, self.test_config = config.val, config.test
