@@ -26,9 +26,9 @@ import hashlib
 import json
 import logging
 import os
+from collections.abc import Container
 from dataclasses import asdict
 from pathlib import Path
-from collections.abc import Container
 from typing import Any
 
 import torch

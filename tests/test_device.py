@@ -298,7 +298,7 @@ def test_ppo_puts_policy_value_head_reference_and_collector_on_the_device(tmp_pa
     run = ppo._PPORun(config)
     assert module_devices(run.policy, run.actor, run.critic, run.reference) == {"meta"}
     assert losses[0]["device"] == META
-    optimised = [p for opt in (run.policy_optimizer, run.critic_optimizer) for group in opt.param_groups for p in group["params"]]
+    optimised = [p for opt in run.loop.optimizers.values() for group in opt.param_groups for p in group["params"]]
     assert {p.device.type for p in optimised} == {"meta"}
     with pytest.raises(Stop):
         run._train(None)

@@ -11,7 +11,6 @@ import pytest
 import table1
 
 from spf_rl.config import load_config
-from spf_rl.eval import table1 as table1_report
 from spf_rl.eval import table1_rows
 from spf_rl.eval.table1 import CACHED_FIELDS, build_table
 from spf_rl.hub import read_manifest, write_manifest

@@ -10,7 +10,6 @@ are cached with :mod:`spf_rl.records_cache`.
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass

@@ -49,10 +49,8 @@ import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from torch.nn.parallel import DistributedDataParallel
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.record.loggers import get_logger
-from tqdm.auto import tqdm
 
 from envs.atomic_io import atomic_write_json
 from envs.demo_store import DemoStore
@@ -77,8 +75,8 @@ from spf_rl.train.dagger_rounds import (
     source_rows,
     training_sources,
 )
-from spf_rl.train.distributed import Ranks, backward_on_shard, barrier, batch_mean, init_distributed, shard_indices
-from spf_rl.train.run import OptimConfig, run_results, trim_csv_logs
+from spf_rl.train.distributed import Ranks, barrier, init_distributed, shard_indices
+from spf_rl.train.run import OptimConfig, TrainingRun, run_results, trim_csv_logs
 from spf_rl.train.run_config import DAGGER_RESUME_FREE, write_run_config
 from spf_rl.viz import plot_if_available, pyplot, write_figure
 
@@ -302,18 +300,10 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
     policy = build_policy(model_type, policy_config).to(device)
     policy.load_state_dict(payload["model"])
     logger.info("DAgger on %s%s", device, " with bf16 autocast for retraining" if config.optim.amp else "")
-    optimizer = torch.optim.Adam(policy.parameters(), lr=config.optim.lr, weight_decay=config.optim.weight_decay)
-    trained = DistributedDataParallel(policy, device_ids=[device] if device.type == "cuda" else None) if ranks.distributed else policy
+    run = TrainingRun(output, model_type, policy_config, policy, config.optim, loss_fn=bc_loss, ranks=ranks, unit="round")
     val_config, test_config = config.val, config.test
-
-    history: list[dict] = []
-    done_rounds = 0
-    if last_path.exists():
-        state = load_checkpoint(last_path, expected_model_type=model_type)
-        policy.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        done_rounds, history = state["round"], state["history"]
-        logger.info("resuming %s after round %d", output, done_rounds)
+    done_rounds = run.resume()
+    history = run.history
 
     bc_data = None
     if config.aggregate_bc_data:
@@ -346,7 +336,8 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
         logger.info("round 0: the test of %s on these episodes is in %s: reused", start_path, start_path.parent / TEST_EPISODES_FILE)
         return summarize_episodes(reused), reused
 
-    def score(round_index: int, extra: dict) -> dict:
+    def score(round_index: int, extra: dict) -> tuple[dict, dict]:
+        """The round's record and its validation summary."""
         val, _ = evaluate_policy(policy, val_config)
         record = {"round": round_index, **extra, "val_success": val["success"], "val_spl": val["spl"]}
         if config.test_every_round or round_index in (0, config.rounds):
@@ -361,16 +352,13 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
             for key, value in record.items():
                 if isinstance(value, float):
                     run_logger.log_scalar(f"round/{key}", value, step=round_index)
-        return record
+        return record, val
 
-    def save(round_index: int) -> None:
+    def end_round(round_index: int, record: dict, val: dict) -> None:
+        """The round's record, ``best.pt`` and its test records if it is the best so far, ``last.pt``, its learner."""
+        if run.end_period(round_index, record, val):
+            keep_test_records(round_index)
         save_checkpoint(learner_path(output, round_index), model_type, policy_config, {"model": policy.state_dict()})
-        save_checkpoint(
-            last_path,
-            model_type,
-            policy_config,
-            {"model": policy.state_dict(), "optimizer": optimizer.state_dict(), "round": round_index, "history": history},
-        )
         if config.window_rounds is not None:  # a resume after this round collects at most its window again
             for old in range(round_index - config.window_rounds):
                 learner_path(output, old).unlink(missing_ok=True)
@@ -403,10 +391,7 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
         collect_missing_window(done_rounds)
     if done_rounds == 0 and not history and ranks.is_main:
         bc_count = len(bc_data) if bc_data is not None else 0
-        history.append(score(0, {"beta": None, "training_episodes": bc_count}))
-        save_checkpoint(best_path, model_type, policy_config, {"model": policy.state_dict(), "round": 0})
-        keep_test_records(0)
-        save(0)
+        end_round(0, *score(0, {"beta": None, "training_episodes": bc_count}))
     barrier(ranks)
 
     for round_index in range(done_rounds + 1, config.rounds + 1):
@@ -421,22 +406,17 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
         collected = {"beta": beta, **behaviour_statistics(episodes)}
         sources = training_sources(bc_data, output, round_index, config.window_rounds)
         collected["training_episodes"] = sum(len(source) for source in sources)
-        collected.update(_train_round(trained, optimizer, sources, config, round_index, ranks))
+        collected.update(_train_round(run, sources, config, round_index, ranks))
         if ranks.is_main:
-            history.append(score(round_index, collected))
-            best = max(history, key=lambda r: (r["val_success"], r["val_spl"]))
-            if best["round"] == round_index:
-                save_checkpoint(best_path, model_type, policy_config, {"model": policy.state_dict(), "round": round_index})
-                keep_test_records(round_index)
-            save(round_index)
+            end_round(round_index, *score(round_index, collected))
         else:
-            history.append({"round": round_index, **collected})
+            run.end_period(round_index, {"round": round_index, **collected}, None)
         barrier(ranks)  # the other ranks wait for rank 0's validation and checkpoints
 
     if not ranks.is_main:
         return {"rank": ranks.rank, "history": history}
 
-    best = max(history, key=lambda r: (r["val_success"], r["val_spl"]))
+    best = next(record for record in history if record["round"] == run.best["round"])
     if "test_success" not in best or _test_episodes_round(output) != best["round"]:  # the shipped checkpoint's own test
         shipped = load_checkpoint(best_path, expected_model_type=model_type)
         if shipped["round"] != best["round"]:
@@ -529,25 +509,22 @@ def _play_round(
 
 
 def _train_round(
-    policy,
-    optimizer,
+    run: TrainingRun,
     sources: list[EpisodeDataset | RoundStore],
     config: DAggerConfig,
     round_index: int,
     ranks: Ranks = Ranks(),
 ) -> dict[str, float | int]:
-    """Retrain on ``sources``: ``steps_per_round`` steps (or ``epochs_per_round`` passes) of
-    batches drawn without replacement, pass after pass, in an order fixed by the seed and round.
+    """Retrain on ``sources`` (:meth:`~spf_rl.train.run.TrainingRun.train_epoch`): ``steps_per_round`` steps
+    (or ``epochs_per_round`` passes) of batches drawn without replacement, pass after pass, in an order fixed
+    by the seed and round; each step's random draws from :func:`retraining_seed`.
 
-    In a data-parallel run ``policy`` is the DistributedDataParallel module, and each rank
-    trains on its shard of every batch (:mod:`spf_rl.train.distributed`).
+    In a data-parallel run each rank trains on its shard of every batch (:mod:`spf_rl.train.distributed`).
 
     Returns:
         ``train_loss`` (the mean over whole batches), ``gradient_steps`` and, with
         ``optim.pointer_coef`` > 0, ``train_pointer_loss`` (the pointer loss's mean, before its weight).
     """
-    policy.train()
-    device = next(policy.parameters()).device
     sizes = torch.tensor([len(source) for source in sources])
     offsets = torch.cumsum(sizes, 0)
     total, batch_size = int(offsets[-1]), config.optim.batch_size
@@ -555,31 +532,23 @@ def _train_round(
     generator = torch.Generator().manual_seed(config.seed * 100_003 + round_index * 101)
     passes = -(-steps * batch_size // total)
     order = torch.cat([torch.randperm(total, generator=generator) for _ in range(passes)])
-    losses, pointer_losses = [], []
-    bar = tqdm(range(steps), desc=f"round {round_index} retraining", disable=not config.progress)
-    for step in bar:
-        rows = shard_indices(order[step * batch_size : (step + 1) * batch_size], ranks)
-        source_of_row = torch.searchsorted(offsets, rows, right=True)
-        parts = [
-            source_rows(sources[k], rows[source_of_row == k] - (offsets[k] - sizes[k]))
-            for k in source_of_row.unique().tolist()
-        ]
-        batch = torch.cat(parts, 0)
-        parts: dict[str, float] = {}
-        with torch.random.fork_rng(devices=[]):  # a random-sparsity model's draws: from the seed, round and step alone
-            torch.manual_seed(retraining_seed(config, round_index, step))
-            loss, accuracy = bc_loss(policy, batch, amp=config.optim.amp, pointer_coef=config.optim.pointer_coef, parts=parts)
-        optimizer.zero_grad(set_to_none=True)
-        loss_value, _ = backward_on_shard(loss, accuracy, batch, ranks, device)
-        torch.nn.utils.clip_grad_norm_(policy.parameters(), config.optim.max_grad_norm)
-        optimizer.step()
-        losses.append(loss_value)
-        if "pointer" in parts:
-            pointer_losses.append(batch_mean(parts["pointer"], batch, ranks, device))
-        bar.set_postfix(loss=f"{losses[-1]:.3f}")
+
+    def batches():
+        for step in range(steps):
+            rows = shard_indices(order[step * batch_size : (step + 1) * batch_size], ranks)
+            source_of_row = torch.searchsorted(offsets, rows, right=True)
+            yield torch.cat([
+                source_rows(sources[k], rows[source_of_row == k] - (offsets[k] - sizes[k]))
+                for k in source_of_row.unique().tolist()
+            ], 0)
+
+    losses, _, _ = run.train_epoch(
+        batches(), steps, f"round {round_index} retraining", config.progress,
+        seed_of_step=lambda step: retraining_seed(config, round_index, step),
+    )
     trained = {"train_loss": float(sum(losses) / len(losses)), "gradient_steps": steps}
-    if pointer_losses:
-        trained["train_pointer_loss"] = float(sum(pointer_losses) / len(pointer_losses))
+    if run.pointer_losses:
+        trained["train_pointer_loss"] = float(sum(run.pointer_losses) / len(run.pointer_losses))
     return trained
 
 

@@ -53,14 +53,13 @@ from pathlib import Path
 
 import torch
 from tensordict import TensorDictBase
-from torch import nn
 from torchrl.modules import set_recurrent_mode
 from torchrl.objectives.value import GAE
 from torchrl.record.loggers import get_logger
 from tqdm.auto import tqdm
 
 from envs.atomic_io import atomic_write_json
-from spf_rl.checkpoint import load_checkpoint, save_checkpoint
+from spf_rl.checkpoint import load_checkpoint
 from spf_rl.device import autocast, exact_float32
 from spf_rl.evaluation import FramesFromStore, evaluate_policy, frames_lookup
 from spf_rl.hub import checked_checkpoint, shipped_file_sha256
@@ -79,7 +78,7 @@ from spf_rl.train.ppo_loss import (
     episode_statistics,
     make_ppo_modules,
 )
-from spf_rl.train.run import run_results
+from spf_rl.train.run import OptimConfig, TrainingRun, run_results
 from spf_rl.train.run_config import write_run_config
 from spf_rl.viz import plot_if_available, pyplot, write_figure
 
@@ -163,12 +162,18 @@ class _PPORun:
         self.demo_store = training_demo_store(config, self.env_config)  # frames looked up where segments start:
         self.frames_lookup = frames_lookup(self.policy, self.demo_store)  # every row starts one
         self.advantage_module = GAE(gamma=config.gamma, lmbda=config.lmbda, value_network=None, average_gae=False)
-        self.policy_optimizer = torch.optim.Adam(self.policy.parameters(), lr=config.lr)
-        self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=config.critic_lr)
         self.layout = {"frames_per_batch": config.frames_per_batch, "rows_per_batch": config.rows_per_batch}
+        # the one training loop's state: two optimisers (no schedule), last.pt and best.pt with the value head
+        self.loop = TrainingRun(
+            self.output, self.model_type, self.policy_config, self.policy,
+            OptimConfig(lr=config.lr, max_grad_norm=config.max_grad_norm, cosine_schedule=False, amp=config.amp),
+            unit="iteration",
+            optimizers={"policy_optimizer": (self.policy.parameters(), config.lr, 0.0),
+                        "critic_optimizer": (self.critic.parameters(), config.critic_lr, 0.0)},
+            modules={"value_head": self.critic.module},
+        )
+        self.history = self.loop.history
         self.iteration = 0
-        self.history: list[dict] = []
-        self.best: dict = {}
         self.start: dict = {}
 
     # ------------------------------------------------------------------ the run
@@ -183,19 +188,15 @@ class _PPORun:
         return self._finish(time.time() - start_time)
 
     def _resume(self) -> None:
-        state = load_checkpoint(self.last_path, expected_model_type=self.model_type)
-        if state.get("layout") != self.layout:
-            raise ValueError(
-                f"{self.last_path} was written with {state.get('layout')}, this config has {self.layout}: "
-                f"frames_per_batch and the collector's agents must not change on resume (or use a new output_dir)."
-            )
-        self.policy.load_state_dict(state["model"])
-        self.critic.module.load_state_dict(state["value_head"])
-        self.policy_optimizer.load_state_dict(state["policy_optimizer"])
-        self.critic_optimizer.load_state_dict(state["critic_optimizer"])
-        self.iteration, self.history, self.best, self.start = state["iteration"], state["history"], state["best"], state["start"]
-        torch.set_rng_state(state["torch_rng"])
-        logger.info("resuming %s after iteration %d", self.output, self.iteration)
+        def same_layout(state: dict) -> None:
+            if state.get("layout") != self.layout:
+                raise ValueError(
+                    f"{self.last_path} was written with {state.get('layout')}, this config has {self.layout}: "
+                    f"frames_per_batch and the collector's agents must not change on resume (or use a new output_dir)."
+                )
+
+        self.iteration = self.loop.resume(check=same_layout, state_keys=("start", "layout"))
+        self.history, self.start = self.loop.history, self.loop.state["start"]
 
     def _evaluate_start(self) -> None:
         logger.info("evaluating the start policy %s on val and test", self.config.checkpoint)
@@ -203,9 +204,9 @@ class _PPORun:
         test, _ = evaluate_policy(self.policy, self.test_config, progress=self.config.progress)
         self.start = {"val": val, "test": test}
         logger.info("start: val success %.3f, test success %.3f", val["success"], test["success"])
-        self.best = {"iteration": 0, "success": val["success"], "spl": val["spl"]}
-        self._save_best(val)
-        self._save_last()
+        self.loop.state = {"start": self.start, "layout": self.layout}
+        self.loop.keep_if_best(0, val)
+        self.loop.save_last(0)
 
     def _train(self, callback: Callable[[dict], None] | None) -> None:
         config = self.config
@@ -241,10 +242,9 @@ class _PPORun:
                     collect_seconds=collect_seconds,
                     update_seconds=time.time() - update_start,
                 )
-                if self.iteration % config.val_every == 0 or self.iteration == num_iterations:
-                    self._validate(record)
-                self.history.append(record)
-                self._save_last()
+                validate = self.iteration % config.val_every == 0 or self.iteration == num_iterations
+                val = self._validate(record) if validate else None
+                self.loop.end_period(self.iteration, record, val)  # history, best.pt, last.pt
                 self._log(record, run_logger)
                 bar.update(1)
                 bar.set_postfix(reward=f"{record['reward_per_step']:.3f}", success=f"{record['success']:.2f}")
@@ -283,8 +283,8 @@ class _PPORun:
             order = torch.randperm(train_td.shape[0], generator=generator)
             for rows in order.split(config.minibatch_rows):
                 minibatch = train_td[rows]
-                self.policy_optimizer.zero_grad(set_to_none=True)
-                self.critic_optimizer.zero_grad(set_to_none=True)
+                for optimizer in self.loop.optimizers.values():
+                    optimizer.zero_grad(set_to_none=True)
                 with autocast(self.device, config.amp):
                     if warmup:  # fit the new value head on the collected features; the policy is left as it is
                         loss_critic, _, explained = self.loss_module.loss_critic(minibatch)
@@ -299,18 +299,13 @@ class _PPORun:
                         if log_ratio_first is None:
                             log_ratio_first = float(metrics["max_abs_log_ratio"])
                 total.backward()
-                critic_norm = nn.utils.clip_grad_norm_(self.critic.parameters(), config.max_grad_norm)
-                policy_norm = (
-                    nn.utils.clip_grad_norm_(policy.parameters(), config.max_grad_norm) if not warmup else critic_norm
-                )
-                if not (torch.isfinite(total) and torch.isfinite(critic_norm) and torch.isfinite(policy_norm)):
-                    # one bad minibatch must not turn the weights into NaN: skip its step, count it
+                # clipped, then stepped unless a loss or gradient is not finite (one bad minibatch must not turn
+                # the weights into NaN: its step is skipped and counted); in the warm-up the policy is left alone
+                stepped = ("critic_optimizer",) if warmup else ("critic_optimizer", "policy_optimizer")
+                if not self.loop.apply_gradients(stepped, total):
                     skipped += 1
                     logger.warning("iteration %d: non-finite loss or gradient, update skipped", self.iteration + 1)
                     continue
-                self.critic_optimizer.step()
-                if not warmup:
-                    self.policy_optimizer.step()
                 for key, value in metrics.items():
                     if value.numel() == 1:
                         sums[key] = sums.get(key, 0.0) + float(value)
@@ -329,13 +324,12 @@ class _PPORun:
                 )
         return record
 
-    def _validate(self, record: dict) -> None:
+    def _validate(self, record: dict) -> dict:
+        """The policy's validation summary, its scores and time also in ``record``."""
         start = time.time()
         val, _ = evaluate_policy(self.policy, self.val_config, progress=False)
         record.update(val_success=val["success"], val_spl=val["spl"], val_seconds=time.time() - start)
-        if (val["success"], val["spl"]) > (self.best["success"], self.best["spl"]):
-            self.best = {"iteration": self.iteration, "success": val["success"], "spl": val["spl"]}
-            self._save_best(val)
+        return val
 
     def _log(self, record: dict, run_logger) -> None:
         if run_logger is not None:
@@ -380,36 +374,6 @@ class _PPORun:
             plot_ppo, val_history, start, self.output / "ppo.png", title=f"PPO from {Path(self.config.checkpoint).name}"
         )
         return results
-
-    # ------------------------------------------------------------------ checkpoints
-    def _save_best(self, val: dict) -> None:
-        """``best.pt``: the policy (same model type as the start) and value head, with its val scores."""
-        save_checkpoint(
-            self.best_path,
-            self.model_type,
-            self.policy_config,
-            {"model": self.policy.state_dict(), "value_head": self.critic.module.state_dict(), "iteration": self.iteration, "val": val},
-        )
-
-    def _save_last(self) -> None:
-        """``last.pt``: everything a resumed run needs (atomic)."""
-        save_checkpoint(
-            self.last_path,
-            self.model_type,
-            self.policy_config,
-            {
-                "model": self.policy.state_dict(),
-                "value_head": self.critic.module.state_dict(),
-                "policy_optimizer": self.policy_optimizer.state_dict(),
-                "critic_optimizer": self.critic_optimizer.state_dict(),
-                "iteration": self.iteration,
-                "history": self.history,
-                "best": self.best,
-                "start": self.start,
-                "layout": self.layout,
-                "torch_rng": torch.get_rng_state(),
-            },
-        )
 
 
 def plot_ppo(val_history: list[dict], start: dict, path: str | Path, title: str = "PPO") -> Path:
