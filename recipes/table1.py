@@ -37,7 +37,7 @@ part of the table (``--rows``, ``--seeds`` or ``--sets`` leaving some out) goes 
 (or ``--out``), so that it never overwrites the whole table. The table holds:
 mean +- sd over seeds, house-level bootstrap intervals, paired bootstrap tests of the ordering claims
 (:data:`~spf_rl.eval.table1_rows.CLAIMS`), both success criteria, and each checkpoint's pointer pace (its
-pointer's mean step on 64 validation episodes, teacher-forced: :mod:`spf_rl.eval.pointer_pace`); a line with a seed
+pointer's mean step on 64 validation episodes, teacher-forced: :mod:`spf_rl.pointer_pace`); a line with a seed
 whose pointer runs backwards is marked.
 
 Usage::

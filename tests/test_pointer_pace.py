@@ -1,4 +1,4 @@
-"""Tests for spf_rl.eval.pointer_pace and how Table 1 reports it: the pointer's mean increment per step,
+"""Tests for spf_rl.pointer_pace and how Table 1 reports it: the pointer's mean increment per step,
 teacher-forced, for both pointer rules; the table's per-seed paces and the mark of a pointer that runs backwards."""
 from __future__ import annotations
 
@@ -13,9 +13,9 @@ from spf_rl.checkpoint import save_checkpoint
 from spf_rl.data import DatasetConfig, empty_training_episodes
 from spf_rl.eval import table1 as table1_report
 from spf_rl.eval import table1_rows
-from spf_rl.eval.pointer_pace import BACKWARD_PACE, pointer_pace
 from spf_rl.modules import OpenLoopPolicy
 from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
+from spf_rl.pointer_pace import BACKWARD_PACE, pointer_pace
 
 N = 6
 

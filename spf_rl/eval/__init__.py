@@ -10,8 +10,6 @@
   (``recipes/paired.py``);
 * :mod:`spf_rl.eval.picking`: how well validation picks checkpoints (``recipes/picking_study.py``);
 * :mod:`spf_rl.eval.scripted`: the expert's and open-loop replay's scores (``recipes/expert_stats.py``).
-* :mod:`spf_rl.eval.pointer_pace`: the pointer's mean step on stored episodes (a pointer that runs
-  backwards; ``recipes/table1.py`` reports it per checkpoint);
 * :mod:`spf_rl.eval.route_bench`: every shipped policy and open-loop replay over route style x
   length (``recipes/route_bench.py``).
 """

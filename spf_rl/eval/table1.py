@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from envs.atomic_io import atomic_write_json, atomic_write_text
-from spf_rl.eval.pointer_pace import BACKWARD_PACE
+from spf_rl.pointer_pace import BACKWARD_PACE
 from spf_rl.stats import hierarchical_bootstrap_ci, paired_bootstrap, seed_summary
 
 logger = logging.getLogger("table1")
@@ -257,7 +257,7 @@ BACKWARD_MARK = "‡"
 #: What ``pointer_pace`` in ``results/table1.json`` is.
 PACE_NOTE = (
     "each seed's checkpoint's mean pointer increment per step (demonstration steps), teacher-forced on the "
-    "validation episodes of `dataset` (spf_rl.eval.pointer_pace); below 0 the pointer runs backwards"
+    "validation episodes of `dataset` (spf_rl.pointer_pace); below 0 the pointer runs backwards"
 )
 
 

@@ -196,12 +196,12 @@ def pace_episodes(overrides: Sequence[str], quick: bool):
 def pointer_paces(
     lines: Sequence[Line], seeds: Sequence[int], checkpoints: Path, overrides: Sequence[str], quick: bool, device: str
 ) -> tuple[dict, dict | None]:
-    """``{checkpoint stem: {seed: pace}}``: :func:`~spf_rl.eval.pointer_pace.pointer_pace` of every per-seed
-    checkpoint there is (a pace below :data:`~spf_rl.eval.pointer_pace.BACKWARD_PACE`: the pointer runs
+    """``{checkpoint stem: {seed: pace}}``: :func:`~spf_rl.pointer_pace.pointer_pace` of every per-seed
+    checkpoint there is (a pace below :data:`~spf_rl.pointer_pace.BACKWARD_PACE`: the pointer runs
     backwards), and what it was measured on (``None`` when there was no checkpoint): the episodes of
     :func:`pace_episodes`, built at the first checkpoint."""
-    from spf_rl.eval.pointer_pace import pointer_pace
     from spf_rl.hub import policy_from_checkpoint
+    from spf_rl.pointer_pace import pointer_pace
 
     paces: dict = {}
     episodes = root = None

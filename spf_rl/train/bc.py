@@ -41,6 +41,7 @@ from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
 from spf_rl.modules.views import episodes_to_sequence, model_memory_bytes
 from spf_rl.records_cache import TEST_EPISODES_FILE, records_key, write_records
 from spf_rl.train.distributed import ShardedSampler, barrier, init_distributed
+from spf_rl.train.pointer_guard import RESTARTS_KEY, PointerGuard, restart_run
 from spf_rl.train.run import OptimConfig, TrainingRun, run_on_device, run_results, start_run, trim_csv_logs
 
 logger = logging.getLogger(__name__)
@@ -237,17 +238,22 @@ def _train_bc(config: BCConfig, device: torch.device) -> dict:
     policy = build_policy(model_type, policy_config).to(device)
     logger.info("training on %s%s", device, " with bf16 autocast" if config.optim.amp else "")
     batches_per_epoch = -(-len(dataset) // config.optim.batch_size)
-    run = TrainingRun(
-        output, model_type, policy_config, policy, config.optim, batches_per_epoch * config.optim.epochs, config.keep_epochs,
-        loss_fn=bc_loss, ranks=ranks,
-    )
-    start_epoch = run.resume()
+
+    def new_run() -> TrainingRun:
+        return TrainingRun(
+            output, model_type, policy_config, policy, config.optim, batches_per_epoch * config.optim.epochs,
+            config.keep_epochs, loss_fn=bc_loss, ranks=ranks,
+        )
+
+    run = new_run()
+    epoch = run.resume(state_keys=(RESTARTS_KEY,))
     if config.logger and ranks.is_main:
         trim_csv_logs(output / "logs", run.step)
 
     run_logger = get_logger(config.logger, logger_name=str(output / "logs"), experiment_name="bc") if config.logger and ranks.is_main else None
     val_config = config.val
-    for epoch in range(start_epoch, config.optim.epochs):
+    guard = PointerGuard.of(policy, dataset)
+    while epoch < config.optim.epochs:
         sampler = ShardedSampler(ranks) if ranks.distributed else None
         buffer = dataset.replay_buffer(config.optim.batch_size, seed=config.seed * 1000 + epoch, sampler=sampler)
         batches = (buffer.sample() for _ in range(batches_per_epoch))
@@ -256,9 +262,17 @@ def _train_bc(config: BCConfig, device: torch.device) -> dict:
         )
         validate = config.validates_after(epoch + 1) and ranks.is_main
         val = evaluate_policy(policy, val_config, progress=False)[0] if validate else None
-        record = run.end_epoch(epoch, losses, accuracies, train_seconds, val, run_logger)
+        pace = guard.pace(policy) if guard is not None else None  # every rank: the same weights, the same pace
+        record = run.end_epoch(epoch, losses, accuracies, train_seconds, val, run_logger, pointer_pace=pace)
         logger.info("epoch %d: %s", epoch + 1, record)
         barrier(ranks)  # the other ranks wait for rank 0's validation and checkpoints
+        if PointerGuard.collapsed(pace) and (restarted := restart_run(run, new_run, config.seed, epoch + 1, pace)):
+            run, epoch = restarted, 0
+            if config.logger and ranks.is_main:
+                trim_csv_logs(output / "logs", 0)  # the collapsed attempt's rows
+            barrier(ranks)
+            continue
+        epoch += 1
     history, best = run.history, run.best
     if run_logger is not None and hasattr(run_logger, "experiment"):
         run_logger = None
@@ -278,6 +292,7 @@ def _train_bc(config: BCConfig, device: torch.device) -> dict:
         "val_best": best,
         "history": history,
         "dataset": dataset.statistics(),
+        RESTARTS_KEY: run.state.get(RESTARTS_KEY, []),
         **run_results(config, time.time() - start_time),
     }
     atomic_write_json(output / "results.json", results, default=str)

@@ -76,6 +76,7 @@ from spf_rl.train.dagger_rounds import (
     training_sources,
 )
 from spf_rl.train.distributed import Ranks, barrier, init_distributed, shard_indices
+from spf_rl.train.pointer_guard import COLLAPSE_PACE, PointerGuard
 from spf_rl.train.run import OptimConfig, TrainingRun, run_results, trim_csv_logs
 from spf_rl.train.run_config import DAGGER_RESUME_FREE, write_run_config
 from spf_rl.viz import plot_if_available, pyplot, write_figure
@@ -407,9 +408,23 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
         sources = training_sources(bc_data, output, round_index, config.window_rounds)
         collected["training_episodes"] = sum(len(source) for source in sources)
         collected.update(_train_round(run, sources, config, round_index, ranks))
+        # the pointer-collapse guard (every rank: the same weights, the same pace), on the round's own episodes
+        guard = PointerGuard.of(policy, RoundStore.read(round_dir, round_config.collection()))
+        pace = guard.pace(policy) if guard is not None else None
+        if pace is not None:
+            collected["pointer_pace"] = pace
+        collapsed = PointerGuard.collapsed(pace)
         if ranks.is_main:
-            end_round(round_index, *score(round_index, collected))
+            record, val = score(round_index, collected)
+            if collapsed:  # never the best; the next round starts from the best round's weights
+                logger.warning("round %d: pointer collapse (pace %.3f < %g): set aside, back to round %d's weights",
+                               round_index, pace, COLLAPSE_PACE, run.best["round"])
+                record["pointer_collapsed"], val = True, None
+                run.load_best()
+            end_round(round_index, record, val)
         else:
+            if collapsed:
+                run.load_best()
             run.end_period(round_index, {"round": round_index, **collected}, None)
         barrier(ranks)  # the other ranks wait for rank 0's validation and checkpoints
 

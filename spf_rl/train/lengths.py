@@ -39,6 +39,7 @@ from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
 from spf_rl.modules.views import model_memory_bytes, policy_for_length
 from spf_rl.records_cache import length_test_episodes_file, records_key, write_records
 from spf_rl.train.bc import bc_loss, check_pointer_labels, default_test_config, default_val_config
+from spf_rl.train.pointer_guard import RESTARTS_KEY, PointerGuard, restart_run
 from spf_rl.train.run import OptimConfig, TrainingRun, run_on_device, run_results, start_run
 
 logger = logging.getLogger(__name__)
@@ -152,15 +153,21 @@ def _train_mixed(config: MixedLengthConfig, device: torch.device) -> dict:
     views = {length: policy_for_length(policy, length) for length in config.lengths}
     batch_size = config.optim.batch_size
     batches = [-(-len(dataset) // batch_size) for dataset in datasets]
-    run = TrainingRun(
-        output, model_type, policy_config, policy, config.optim, sum(batches) * config.optim.epochs, loss_fn=bc_loss
-    )
-    start_epoch = run.resume()
+
+    def new_run() -> TrainingRun:
+        return TrainingRun(
+            output, model_type, policy_config, policy, config.optim, sum(batches) * config.optim.epochs, loss_fn=bc_loss
+        )
+
+    run = new_run()
+    epoch = run.resume(state_keys=(RESTARTS_KEY,))
 
     def policy_of(batch: TensorDict) -> SPFPolicy:
         return views[batch.get("demo_actions").shape[-1]]
 
-    for epoch in range(start_epoch, config.optim.epochs):
+    first = views[config.lengths[0]]  # the guard watches the pointer on the first length's episodes
+    guard = PointerGuard.of(first, datasets[0])
+    while epoch < config.optim.epochs:
         seed = config.seed * 1000 + epoch
         buffers = [dataset.replay_buffer(batch_size, seed=seed * len(datasets) + i) for i, dataset in enumerate(datasets)]
         order = epoch_schedule(batches, seed)
@@ -170,8 +177,13 @@ def _train_mixed(config: MixedLengthConfig, device: torch.device) -> dict:
         )
         rows, _ = evaluate_lengths(policy, config.lengths, config.val)
         val = mean_over_lengths(rows)
-        record = run.end_epoch(epoch, losses, accuracies, seconds, val)
+        pace = guard.pace(first) if guard is not None else None
+        record = run.end_epoch(epoch, losses, accuracies, seconds, val, pointer_pace=pace)
         logger.info("epoch %d: %s, val by length %s", epoch + 1, record, [round(r["success"], 3) for r in rows])
+        if PointerGuard.collapsed(pace) and (restarted := restart_run(run, new_run, config.seed, epoch + 1, pace)):
+            run, epoch = restarted, 0
+            continue
+        epoch += 1
 
     run.load_best()
     rows, records = evaluate_lengths(policy, config.lengths, config.test, progress=config.progress)
@@ -188,6 +200,7 @@ def _train_mixed(config: MixedLengthConfig, device: torch.device) -> dict:
         "val_best": run.best,
         "history": run.history,
         "datasets": [dataset.statistics() for dataset in datasets],
+        RESTARTS_KEY: run.state.get(RESTARTS_KEY, []),
         **run_results(config, time.time() - start_time),
     }
     atomic_write_json(output / "results.json", results, default=str)

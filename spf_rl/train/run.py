@@ -256,12 +256,14 @@ class TrainingRun:
 
     # ------------------------------------------------------------------ periods and checkpoints
     def end_epoch(
-        self, epoch: int, losses: list, accuracies: list, train_seconds: float, val: dict | None, run_logger=None
+        self, epoch: int, losses: list, accuracies: list, train_seconds: float, val: dict | None, run_logger=None,
+        pointer_pace: float | None = None,
     ) -> dict:
         """Record epoch ``epoch`` (from 0) of a supervised run and end it (:meth:`end_period`); returns its record.
 
         ``val`` is ``None`` for an epoch that was not validated (its record says so with
-        ``None`` scores; it cannot become ``best.pt``).
+        ``None`` scores; it cannot become ``best.pt``). ``pointer_pace``: the pointer's pace after the
+        epoch (:mod:`spf_rl.train.pointer_guard`), logged and kept in the record where measured.
         """
         record = {
             "epoch": epoch + 1,
@@ -274,8 +276,10 @@ class TrainingRun:
         }
         if self.pointer_losses:
             record["train_pointer_loss"] = sum(self.pointer_losses) / len(self.pointer_losses)
+        if pointer_pace is not None:
+            record["pointer_pace"] = pointer_pace
         if run_logger is not None:
-            for key in ("train_accuracy", "train_pointer_loss", "val_success", "val_spl"):
+            for key in ("train_accuracy", "train_pointer_loss", "pointer_pace", "val_success", "val_spl"):
                 if record.get(key) is not None:
                     run_logger.log_scalar(f"epoch/{key}", record[key], step=self.step)
         self.end_period(epoch + 1, record, val)
