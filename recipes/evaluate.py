@@ -12,6 +12,7 @@ Usage::
     python recipes/evaluate.py open_loop --split test
     python recipes/evaluate.py spf_random-s0.2-1 --sparsity 0.6   # one model, any sparsity
     python recipes/evaluate.py routes-spf --demo-length 30        # the same weights on 30-step routes
+    python recipes/evaluate.py exports/spf-s0.8                   # an export (recipes/export.py), run by ONNX Runtime
     python recipes/evaluate.py checkpoints/ --device cpu     # default --device auto: CUDA if available
 
 A shipped name's JSON is named ``checkpoints_<name>-...``, a file's after its path.
@@ -37,8 +38,19 @@ SPLITS = tuple(SPLIT_SEED_OFFSETS)
 def check_target(target: str, model_type: str | None, sparsity: float | None) -> None:
     """Refuse a checkpoint that is missing, unreadable, of another ``--model-type``, or of a fixed
     sparsity with ``--sparsity`` (``ValueError``, one line naming the argument)."""
+    from spf_rl.eval.checkpoints import is_export
     from spf_rl.hub import checkpoint_argument
 
+    if is_export(target):  # an export directory: its files match its manifest, and its model type is the one asked
+        from spf_rl_runtime import Export
+
+        manifest = Export(target).manifest
+        if model_type is not None and manifest["model_type"] != model_type:
+            raise ValueError(f"argument paths: {target} exports a {manifest['model_type']!r} model, not {model_type!r}")
+        if sparsity is not None and manifest["model_type"] != "spf_random":
+            raise ValueError(f"argument --sparsity: applies to random-sparsity models (model type 'spf_random') only; "
+                             f"{target} exports a {manifest['model_type']!r} model")
+        return
     payload = checkpoint_argument(target, "argument paths", model_type=model_type).payload
     config = payload["model_config"]
     if sparsity is not None and config.sparsity_range is None:
@@ -52,7 +64,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     from spf_rl.evaluation import episode_store_root
 
     parser = ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("paths", nargs="+", help="checkpoint files, directories of *.pt, or 'open_loop'")
+    parser.add_argument("paths", nargs="+", help="checkpoint files, directories of *.pt, export directories, or 'open_loop'")
     parser.add_argument("--split", default="test", choices=SPLITS, help="house split (default: test)")
     parser.add_argument("--episodes", type=int, default=500)
     parser.add_argument("--noise", default=DEFAULT_NOISE, choices=sorted(NOISE_PRESETS), help="actuation-noise preset")

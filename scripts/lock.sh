@@ -12,7 +12,7 @@ trap 'rm -rf "$(dirname "$venv")"' EXIT
 python -m venv "$venv"
 pip=("$venv/bin/python" -m pip install --quiet --disable-pip-version-check)
 "${pip[@]}" setuptools wheel
-"${pip[@]}" --no-build-isolation --editable ".[dev,distributed,viz,tensorboard]"
+"${pip[@]}" --no-build-isolation --editable ".[dev,distributed,viz,deploy,tensorboard]"
 {
     echo "# The lock of exact versions that scripts/install.sh installs (pip install -c constraints.txt)."
     echo "# Made by: bash scripts/lock.sh, on $(date -u +%Y-%m-%d), with $("$venv/bin/python" --version)."

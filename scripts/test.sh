@@ -6,9 +6,9 @@
 # Arguments are passed to pytest, e.g. --full-samples (docs/reproducing.md).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/install.sh dev,distributed,viz
+bash scripts/install.sh dev,distributed,viz,deploy
 export MUJOCO_GL="${MUJOCO_GL:-egl}"
 status=0
 python -m ruff check . || status=$?
-python -m pytest --numprocesses auto --doctest-modules tests benchmarks/tests envs spf_rl -q "$@" || status=$?
+python -m pytest --numprocesses auto --doctest-modules tests benchmarks/tests envs spf_rl runtime/spf_rl_runtime -q "$@" || status=$?
 exit "$status"

@@ -90,11 +90,13 @@ CASES = [
          "argument --checkpoint", "missing.pt does not exist"),
     case("route_bench-missing-checkpoint", "route_bench.py", f"--models {MISSING} --out {{out}}/bench.json", "argument --models", "missing.pt"),
     case("teach-missing-checkpoint", "teach.py", f"--actions FFFFFFFFFF --checkpoint {MISSING} --out {{out}}", "--checkpoint", "missing.pt does not exist"),
+    case("export-missing-checkpoint", "export.py", f"{MISSING} --out {{out}}/export", "argument checkpoint", "missing.pt does not exist"),
     case("picking_study-missing-run", "picking_study.py", "{tmp}/missing_run --out {out}", "missing_run has no config.json and last.pt"),
     # the recipes that take neither a config nor a checkpoint
     case("paired-missing-json", "paired.py", "{tmp}/a.json {tmp}/b.json --out {out}/paired.json", "no evaluation JSON", "a.json"),
     case("expert_stats-episodes", "expert_stats.py", "--episodes 0 --output {out}/stats.json", "--episodes must be a positive int"),
     case("route_styles-lengths", "route_styles.py", "--lengths -5 --out {out}/routes.png", "--lengths", "-5"),
+    case("sample_efficiency-lever", "sample_efficiency.py", "--levers faster --out {out}/study.json", "argument --levers", "faster"),
 ]
 
 

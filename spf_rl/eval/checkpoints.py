@@ -78,8 +78,19 @@ class EvalOptions:
     progress: bool = True
 
 
+def is_export(path: str | Path) -> bool:
+    """Whether ``path`` is an export directory (:mod:`spf_rl.export`: a ``manifest.json`` beside ``step.onnx``).
+
+    Examples:
+        >>> is_export("checkpoints")
+        False
+    """
+    return (Path(path) / "manifest.json").is_file() and (Path(path) / "step.onnx").is_file()
+
+
 def expand_targets(paths: Sequence[str]) -> list[str]:
-    """What ``paths`` name: :data:`OPEN_LOOP`, files or shipped names as given, a directory's ``*.pt`` (sorted, recursive).
+    """What ``paths`` name: :data:`OPEN_LOOP`, files, export directories (:func:`is_export`) or shipped names as
+    given, another directory's ``*.pt`` (sorted, recursive).
 
     Raises:
         ValueError: a directory that holds no ``*.pt`` file.
@@ -90,7 +101,7 @@ def expand_targets(paths: Sequence[str]) -> list[str]:
     """
     targets: list[str] = []
     for path in paths:
-        if path != OPEN_LOOP and Path(path).is_dir():
+        if path != OPEN_LOOP and Path(path).is_dir() and not is_export(path):
             found = sorted(str(p) for p in Path(path).rglob("*.pt"))
             if not found:
                 raise ValueError(f"directory {path} holds no *.pt checkpoint")
@@ -152,6 +163,13 @@ def evaluate_checkpoint(target: str, options: EvalOptions) -> dict:
         demo_length = OPEN_LOOP_DEMO_LENGTH if options.demo_length is None else options.demo_length
         policy, model_type, image_size, sparsity = OpenLoopPolicy(), OPEN_LOOP, options.image_size, 0.0
         memory = demo_length
+    elif is_export(target):  # an exported policy, run by ONNX Runtime (the runtime's graphs, the same episodes)
+        from spf_rl.modules.exported import ExportedPolicy
+
+        policy = ExportedPolicy(target, demo_length=options.demo_length, sparsity=options.sparsity)
+        model_type, demo_length, sparsity = policy.export.manifest["model_type"], policy.demo_length, policy.sparsity
+        image_size = policy.export.image_size[0]
+        memory = model_memory_bytes(model_type, demo_length, sparsity, image_size)
     else:
         policy, payload = policy_from_checkpoint(
             resolve_checkpoint(target), expected_model_type=options.model_type, device=options.device

@@ -108,10 +108,13 @@ def memory_indices(n: int, sparsity: float) -> torch.LongTensor:
     """0-based indices ``M*`` of the demonstration frames kept in memory.
 
     ``l = memory_length(n, sparsity)`` indices evenly spaced over ``[0, n - 1]``:
-    ``torch.linspace(0, n - 1, l).round().long()`` (computed in float64, rounding
-    half to even). The first frame (0) is always included and, when ``l > 1``, the
+    ``round(i * (n - 1) / (l - 1))`` for ``i = 0 .. l - 1``, computed exactly in integers and
+    rounded half to even. The first frame (0) is always included and, when ``l > 1``, the
     last frame (``n - 1``) too. The indices are unique and sorted because the
-    spacing ``(n - 1) / (l - 1)`` is at least 1 when ``l <= n``.
+    spacing ``(n - 1) / (l - 1)`` is at least 1 when ``l <= n``. Exact integers make the
+    rule the same on every machine and in the torch-free runtime (``spf_rl_runtime``):
+    ``torch.linspace`` in float64, used before, broke a few exact ties (211 pairs ``(n, l)``
+    with ``n <= 200``, none of them a shipped model's) by its CPU kernel's rounding.
 
     How this differs from the paper (Sec. 4.1): the paper writes, 1-based,
     ``M* = {floor(i * n / (l - 1)) | i = 1..l-1} U {1}``. For ``l = 1`` that divides
@@ -132,10 +135,17 @@ def memory_indices(n: int, sparsity: float) -> torch.LongTensor:
     Examples:
         >>> memory_indices(30, 0.2).tolist()
         [0, 6, 12, 17, 23, 29]
+        >>> memory_indices(26, 0.9).tolist()[11]  # 11 * 25 / 22 = 12.5 exactly: half to even
+        12
     """
     length = memory_length(n, sparsity)
-    idx = torch.linspace(0, n - 1, length, dtype=torch.float64).round().long()
-    return idx
+    if length == 1:
+        return torch.zeros(1, dtype=torch.long)
+    numerator = torch.arange(length, dtype=torch.long) * (n - 1)
+    denominator = length - 1
+    quotient, remainder = numerator // denominator, numerator % denominator
+    up = (2 * remainder > denominator) | ((2 * remainder == denominator) & (quotient % 2 == 1))
+    return quotient + up.long()
 
 
 def memory_mask(n: int, sparsity: float) -> torch.BoolTensor:

@@ -1,0 +1,118 @@
+"""An exported policy (:mod:`spf_rl.export`) run by ONNX Runtime inside the TorchRL world: a TensorDict
+module over a batch of agents, with its recurrent state primed like the eager policy's, so that
+:func:`~spf_rl.evaluation.evaluate_policy` and ``recipes/evaluate.py DIR`` play it through exactly the
+episodes the eager policy plays. It needs the runtime (``pip install ./runtime``, the ``deploy`` extra).
+"""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.data import Unbounded
+from torchrl.envs import TensorDictPrimer
+
+from spf_rl.modules.memory import memory_indices, memory_length
+
+#: The recurrent state an exported policy carries between steps (its primer zeroes it at every reset).
+MEMORY_KEY, SLOTS_KEY, ETA_KEY, HIDDEN_KEY = "exported_memory", "exported_slots", "exported_eta", "exported_hidden"
+
+
+class ExportedPolicy(TensorDictModuleBase):
+    """An export directory as a TorchRL policy: reads ``pixels``, ``demo_frames`` (where ``is_init``),
+    ``demo_actions``, ``is_init`` and, for padded routes, ``demo_steps``; writes ``logits`` and its next state.
+
+    Where ``is_init``, it teaches the row's route (the kept frames of :func:`~spf_rl.modules.memory.memory_indices`
+    at the export's sparsity, or ``sparsity``) and starts the pointer and hidden state at zero, as the eager
+    policy does; then it steps every row through the step graph at once.
+
+    Args:
+        directory: an export directory (``recipes/export.py``).
+        demo_length: the routes' (padded) length the env emits (default: the model's).
+        sparsity: the sparsity a route is taught at (default: the export's).
+        threads: ONNX Runtime's intra-op threads.
+
+    Examples:
+        >>> policy = ExportedPolicy("exports/spf-s0.8")  # doctest: +SKIP
+        >>> summary, _ = evaluate_policy(policy, EvalConfig(...))  # doctest: +SKIP
+    """
+
+    def __init__(self, directory: str | os.PathLike, demo_length: int | None = None, sparsity: float | None = None,
+                 threads: int = 1) -> None:
+        super().__init__()
+        from spf_rl_runtime import Export
+
+        self.export = Export(directory, threads)
+        self.directory, self.threads = str(directory), threads
+        self.demo_length = int(demo_length or self.export.demo_length)
+        self.sparsity = float(sparsity if sparsity is not None else (self.export.sparsity or 1.0))
+        self.slots = memory_length(self.demo_length, self.sparsity) if self.export.uses_memory else 1
+        #: Read where ``is_init`` only (:func:`~spf_rl.evaluation.frames_lookup`): the memory is taught then.
+        self.memory_key, self.is_init_key = MEMORY_KEY, "is_init"
+        self.in_keys = ["pixels", "demo_frames", "demo_actions", "is_init", MEMORY_KEY, SLOTS_KEY, ETA_KEY, HIDDEN_KEY]
+        self.out_keys = ["logits", ("next", MEMORY_KEY), ("next", SLOTS_KEY), ("next", ETA_KEY), ("next", HIDDEN_KEY)]
+
+    def __getstate__(self) -> dict:  # ONNX Runtime's sessions do not pickle: a copy loads the directory again
+        return {"directory": self.directory, "demo_length": self.demo_length, "sparsity": self.sparsity, "threads": self.threads}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__(**state)
+
+    def make_tensordict_primer(self) -> TensorDictPrimer:
+        """Primer for the recurrent state (zeroed at every (partial) reset)."""
+        specs = {
+            MEMORY_KEY: Unbounded(shape=(self.slots, self.export.memory_width)),
+            SLOTS_KEY: Unbounded(shape=(self.slots,), dtype=torch.long),
+            ETA_KEY: Unbounded(shape=(1,)),
+            HIDDEN_KEY: Unbounded(shape=(self.export.hidden_size,)),
+        }
+        return TensorDictPrimer(specs, expand_specs=True)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        batch = tensordict.batch_size
+        flat = tensordict.reshape(-1)
+        rows = flat.batch_size[0]
+        actions = flat.get("demo_actions").reshape(rows, -1).long()
+        lengths = (flat.get("demo_steps").reshape(rows).long() if "demo_steps" in flat.keys()
+                   else torch.full((rows,), actions.shape[-1], dtype=torch.long))
+        is_init = flat.get("is_init").reshape(rows).bool()
+        memory = flat.get(MEMORY_KEY, None)
+        slots = flat.get(SLOTS_KEY, None)
+        eta = flat.get(ETA_KEY, None)
+        hidden = flat.get(HIDDEN_KEY, None)
+        if memory is None:  # no primer (a bare env): every row starts now
+            memory = torch.zeros(rows, self.slots, self.export.memory_width)
+            slots = torch.zeros(rows, self.slots, dtype=torch.long)
+            eta, hidden = torch.zeros(rows, 1), torch.zeros(rows, self.export.hidden_size)
+            is_init = torch.ones(rows, dtype=torch.bool)
+        memory, slots, eta, hidden = memory.clone(), slots.clone(), eta.clone(), hidden.clone()
+        starting = is_init.nonzero().flatten().tolist()
+        if starting:
+            frames = flat.get("demo_frames") if self.export.uses_memory else None
+            for row in starting:  # teach each new route once
+                eta[row], hidden[row] = 0.0, 0.0
+                slots[row] = -1
+                if frames is None:
+                    continue
+                kept = memory_indices(int(lengths[row]), self.sparsity)
+                features = self.export.teach_features(frames[row, kept].cpu().numpy(), actions[row, kept].numpy())
+                memory[row] = 0.0
+                memory[row, : kept.numel()] = torch.from_numpy(features)
+                slots[row, : kept.numel()] = kept
+        logits, eta_next, hidden_next = self.export.step(
+            flat.get("pixels").reshape(rows, *self.export.image_size, 3).cpu().numpy(),
+            memory.numpy().astype(np.float32), slots.numpy(), actions.numpy(), lengths.numpy(),
+            eta.reshape(rows).numpy().astype(np.float32), hidden.numpy().astype(np.float32),
+        )
+        out = {
+            "logits": torch.from_numpy(logits),
+            ("next", MEMORY_KEY): memory,
+            ("next", SLOTS_KEY): slots,
+            ("next", ETA_KEY): torch.from_numpy(eta_next).reshape(rows, 1),
+            ("next", HIDDEN_KEY): torch.from_numpy(hidden_next),
+        }
+        for key, value in out.items():
+            tensordict.set(key, value.reshape(*batch, *value.shape[1:]))
+        return tensordict
