@@ -57,6 +57,8 @@ LEVERS = (
     Lever("lr3e-3", ("optim.lr=0.003",),
           "the schedule: a 3x larger peak learning rate under the same cosine decay (Smith and Topin, "
           "Super-Convergence, 2018)"),
+    Lever("pointer_loss1", (*POINTER_LABELS, "optim.pointer_coef=1.0"),
+          "the progress supervision weighted 10x (pointer_coef 1.0): the pointer's error counts as much as the actions'"),
 )
 LEVER_BY_NAME = {lever.name: lever for lever in LEVERS}
 

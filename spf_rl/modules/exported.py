@@ -33,6 +33,8 @@ class ExportedPolicy(TensorDictModuleBase):
         demo_length: the routes' (padded) length the env emits (default: the model's).
         sparsity: the sparsity a route is taught at (default: the export's).
         threads: ONNX Runtime's intra-op threads.
+        memory_dtype: how a taught route's features are kept (``"float32"``, ``"float16"``, ``"int8"``:
+            :class:`spf_rl_runtime.RouteMemory`), then read back, as a robot keeping them so would.
 
     Examples:
         >>> policy = ExportedPolicy("exports/spf-s0.8")  # doctest: +SKIP
@@ -40,12 +42,14 @@ class ExportedPolicy(TensorDictModuleBase):
     """
 
     def __init__(self, directory: str | os.PathLike, demo_length: int | None = None, sparsity: float | None = None,
-                 threads: int = 1) -> None:
+                 threads: int = 1, memory_dtype: str = "float32") -> None:
         super().__init__()
-        from spf_rl_runtime import Export
+        from spf_rl_runtime import MEMORY_DTYPES, Export
 
+        if memory_dtype not in MEMORY_DTYPES:
+            raise ValueError(f"memory_dtype must be one of {MEMORY_DTYPES}, got {memory_dtype!r}")
         self.export = Export(directory, threads)
-        self.directory, self.threads = str(directory), threads
+        self.directory, self.threads, self.memory_dtype = str(directory), threads, memory_dtype
         self.demo_length = int(demo_length or self.export.demo_length)
         self.sparsity = float(sparsity if sparsity is not None else (self.export.sparsity or 1.0))
         self.slots = memory_length(self.demo_length, self.sparsity) if self.export.uses_memory else 1
@@ -55,7 +59,8 @@ class ExportedPolicy(TensorDictModuleBase):
         self.out_keys = ["logits", ("next", MEMORY_KEY), ("next", SLOTS_KEY), ("next", ETA_KEY), ("next", HIDDEN_KEY)]
 
     def __getstate__(self) -> dict:  # ONNX Runtime's sessions do not pickle: a copy loads the directory again
-        return {"directory": self.directory, "demo_length": self.demo_length, "sparsity": self.sparsity, "threads": self.threads}
+        return {"directory": self.directory, "demo_length": self.demo_length, "sparsity": self.sparsity, "threads": self.threads,
+                "memory_dtype": self.memory_dtype}
 
     def __setstate__(self, state: dict) -> None:
         self.__init__(**state)
@@ -98,6 +103,11 @@ class ExportedPolicy(TensorDictModuleBase):
                     continue
                 kept = memory_indices(int(lengths[row]), self.sparsity)
                 features = self.export.teach_features(frames[row, kept].cpu().numpy(), actions[row, kept].numpy())
+                if self.memory_dtype != "float32":  # kept as a robot keeps it, read back
+                    from spf_rl_runtime import RouteMemory
+
+                    features = RouteMemory.of(features, kept.numpy(), actions[row].numpy(), self.export.export_id,
+                                              self.memory_dtype).dequantized()
                 memory[row] = 0.0
                 memory[row, : kept.numel()] = torch.from_numpy(features)
                 slots[row, : kept.numel()] = kept

@@ -1,0 +1,26 @@
+"""A smoke run of benchmarks/bench_deploy.py: every figure is there and consistent (timings are not judged)."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+pytest.importorskip("spf_rl_runtime")
+
+
+def test_a_short_run_writes_every_figure(tmp_path):
+    import bench_deploy
+
+    out = tmp_path / "deploy.json"
+    result = bench_deploy.main(["--exports", str(tmp_path / "exports"), "--steps", "5", "--warmup", "1", "--episodes", "2",
+                                "--output", str(out)])
+    assert json.loads(out.read_text())["model"] == "spf-s0.8"
+    rows = {(r["route_steps"], r["sparsity"]): r for r in result["memory"]}
+    assert len(rows) == 10 and rows[(100, 0.4)]["kept_frames"] == 40
+    assert rows[(100, 0.4)]["int8_bytes"] < rows[(100, 0.4)]["float16_bytes"] < rows[(100, 0.4)]["float32_bytes"] < rows[(100, 0.4)]["raw_frames_bytes"]
+    assert [r["threads"] for r in result["latency"]] == [1, 2]
+    assert all(r[kind]["p50_ms"] <= r[kind]["p99_ms"] for r in result["latency"] for kind in ("runtime", "eager_tensordict", "eager_bare_tensor"))
+    assert result["rss"]["imported_torch_family"] == "[]" and result["rss"]["peak_rss_mb"] > 0
+    assert result["weights_bytes"]["int8"]["step.onnx"] < result["weights_bytes"]["fp32"]["step.onnx"]
+    success = result["success"]
+    assert success["episodes"] == 2 and "vs_fp32" in success["int8-weights-float32-memory"]
