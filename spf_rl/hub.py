@@ -274,8 +274,9 @@ def load_policy(
 
     Args:
         path_or_name: a name from :func:`list_checkpoints` (``"spf-s0.8"``,
-            ``"rpf-s1"``, ``"dagger-spf-s0.8"``, ...) or the path of a checkpoint
-            written by the recipes (``runs/bc/<run>/best.pt``).
+            ``"rpf-s1"``, ``"dagger-spf-s0.8"``, ...), the path of a checkpoint
+            written by the recipes (``runs/bc/<run>/best.pt``), or an export directory
+            (``recipes/export.py``: an :class:`~spf_rl.modules.exported.ExportedPolicy`, on the CPU).
         model_type: if given, refuse a checkpoint of another model type
             (``"spf"``, ``"rpf"``, ``"action_only"``, ``"spf_random"``).
         device: where the policy goes (``"cpu"`` by default; ``"auto"``, ``"cuda"``,
@@ -292,6 +293,17 @@ def load_policy(
         FileNotFoundError: a path that does not exist.
         CheckpointError: a corrupt file or another model type.
     """
+    from spf_rl.modules.exported import ExportedPolicy, is_export
+
+    if is_export(path_or_name):  # an export directory (recipes/export.py), run by ONNX Runtime on the CPU
+        try:
+            policy = ExportedPolicy(path_or_name)
+        except ImportError as err:
+            raise ValueError(f"{path_or_name} is an export: running it needs the runtime (pip install ./runtime)") from err
+        exported_type = policy.export.manifest["model_type"]
+        if model_type is not None and exported_type != model_type:
+            raise CheckpointError(f"export {path_or_name} holds a {exported_type!r} model, but a {model_type!r} model was asked for.")
+        return LoadedPolicy(policy, policy.config)
     policy, _ = policy_from_checkpoint(resolve_checkpoint(path_or_name), expected_model_type=model_type, device=device)
     return LoadedPolicy(policy, policy.config)
 
@@ -305,7 +317,6 @@ __all__ = [
     "checked_checkpoint",
     "checkpoint_argument",
     "checkpoint_dir",
-    "file_sha256",
     "list_checkpoints",
     "read_manifest",
     "verify_checkpoint_file",

@@ -66,8 +66,9 @@ def policy_sha256(policy: Any) -> str | None:
     """The SHA-256 of what decides ``policy``'s actions: its weights (``state_dict``), its model config
     (``policy.config``, where it has one) and the sparsity it reads its memory at (``policy.sparsity``:
     a random-sparsity model's :meth:`~spf_rl.modules.policy.SPFPolicy.set_sparsity` is not in its
-    weights); ``None`` for a policy without weights (open-loop replay). The same weights loaded from
-    another file, path or device give the same hash (:func:`~spf_rl.checkpoint.content_sha256`).
+    weights); ``None`` for a policy without weights (open-loop replay); for a policy that names what decides
+    its actions itself (``cache_identity()``: an export run by ONNX Runtime), the hash of that. The same
+    weights loaded from another file, path or device give the same hash (:func:`~spf_rl.checkpoint.content_sha256`).
 
     Examples:
         >>> from spf_rl.modules import OpenLoopPolicy, SPFConfig, SPFPolicy
@@ -76,6 +77,9 @@ def policy_sha256(policy: Any) -> str | None:
         >>> a == policy_sha256(policy), a == policy_sha256(policy.set_sparsity(0.4)), policy_sha256(OpenLoopPolicy())
         (True, False, None)
     """
+    identity = getattr(policy, "cache_identity", None)
+    if identity is not None:  # a policy whose weights live elsewhere (an export run by ONNX Runtime)
+        return content_sha256({"identity": identity()})
     weights = policy.state_dict()
     if not weights:
         return None

@@ -309,3 +309,23 @@ def test_evaluate_runs_an_export_directory_as_the_eager_checkpoint(tmp_path):
     assert exported["model"] == "spf" and exported["success"] == eager["success"]
     keys = ("episode_seed", "success", "steps", "goal_distance")
     assert [{k: r[k] for k in keys} for r in exported["episodes_records"]] == [{k: r[k] for k in keys} for r in eager["episodes_records"]]
+
+
+def test_the_route_bench_and_teach_run_an_export(tmp_path):
+    """recipes/route_bench.py --models DIR and recipes/teach.py --checkpoint DIR: the exported policy plays what
+    the eager one plays (the same records), at another route length too."""
+    import teach as teach_recipe
+
+    from spf_rl.eval import route_bench
+
+    export_checkpoint("spf-s0.8", tmp_path / "spf-s0.8")
+    options = dict(styles=("driven",), buckets=((10, 12),), sets=("test",), episodes=2, test_houses=2, num_resamples=100,
+                   store_root=str(tmp_path / "stores"))
+    eager = route_bench.run_bench(route_bench.BenchOptions(models=("spf-s0.8",), out=tmp_path / "a.json", **options))
+    exported = route_bench.run_bench(route_bench.BenchOptions(models=(str(tmp_path / "spf-s0.8"),), out=tmp_path / "b.json", **options))
+    columns = {name: next(iter(content["cells"].values()))["models"] for name, content in (("eager", eager), ("exported", exported))}
+    assert columns["exported"][str(tmp_path / "spf-s0.8")]["columns"]["success"] == columns["eager"]["spf-s0.8"]["columns"]["success"]
+    assert columns["exported"][str(tmp_path / "spf-s0.8")]["policy_sha256"] != columns["eager"]["spf-s0.8"]["policy_sha256"]
+    content = teach_recipe.main(["--actions", "FFFFLFFFFF", "--checkpoint", str(tmp_path / "spf-s0.8"), "--repeats", "1",
+                                 "--no-video", "--out", str(tmp_path / "teach")])
+    assert content["checkpoint"] == str(tmp_path / "spf-s0.8") and len(content["repeats"]) == 1

@@ -26,6 +26,7 @@ from envs.episode_spec import EpisodeSpec
 from envs.transforms import DEFAULT_NOISE
 from spf_rl.evaluation import TEST_SEED
 from spf_rl.hub import CHECKPOINT_DIR, list_checkpoints
+from spf_rl.modules.exported import is_export
 
 logger = logging.getLogger(__name__)
 
@@ -76,16 +77,6 @@ class EvalOptions:
     store_root: str | None = None
     num_collectors: int = 1
     progress: bool = True
-
-
-def is_export(path: str | Path) -> bool:
-    """Whether ``path`` is an export directory (:mod:`spf_rl.export`: a ``manifest.json`` beside ``step.onnx``).
-
-    Examples:
-        >>> is_export("checkpoints")
-        False
-    """
-    return (Path(path) / "manifest.json").is_file() and (Path(path) / "step.onnx").is_file()
 
 
 def expand_targets(paths: Sequence[str]) -> list[str]:

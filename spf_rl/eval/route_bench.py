@@ -197,18 +197,20 @@ def default_models() -> tuple[str, ...]:
 
 
 def check_models(models: Sequence[str]) -> tuple[str, ...]:
-    """Shipped names or existing ``.pt`` paths (``open_loop`` is dropped: it always plays).
+    """Shipped names, existing ``.pt`` paths or export directories (``open_loop`` is dropped: it always plays).
 
     Raises:
         ValueError: an unknown name or missing file (naming ``--models``), or two with one label.
     """
     from spf_rl.hub import list_checkpoints
+    from spf_rl.modules.exported import is_export
 
     shipped = list_checkpoints()
     models = tuple(dict.fromkeys(str(m) for m in models if str(m) != OPEN_LOOP))
-    unknown = [m for m in models if m not in shipped and not (m.endswith(".pt") and Path(m).is_file())]
+    unknown = [m for m in models if m not in shipped and not (m.endswith(".pt") and Path(m).is_file()) and not is_export(m)]
     if unknown:
-        raise ValueError(f"argument --models: unknown {unknown} (shipped names or .pt files); shipped: {', '.join(shipped)}")
+        raise ValueError(f"argument --models: unknown {unknown} (shipped names, .pt files or export directories); "
+                         f"shipped: {', '.join(shipped)}")
     labels = [label_of(m) for m in models]
     if len(set(labels)) != len(labels) or OPEN_LOOP in labels:
         raise ValueError(f"argument --models: two models would have one label: {labels}")
@@ -392,12 +394,17 @@ def load_models(options: BenchOptions) -> list[BenchModel]:
     Raises:
         ValueError: a model whose frames are not ``options.image_size`` pixels.
     """
-    from spf_rl.hub import checked_checkpoint, policy_from_checkpoint
+    from spf_rl.hub import checked_checkpoint, load_policy, policy_from_checkpoint
+    from spf_rl.modules.exported import is_export
 
     models = [BenchModel(OPEN_LOOP, None, None, {"checkpoint": None, "model_type": OPEN_LOOP})]
     for name in options.models:
-        path = checked_checkpoint(name)
-        policy, payload = policy_from_checkpoint(path, device=options.device)
+        if is_export(name):  # an export directory, run by ONNX Runtime (recipes/export.py)
+            path, policy = name, load_policy(name).policy
+            payload = {"model_type": policy.export.manifest["model_type"]}
+        else:
+            path = checked_checkpoint(name)
+            policy, payload = policy_from_checkpoint(path, device=options.device)
         config = policy.config
         if tuple(config.image_size) != (options.image_size, options.image_size):
             raise ValueError(f"{name} sees {tuple(config.image_size)} frames, the benchmark renders {options.image_size} px")

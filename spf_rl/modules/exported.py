@@ -20,6 +20,18 @@ from spf_rl.modules.memory import memory_indices, memory_length
 MEMORY_KEY, SLOTS_KEY, ETA_KEY, HIDDEN_KEY = "exported_memory", "exported_slots", "exported_eta", "exported_hidden"
 
 
+def is_export(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is an export directory (:mod:`spf_rl.export`: a ``manifest.json`` beside ``step.onnx``).
+
+    Examples:
+        >>> is_export("checkpoints")
+        False
+    """
+    from pathlib import Path
+
+    return (Path(path) / "manifest.json").is_file() and (Path(path) / "step.onnx").is_file()
+
+
 class ExportedPolicy(TensorDictModuleBase):
     """An export directory as a TorchRL policy: reads ``pixels``, ``demo_frames`` (where ``is_init``),
     ``demo_actions``, ``is_init`` and, for padded routes, ``demo_steps``; writes ``logits`` and its next state.
@@ -64,6 +76,35 @@ class ExportedPolicy(TensorDictModuleBase):
 
     def __setstate__(self, state: dict) -> None:
         self.__init__(**state)
+
+    @property
+    def config(self):
+        """The exported model's :class:`~spf_rl.modules.SPFConfig`, at the routes' length this module plays."""
+        from spf_rl.modules.config import SPFConfig
+
+        config = dict(self.export.manifest["model_config"])
+        config["image_size"] = tuple(config["image_size"])
+        if config.get("sparsity_range") is not None:
+            config["sparsity_range"] = tuple(config["sparsity_range"])
+        return SPFConfig(**{**config, "demo_length": self.demo_length})
+
+    def at_length(self, demo_length: int) -> ExportedPolicy:
+        """The same export for routes of ``demo_length`` steps (:func:`~spf_rl.modules.views.policy_for_length`)."""
+        return ExportedPolicy(self.directory, demo_length, self.sparsity, self.threads, self.memory_dtype)
+
+    def set_sparsity(self, sparsity: float) -> ExportedPolicy:
+        """Teach routes at ``sparsity`` from now on (a random-sparsity model's; any export reads any sparsity)."""
+        if not 0.0 < float(sparsity) <= 1.0:
+            raise ValueError(f"sparsity must be in (0, 1], got {sparsity!r}")
+        self.sparsity = float(sparsity)
+        self.slots = memory_length(self.demo_length, self.sparsity) if self.export.uses_memory else 1
+        return self
+
+    def cache_identity(self) -> dict:
+        """What decides this module's actions, for :func:`~spf_rl.records_cache.policy_sha256`: the export's
+        step graph (its SHA-256, which the manifest ties to the teach graph's), the sparsity and the memory's precision."""
+        return {"export": self.export.manifest["files"], "sparsity": self.sparsity, "memory_dtype": self.memory_dtype,
+                "demo_length": self.demo_length}
 
     def make_tensordict_primer(self) -> TensorDictPrimer:
         """Primer for the recurrent state (zeroed at every (partial) reset)."""

@@ -30,6 +30,8 @@ def policy_for_length(policy: SPFPolicy, demo_length: int) -> SPFPolicy:
         ValueError: a non-positive length, or a policy with a custom encoder (its
             parameters do not match a default-built network).
 
+    An exported policy (:class:`~spf_rl.modules.exported.ExportedPolicy`) gives its ``at_length``.
+
     Examples:
         >>> from spf_rl.modules import SPFConfig
         >>> policy = SPFPolicy(SPFConfig(demo_length=30, feature_dim=8, hidden_size=8, image_size=(16, 16)))
@@ -40,6 +42,8 @@ def policy_for_length(policy: SPFPolicy, demo_length: int) -> SPFPolicy:
     check_demo_length(demo_length)
     if demo_length == policy.config.demo_length:
         return policy
+    if hasattr(policy, "at_length"):  # an export run by ONNX Runtime (spf_rl.modules.exported): any length
+        return policy.at_length(demo_length)
     parameters = policy.state_dict(keep_vars=True)
     view = SPFPolicy(dataclasses.replace(policy.config, demo_length=demo_length))
     if set(view.state_dict()) != set(parameters):
