@@ -22,6 +22,7 @@ that :class:`spf_rl_runtime.Follower` (the ``runtime/`` distribution, numpy and 
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import logging
 import os
@@ -221,7 +222,7 @@ def export_policy(policy: SPFPolicy, out: str | os.PathLike, model_type: str, we
         raise ValueError(f"weights must be one of {WEIGHT_PRECISIONS}, got {weights!r}.")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    policy = policy.cpu().eval()
+    policy = copy.deepcopy(policy).cpu().eval()  # the caller's module stays where and as it was
     batch, slots, route = Dim("batch", min=1, max=4096), Dim("slots", min=1, max=4096), Dim("route", min=2, max=4096)
     files = {}
     with torch.no_grad():

@@ -104,14 +104,19 @@ def episodes_key(config: EvalConfig) -> dict:
 
 def records_key(config: EvalConfig, policy: Any) -> dict:
     """What the records of ``policy`` on ``config``'s episodes are of: :func:`episodes_key` and
-    :func:`policy_sha256`. Stored records are taken again only where it is unchanged.
+    :func:`policy_sha256`, and the device type where the policy is not on the CPU (its float kernels
+    differ). Stored records are taken again only where it is unchanged.
 
     Examples:
         >>> from spf_rl.modules import OpenLoopPolicy
         >>> records_key(EvalConfig(), OpenLoopPolicy())["policy_sha256"] is None
         True
     """
-    return {**episodes_key(config), "policy_sha256": policy_sha256(policy)}
+    key = {**episodes_key(config), "policy_sha256": policy_sha256(policy)}
+    parameter = next(policy.parameters(), None) if hasattr(policy, "parameters") else None
+    if parameter is not None and parameter.device.type != "cpu":  # another device's float kernels: another key
+        key["device"] = parameter.device.type
+    return key
 
 
 def changed_fields(stored: dict | None, key: dict) -> list[str]:

@@ -329,3 +329,46 @@ def test_the_route_bench_and_teach_run_an_export(tmp_path):
     content = teach_recipe.main(["--actions", "FFFFLFFFFF", "--checkpoint", str(tmp_path / "spf-s0.8"), "--repeats", "1",
                                  "--no-video", "--out", str(tmp_path / "teach")])
     assert content["checkpoint"] == str(tmp_path / "spf-s0.8") and len(content["repeats"]) == 1
+
+
+@pytest.mark.parametrize("name", ["spf", "spf_random", "rpf_original", "action_only"])
+def test_the_exported_policy_steps_a_batch_of_padded_routes_as_eager(exports, name):
+    """Three agents on routes of 4, 6 and 5 steps padded to 6, one of them starting again mid-way: the
+    exported module's logits are the eager policy's, row by row."""
+    from spf_rl.modules.exported import ExportedPolicy
+
+    policy, _, directory = exports[name]
+    exported = ExportedPolicy(directory)
+    generator = torch.Generator().manual_seed(5)
+    demo_frames = torch.randint(0, 256, (3, 6, 16, 16, 3), dtype=torch.uint8, generator=generator)
+    demo_actions = torch.randint(0, 3, (3, 6), generator=generator)
+    steps = torch.tensor([[4], [6], [5]])
+    states = {"eager": {}, "exported": {}}
+    worst = 0.0
+    with torch.no_grad():
+        for t in range(7):
+            frames = torch.randint(0, 256, (3, 16, 16, 3), dtype=torch.uint8, generator=generator)
+            is_init = torch.tensor([[t == 0], [t in (0, 3)], [t == 0]])
+            logits = {}
+            for kind, module in (("eager", policy), ("exported", exported)):
+                td = TensorDict({"pixels": frames, "demo_frames": demo_frames, "demo_actions": demo_actions, "demo_steps": steps,
+                                 "is_init": is_init, **states[kind]}, [3])
+                out = module(td)
+                logits[kind] = out["logits"]
+                states[kind] = {key: out["next", key] for key in out["next"].keys()}
+            worst = max(worst, float((logits["eager"] - logits["exported"]).abs().max()))
+    assert worst < 1e-4
+
+
+def test_a_route_memory_refuses_what_it_cannot_keep():
+    features = np.ones((2, 3), np.float32)
+    with pytest.raises(ValueError, match="export_id must be a SHA-256"):
+        RouteMemory.of(features, [0, 1], [0, 0], "abc")
+    with pytest.raises(ValueError, match="not finite"):
+        RouteMemory.of(features * np.nan, [0, 1], [0, 0], "0" * 64)
+    with pytest.raises(ValueError, match="exceed float16's range"):
+        RouteMemory.of(features * 1e6, [0, 1], [0, 0], "0" * 64, "float16")
+    data = bytearray(RouteMemory.of(features, [0, 1], [0, 0], "0" * 64).to_bytes())
+    data[6] = 9  # the precision code
+    with pytest.raises(ValueError, match="unknown feature precision"):
+        RouteMemory.from_bytes(bytes(data))

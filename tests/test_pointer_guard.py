@@ -25,8 +25,8 @@ def backwards_once(monkeypatch, at_call: int = 1) -> list[float]:
     """Replace the guard's measured pace by -1 at its ``at_call``-th measurement; returns the paces measured."""
     real, paces = PointerGuard.pace, []
 
-    def pace(self, policy):
-        value = real(self, policy)
+    def pace(self, policy, ranks=None):
+        value = real(self, policy, ranks)
         paces.append(value)
         return -1.0 if len(paces) == at_call else value
 
@@ -55,6 +55,10 @@ def test_a_collapse_restarts_bc_from_a_documented_seed(tmp_path, monkeypatch):
     saved = json.loads((tmp_path / "run" / "results.json").read_text())
     assert saved["pointer_restarts"] == results["pointer_restarts"]
     assert load_checkpoint(tmp_path / "run" / "last.pt")["pointer_restarts"] == results["pointer_restarts"]
+    # the logs hold the restarted run's steps once each (the collapsed attempt's rows trimmed, a fresh logger on)
+    loss_log = next((tmp_path / "run" / "logs").rglob("loss.csv"))
+    steps = [int(float(line.split(",")[0])) for line in loss_log.read_text().splitlines() if line.strip()]
+    assert steps == list(range(1, results["history"][-1]["step"] + 1))
     # the restarted run is deterministic: the same forced collapse gives the same weights
     again = tmp_path / "again"
     backwards_once(monkeypatch)
@@ -83,7 +87,7 @@ def test_an_interrupted_restart_resumes_the_restarted_run(tmp_path, monkeypatch)
         train_bc(config)
     assert load_checkpoint(tmp_path / "run" / "last.pt")["epoch"] == 0 and not (tmp_path / "run" / "best.pt").exists()
     monkeypatch.setattr(TrainingRun, "train_epoch", real_train_epoch)
-    monkeypatch.setattr(PointerGuard, "pace", lambda self, policy: 0.9)  # healthy from here on
+    monkeypatch.setattr(PointerGuard, "pace", lambda self, policy, ranks=None: 0.9)  # healthy from here on
     resumed = train_bc(config)
     assert resumed["pointer_restarts"] == uninterrupted["pointer_restarts"]
     assert [r["train_loss"] for r in resumed["history"]] == [r["train_loss"] for r in uninterrupted["history"]]

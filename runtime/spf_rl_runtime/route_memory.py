@@ -78,7 +78,13 @@ class RouteMemory:
         """Keep float32 ``features`` ``[l, D]`` in ``dtype`` (int8: symmetric, one scale per slot)."""
         if dtype not in MEMORY_DTYPES:
             raise ValueError(f"memory_dtype must be one of {MEMORY_DTYPES}, got {dtype!r}")
+        if len(export_id) != 64 or any(c not in "0123456789abcdef" for c in export_id):
+            raise ValueError(f"export_id must be a SHA-256 in 64 lowercase hex digits, got {export_id!r}")
         features = np.asarray(features, dtype=np.float32)
+        if not np.isfinite(features).all():
+            raise ValueError("the route's memory features are not finite")
+        if dtype == "float16" and features.size and np.abs(features).max() > np.finfo(np.float16).max:
+            raise ValueError("the route's memory features exceed float16's range: keep them as float32 or int8")
         scales = None
         if dtype == "int8":
             peak = np.abs(features).max(axis=-1) if features.size else np.zeros(features.shape[0], np.float32)
@@ -111,8 +117,9 @@ class RouteMemory:
         header = _HEADER.pack(_MAGIC, MEMORY_FORMAT_VERSION, MEMORY_DTYPES.index(self.dtype), self.route_length,
                               slots, width, bytes.fromhex(self.export_id))
         scales = b"" if self.scales is None else self.scales.astype("<f4").tobytes()
-        return b"".join([header, self.features.astype(self.features.dtype.newbyteorder("<")).tobytes(), scales,
-                         self.slot_indices.astype("<u2").tobytes(), self.actions.tobytes()])
+        features = self.features.astype(np.dtype(self.dtype).newbyteorder("<"))
+        return b"".join([header, features.tobytes(), scales, self.slot_indices.astype("<u2").tobytes(),
+                         self.actions.astype(np.uint8).tobytes()])
 
     @classmethod
     def from_bytes(cls, data: bytes) -> RouteMemory:
@@ -126,6 +133,8 @@ class RouteMemory:
         _, version, code, n, slots, width, export_id = _HEADER.unpack_from(data)
         if version != MEMORY_FORMAT_VERSION:
             raise ValueError(f"route memory format version {version}; this runtime reads {MEMORY_FORMAT_VERSION}")
+        if code >= len(MEMORY_DTYPES):
+            raise ValueError(f"route memory of an unknown feature precision (code {code})")
         dtype = MEMORY_DTYPES[code]
         itemsize = np.dtype(dtype).itemsize
         sizes = [slots * width * itemsize, slots * 4 if dtype == "int8" else 0, slots * 2, n]

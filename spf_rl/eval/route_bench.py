@@ -409,7 +409,8 @@ def load_models(options: BenchOptions) -> list[BenchModel]:
         if tuple(config.image_size) != (options.image_size, options.image_size):
             raise ValueError(f"{name} sees {tuple(config.image_size)} frames, the benchmark renders {options.image_size} px")
         random = getattr(config, "sparsity_range", None) is not None
-        sparsity = (float(options.random_sparsity) if options.random_sparsity is not None else float(config.sparsity)) if random else None
+        own = float(policy.sparsity) if is_export(name) else float(config.sparsity)  # an export keeps its own
+        sparsity = (float(options.random_sparsity) if options.random_sparsity is not None else own) if random else None
         info = {"checkpoint": str(path), "model_type": payload["model_type"], "demo_length": config.demo_length,
                 "sparsity": float(config.sparsity), "sparsity_range": list(config.sparsity_range) if random else None,
                 "played_at_sparsity": sparsity}

@@ -59,6 +59,8 @@ LEVERS = (
           "Super-Convergence, 2018)"),
     Lever("pointer_loss1", (*POINTER_LABELS, "optim.pointer_coef=1.0"),
           "the progress supervision weighted 10x (pointer_coef 1.0): the pointer's error counts as much as the actions'"),
+    Lever("pointer_loss+lr3e-3", (*POINTER_LABELS, "optim.pointer_coef=0.1", "optim.lr=0.003"),
+          "the progress supervision and the larger learning rate together"),
 )
 LEVER_BY_NAME = {lever.name: lever for lever in LEVERS}
 

@@ -67,7 +67,8 @@ class ExportedPolicy(TensorDictModuleBase):
         self.slots = memory_length(self.demo_length, self.sparsity) if self.export.uses_memory else 1
         #: Read where ``is_init`` only (:func:`~spf_rl.evaluation.frames_lookup`): the memory is taught then.
         self.memory_key, self.is_init_key = MEMORY_KEY, "is_init"
-        self.in_keys = ["pixels", "demo_frames", "demo_actions", "is_init", MEMORY_KEY, SLOTS_KEY, ETA_KEY, HIDDEN_KEY]
+        self.in_keys = ["pixels", "demo_frames", "demo_actions", "is_init", MEMORY_KEY, SLOTS_KEY, ETA_KEY, HIDDEN_KEY,
+                        "demo_steps"]  # optional, as the eager policy's: padded routes' own lengths
         self.out_keys = ["logits", ("next", MEMORY_KEY), ("next", SLOTS_KEY), ("next", ETA_KEY), ("next", HIDDEN_KEY)]
 
     def __getstate__(self) -> dict:  # ONNX Runtime's sessions do not pickle: a copy loads the directory again

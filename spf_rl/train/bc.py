@@ -262,16 +262,17 @@ def _train_bc(config: BCConfig, device: torch.device) -> dict:
         )
         validate = config.validates_after(epoch + 1) and ranks.is_main
         val = evaluate_policy(policy, val_config, progress=False)[0] if validate else None
-        pace = guard.pace(policy) if guard is not None else None  # every rank: the same weights, the same pace
+        pace = guard.pace(policy, ranks) if guard is not None else None  # one decision for every rank
+        if PointerGuard.collapsed(pace) and (restarted := restart_run(run, new_run, config.seed, epoch + 1, pace)):
+            run, epoch = restarted, 0  # the collapsed epoch is not kept: last.pt is the restart's
+            if config.logger and ranks.is_main:  # the collapsed attempt's rows go, and a fresh logger writes on
+                trim_csv_logs(output / "logs", 0)
+                run_logger = get_logger(config.logger, logger_name=str(output / "logs"), experiment_name="bc")
+            barrier(ranks)
+            continue
         record = run.end_epoch(epoch, losses, accuracies, train_seconds, val, run_logger, pointer_pace=pace)
         logger.info("epoch %d: %s", epoch + 1, record)
         barrier(ranks)  # the other ranks wait for rank 0's validation and checkpoints
-        if PointerGuard.collapsed(pace) and (restarted := restart_run(run, new_run, config.seed, epoch + 1, pace)):
-            run, epoch = restarted, 0
-            if config.logger and ranks.is_main:
-                trim_csv_logs(output / "logs", 0)  # the collapsed attempt's rows
-            barrier(ranks)
-            continue
         epoch += 1
     history, best = run.history, run.best
     if run_logger is not None and hasattr(run_logger, "experiment"):

@@ -410,7 +410,7 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
         collected.update(_train_round(run, sources, config, round_index, ranks))
         # the pointer-collapse guard (every rank: the same weights, the same pace), on the round's own episodes
         guard = PointerGuard.of(policy, RoundStore.read(round_dir, round_config.collection()))
-        pace = guard.pace(policy) if guard is not None else None
+        pace = guard.pace(policy, ranks) if guard is not None else None
         if pace is not None:
             collected["pointer_pace"] = pace
         collapsed = PointerGuard.collapsed(pace)
@@ -420,11 +420,11 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
                 logger.warning("round %d: pointer collapse (pace %.3f < %g): set aside, back to round %d's weights",
                                round_index, pace, COLLAPSE_PACE, run.best["round"])
                 record["pointer_collapsed"], val = True, None
-                run.load_best()
+                run.restore_best()
             end_round(round_index, record, val)
         else:
             if collapsed:
-                run.load_best()
+                run.restore_best()
             run.end_period(round_index, {"round": round_index, **collected}, None)
         barrier(ranks)  # the other ranks wait for rank 0's validation and checkpoints
 

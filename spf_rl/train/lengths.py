@@ -178,11 +178,11 @@ def _train_mixed(config: MixedLengthConfig, device: torch.device) -> dict:
         rows, _ = evaluate_lengths(policy, config.lengths, config.val)
         val = mean_over_lengths(rows)
         pace = guard.pace(first) if guard is not None else None
+        if PointerGuard.collapsed(pace) and (restarted := restart_run(run, new_run, config.seed, epoch + 1, pace)):
+            run, epoch = restarted, 0  # the collapsed epoch is not kept: last.pt is the restart's
+            continue
         record = run.end_epoch(epoch, losses, accuracies, seconds, val, pointer_pace=pace)
         logger.info("epoch %d: %s, val by length %s", epoch + 1, record, [round(r["success"], 3) for r in rows])
-        if PointerGuard.collapsed(pace) and (restarted := restart_run(run, new_run, config.seed, epoch + 1, pace)):
-            run, epoch = restarted, 0
-            continue
         epoch += 1
 
     run.load_best()

@@ -16,10 +16,12 @@ record), and calls a pace below :data:`COLLAPSE_PACE` a collapse. Then:
   (``pointer_restarts``: the epoch, the pace, the seed). After :data:`MAX_RESTARTS` restarts it
   trains on, logged as an error.
 - **DAgger** sets the round's weights aside: the round can never be the best (its record says
-  ``pointer_collapsed``), and the next round starts from the best round's weights (``best.pt``).
+  ``pointer_collapsed``), and the next round starts from the best round's weights (``best.pt``), with
+  fresh optimiser moments.
 
 Measuring changes nothing else (no random draw, no training state), so a run that never collapses
-trains exactly as it would without the guard. Policies without a pointer have no guard.
+trains exactly as it would without the guard. Policies without a pointer have no guard. In a data-parallel
+run the ranks' paces are averaged, so that every rank takes the same decision.
 """
 from __future__ import annotations
 
@@ -85,9 +87,16 @@ class PointerGuard:
             return None
         return cls(source_rows(source, torch.arange(min(GUARD_EPISODES, len(source)))))
 
-    def pace(self, policy: torch.nn.Module) -> float:
-        """The policy's mean pointer pace on the guard's episodes (the policy is left in eval mode)."""
-        return pointer_pace(policy, self.episodes)
+    def pace(self, policy: torch.nn.Module, ranks=None) -> float:
+        """The policy's mean pointer pace on the guard's episodes (the policy is left in eval mode); in a
+        data-parallel run (``ranks``), the ranks' mean, so that every rank takes the same decision."""
+        from spf_rl.train.distributed import all_ranks_sum
+
+        pace = pointer_pace(policy, self.episodes)
+        if ranks is not None and ranks.distributed:
+            device = next(policy.parameters()).device
+            pace = all_ranks_sum(pace, ranks, device) / ranks.world_size
+        return pace
 
     @staticmethod
     def collapsed(pace: float | None) -> bool:

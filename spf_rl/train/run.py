@@ -185,7 +185,7 @@ class TrainingRun:
 
     def _best_of(self, history: list[dict]) -> dict:
         """The best validated record of a history (the first of equals), as :attr:`best` holds it."""
-        validated = [r for r in history if r.get("val_success") is not None]
+        validated = [r for r in history if r.get("val_success") is not None and not r.get("pointer_collapsed")]
         if not validated:
             return {"success": -1.0, "spl": -1.0, self.unit: -1}
         best = max(validated, key=lambda r: (r["val_success"], r["val_spl"]))
@@ -209,7 +209,8 @@ class TrainingRun:
         device = next(self.policy.parameters()).device
         self.optimizer.zero_grad(set_to_none=True)
         loss_value, accuracy_value = backward_on_shard(loss, accuracy, batch, self.ranks, device)
-        if not self.apply_gradients(tuple(self.optimizers)[:1], loss):
+        # the whole batch's loss (every rank's the same) and the synchronised gradients: one decision for all ranks
+        if not self.apply_gradients(tuple(self.optimizers)[:1], torch.tensor(loss_value)):
             logger.warning("%s step %d: non-finite loss or gradient, update skipped", self.unit, self.step + 1)
         self.scheduler.step()
         self.step += 1
@@ -326,6 +327,13 @@ class TrainingRun:
 
     def _weights(self) -> dict:
         return {"model": self.policy.state_dict(), **{name: module.state_dict() for name, module in self.modules.items()}}
+
+    def restore_best(self) -> None:
+        """Back to ``best.pt``'s weights, with fresh optimiser moments (those of the weights set aside do not
+        belong to them): the pointer-collapse guard's rule for DAgger (:mod:`spf_rl.train.pointer_guard`)."""
+        self.load_best()
+        for optimizer in self.optimizers.values():
+            optimizer.state.clear()
 
     def load_best(self) -> dict:
         """Load the weights of ``best.pt`` into the policy (and its other modules); returns its payload."""
