@@ -11,6 +11,7 @@ import pytest
 import table1
 
 from spf_rl.config import load_config
+from spf_rl.eval import table1 as table1_report
 from spf_rl.eval import table1_rows
 from spf_rl.eval.table1 import CACHED_FIELDS, build_table
 from spf_rl.hub import read_manifest, write_manifest
@@ -451,3 +452,23 @@ def test_a_part_of_the_table_never_overwrites_the_whole_one(kwargs, part):
     assert options.part is part
     assert options.out == (table1_rows.PART_DIR if part else Path("results"))
     assert table1_rows.Table1Options(from_checkpoints=True, out=Path("elsewhere"), **kwargs).out == Path("elsewhere")
+
+
+def test_a_seed_the_guard_restarted_is_marked_and_named():
+    """Table 1 says which seeds the pointer-collapse guard restarted (from their runs' results.json)."""
+    restarted = {"label": "SPF sparsity 0.4", "dagger_of": None, "pointer_pace": {"2": 0.9},
+                 "pointer_restarts": {"2": [{"epoch": 1, "pointer_pace": -0.7, "seed": 123}], "0": []}}
+    plain = {"label": "SPF sparsity 0.8", "dagger_of": None, "pointer_pace": {"0": 0.8}}
+    assert table1_report.marks(restarted) == " §" and table1_report.marks(plain) == ""
+    notes = "\n".join(table1_report.footnotes({"rows": [restarted, plain]}))
+    assert "§ restarted by the pointer-collapse guard (SPF sparsity 0.4: seed 2 after epoch 1)" in notes
+    assert table1_report.footnotes({"rows": [plain]}) == []
+
+
+def test_run_restarts_reads_a_runs_results(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    run = table1_rows.run_dir("spf-s0.4", 2)
+    run.mkdir(parents=True)
+    (run / "results.json").write_text(json.dumps({"pointer_restarts": [{"epoch": 1, "pointer_pace": -0.7, "seed": 5}]}))
+    assert table1_rows.run_restarts("spf-s0.4", 2, False) == [{"epoch": 1, "pointer_pace": -0.7, "seed": 5}]
+    assert table1_rows.run_restarts("spf-s0.4", 1, False) == []

@@ -267,9 +267,20 @@ def backward_seeds(row: dict | None) -> list[int]:
     return sorted(int(seed) for seed, pace in paces.items() if pace < BACKWARD_PACE)
 
 
+#: Marks a line with a seed that the pointer-collapse guard restarted (:mod:`spf_rl.train.pointer_guard`).
+RESTART_MARK = "§"
+
+
+def restarted_seeds(row: dict | None) -> dict[str, list[dict]]:
+    """``{seed: restarts}`` of a table line's runs that the pointer-collapse guard restarted (none: ``{}``)."""
+    return {seed: restarts for seed, restarts in ((row or {}).get("pointer_restarts") or {}).items() if restarts}
+
+
 def marks(*rows: dict | None) -> str:
-    """The footnote mark of a line (``rows``: the line and its DAgger column): a pointer that runs backwards."""
-    return f" {BACKWARD_MARK}" if any(backward_seeds(row) for row in rows) else ""
+    """The footnote marks of a line (``rows``: the line and its DAgger column): a pointer that runs backwards,
+    a seed restarted by the pointer-collapse guard."""
+    mark = f" {BACKWARD_MARK}" if any(backward_seeds(row) for row in rows) else ""
+    return mark + (f" {RESTART_MARK}" if any(restarted_seeds(row) for row in rows) else "")
 
 
 def footnotes(table: dict) -> list[str]:
@@ -283,6 +294,12 @@ def footnotes(table: dict) -> list[str]:
         named = "; ".join(f"{label}: seed {', '.join(map(str, seeds))}" for label, seeds in found.items())
         out += ["", f"{BACKWARD_MARK} pointer runs backwards ({named}; `pointer_pace`): training drove the paper's "
                 "tanh(b) to -1, cutting off the memory; kept in the means."]
+    restarted = {row["label"].split(",")[0]: restarted_seeds(row) for row in table["rows"] if restarted_seeds(row)}
+    if restarted:
+        named = "; ".join(f"{label}: " + ", ".join(f"seed {seed} after epoch {r[0]['epoch']}" for seed, r in seeds.items())
+                          for label, seeds in restarted.items())
+        out += ["", f"{RESTART_MARK} restarted by the pointer-collapse guard ({named}): the pointer ran backwards "
+                "early in training, and the run started again from a fresh initialisation (`pointer_restarts`)."]
     return out
 
 

@@ -384,6 +384,12 @@ def train_missing(
     return shipped
 
 
+def run_restarts(stem: str, seed, quick: bool) -> list[dict]:
+    """The pointer-collapse guard's restarts of a line's run (``pointer_restarts`` of its ``results.json``)."""
+    results = run_dir(stem, int(seed), quick) / "results.json"
+    return json.loads(results.read_text()).get("pointer_restarts", []) if results.exists() else []
+
+
 def trained_on(lines: Sequence[Line], seeds: Sequence[int], checkpoints: Path, quick: bool) -> dict:
     """``{line: {seed: CPU}}`` for the trained lines: the seeds whose per-seed checkpoint is the best of this
     recipe's finished run, each with the CPU model that trained it (``machine_this_run`` of its
@@ -635,6 +641,10 @@ def reproduce(options: Table1Options) -> dict:
     for row in table["rows"]:
         row["trained_on"] = sources.get(row["checkpoint_stem"], {})
         row["pointer_pace"] = paces.get(row["checkpoint_stem"], {})
+        restarts = {str(seed): found for seed in sources.get(row["checkpoint_stem"], {})
+                    if (found := run_restarts(row["checkpoint_stem"], seed, options.quick))}
+        if restarts:  # only where the pointer-collapse guard restarted a run (the table is unchanged otherwise)
+            row["pointer_restarts"] = restarts
     write_reports(table, options.out)
     logger.info("wrote %s/table1.{json,md,png}%s", options.out.as_posix(),
                 " (a part of the table: rows, seeds or sets left out)" if options.part else "")
