@@ -6,7 +6,7 @@ validation and test):
 
 * by default, ``previous`` (the main job before its budget was raised: 2,000 episodes,
   6 epochs = 750 gradient steps, 100 validation episodes after every epoch, 500 test
-  episodes) and ``current`` (today's defaults, ``BCConfig()``); writes
+  episodes, the paper's recipe) and ``current`` (today's main job, ``--preset bc_main``); writes
   ``benchmarks/results/main_job.json``: each job's budget (gradient steps, episodes),
   wall seconds and test success, and the ratio of wall times (current / previous), the
   figure the budget is held to (at most 2x);
@@ -51,7 +51,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PREVIOUS_MAIN_JOB = ["optim.epochs=6", "val.num_episodes=100", "val_every=1"]
 #: --quick: both jobs scaled down (the same overrides on top), so the smoke test runs in a minute.
 QUICK = [
-    "data.num_episodes=16", "data.num_houses=1", "data.demo_length=5", "data.max_steps=8", "data.image_size=32",
+    "data.num_episodes=16", "data.num_houses=1", "data.demo_length=10", "data.max_steps=17", "data.image_size=32",
     "model.feature_dim=16", "model.hidden_size=16",
     "val.num_episodes=4", "val.num_agents=4", "val.num_houses=1", "test.num_episodes=4", "test.num_agents=4", "test.num_houses=1",
 ]
@@ -132,12 +132,13 @@ def against_previous(args: argparse.Namespace, extra: list[str]) -> dict:
     import torch
 
     import envs  # noqa: F401  (selects the headless GL back-end first)
-    from spf_rl.train.bc import BCConfig
+    from spf_rl.train.bc import MAIN_JOB_PRESET, BCConfig
 
     workdir = Path(args.workdir)
+    presets = {"previous": None, "current": MAIN_JOB_PRESET}  # the previous main job was the paper's recipe
     configs = {
         name: dataclasses.replace(
-            load_config(BCConfig, "bc", [*overrides, *extra]),
+            load_config(BCConfig, "bc", [*overrides, *extra], preset=presets[name]),
             output_dir=str(workdir / name / "run"),
             data_dir=str(workdir / name / "data"),
             progress=False,

@@ -7,7 +7,8 @@ output directory. Run it again with the same config to resume.
 
 Usage::
 
-    python recipes/bc.py                       # SPF, sparsity 0.8: 1,500 gradient steps on 2,000 episodes
+    python recipes/bc.py                       # the main job: SPF 0.8 with a pointer loss, 1,500 gradient steps on 2,000 episodes
+    python recipes/bc.py --preset bc_paper     # the paper's recipe exactly, on the same budget
     python recipes/bc.py --quick               # the whole pipeline in a few minutes
     python recipes/bc.py --preset bc_long      # 20,000 gradient steps on 8,000 episodes (hours on 2 CPU cores)
     python recipes/bc.py --preset bc_row model=rpf   # the common 5,000-step schedule of the other Table 1 rows
@@ -27,7 +28,8 @@ from spf_rl.cli import ArgumentParser
 from spf_rl.config import config_or_exit, load_config
 
 #: Schedules in recipes/configs/ that --preset accepts.
-PRESETS = ("bc_quick", "bc_long", "bc_row", "bc_table1", "bc_homing", "bc_pointer_long", "bc_routes", "bc_routes_pointer")
+PRESETS = ("bc_main", "bc_paper", "bc_quick", "bc_long", "bc_row", "bc_table1", "bc_homing", "bc_pointer_long", "bc_routes",
+           "bc_routes_pointer")
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -37,7 +39,8 @@ def main(argv: list[str] | None = None) -> dict:
         "--preset",
         choices=PRESETS,
         default=None,
-        help="a schedule from recipes/configs/: bc_quick (smoke run), bc_long (20,000 gradient steps on 8,000 "
+        help="a schedule from recipes/configs/ (default bc_main, the main job: the paper's SPF with a pointer loss): "
+        "bc_paper (the paper's recipe on the main job's budget), bc_quick (smoke run), bc_long (20,000 gradient steps on 8,000 "
         "episodes), bc_row (5,000 gradient steps on 4,000 episodes, the earlier Table 1 rows), bc_table1 (bc_long in runs/table1/: Table 1's one budget, every row), bc_homing (bc_row on homing episodes), bc_pointer_long (bc_long with RPF's pointer rule), bc_routes (the routes model: bc_row on a mixture of route styles of 10 to 100 steps) or bc_routes_pointer (bc_routes with a pointer loss, optim.pointer_coef 0.1)",
     )
     parser.add_argument("overrides", nargs="*", help="key=value config overrides")
@@ -45,11 +48,12 @@ def main(argv: list[str] | None = None) -> dict:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
 
     import envs  # noqa: F401  (selects the headless GL back-end first)
-    from spf_rl.train.bc import BCConfig, train_bc
+    from spf_rl.train.bc import MAIN_JOB_PRESET, BCConfig, train_bc
 
     if args.quick and args.preset not in (None, "bc_quick"):
         parser.error(f"--quick is --preset bc_quick; it cannot be combined with --preset {args.preset}")
-    config = config_or_exit(parser, load_config, BCConfig, "bc", args.overrides, preset="bc_quick" if args.quick else args.preset)
+    preset = "bc_quick" if args.quick else (args.preset or MAIN_JOB_PRESET)
+    config = config_or_exit(parser, load_config, BCConfig, "bc", args.overrides, preset=preset)
     results = train_bc(config)
     if "test" not in results:  # a rank other than 0 of a torchrun run: rank 0 reports
         return results

@@ -1,7 +1,7 @@
 """Generate (or resume) the expert-labelled follow-episode dataset that ``recipes/bc.py`` trains on.
 
-Takes the same configuration as ``bc.py`` (``recipes/configs/bc.yaml``, its
-``data`` section and ``data_dir``), so ``bc.py`` reuses what this writes.
+Takes the same configuration as ``bc.py`` (``recipes/configs/bc.yaml`` and the main job's
+``bc_main.yaml``, their ``data`` section and ``data_dir``), so ``bc.py`` reuses what this writes.
 Interrupt it at any time and run it again to resume.
 
 Usage::
@@ -28,9 +28,10 @@ def main(argv: list[str] | None = None) -> dict:
 
     import envs  # noqa: F401
     from spf_rl.data import EpisodeDataset
-    from spf_rl.train.bc import BCConfig
+    from spf_rl.train.bc import MAIN_JOB_PRESET, BCConfig
 
-    config = config_or_exit(parser, load_config, BCConfig, "bc", args.overrides, preset="bc_quick" if args.quick else None)
+    preset = "bc_quick" if args.quick else MAIN_JOB_PRESET
+    config = config_or_exit(parser, load_config, BCConfig, "bc", args.overrides, preset=preset)
     root = config.resolved_data_dir()
     dataset = EpisodeDataset.build(root, config.data, num_workers=config.num_workers, progress=config.progress)
     dataset.verify()

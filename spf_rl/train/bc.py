@@ -53,6 +53,11 @@ def default_val_config() -> EvalConfig:
     return EvalConfig(EpisodeSpec(split="val", max_steps=50, seed=VAL_SEED), num_episodes=300, store_root=episode_store_root())
 
 
+#: The preset of the main job (``python recipes/bc.py`` with no preset, ``scripts/main.sh``):
+#: ``recipes/configs/bc_main.yaml``. :class:`BCConfig`'s defaults are the paper's recipe (``bc_paper``).
+MAIN_JOB_PRESET = "bc_main"
+
+
 def default_test_config() -> EvalConfig:
     """The final test of the best checkpoint: 500 episodes of the ``test`` split, seed 2."""
     return EvalConfig(EpisodeSpec(split="test", max_steps=50, seed=TEST_SEED), num_episodes=500, store_root=episode_store_root())
