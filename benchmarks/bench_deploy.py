@@ -203,6 +203,46 @@ def success(exports: dict[str, Path], model: str, episodes: int) -> dict:
     return out
 
 
+#: Table 1's lines drawn on the budget curve (their sparsity, their test success over seeds).
+CURVE_LINES = ("spf-s0.4", "spf-s0.6", "spf-s0.8", "rpf-s1")
+#: A run that tested on Table 1's test episodes, for the routes' lengths in metres (every line plays the same episodes).
+ROUTE_METRES_SOURCE = Path("runs/table1/spf-s0.8-seed0/test_episodes.json")
+
+
+def budget_curve(memory: list[dict], figure: Path) -> dict | None:
+    """Table 1's test success against the bytes a robot keeps per metre of route, over the sparsities: the
+    paper's claim, drawn (raw frames, float32 and int8 route memories of its 30-step routes)."""
+    table = Path("results/table1.json")
+    if not table.exists() or not ROUTE_METRES_SOURCE.exists():
+        return None
+    metres = float(np.mean(json.loads(ROUTE_METRES_SOURCE.read_text())["columns"]["shortest_path_length"]))
+    rows = {row["name"]: row for row in json.loads(table.read_text())["rows"]}
+    by_sparsity = {r["sparsity"]: r for r in memory if r["route_steps"] == 30}
+    points = []
+    for name in CURVE_LINES:
+        row = rows[name]
+        sizes = by_sparsity[row["sparsity"]]
+        points.append({"line": name, "sparsity": row["sparsity"], "test_success": row["sets"]["test"]["success"]["mean"],
+                       **{f"{kind}_bytes_per_metre": sizes[f"{kind}_bytes"] / metres for kind in ("raw_frames", "float32", "int8")}})
+    from spf_rl.viz import pyplot, write_figure
+
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for kind, marker in (("raw_frames", "s"), ("float32", "o"), ("int8", "^")):
+        ax.plot([p[f"{kind}_bytes_per_metre"] for p in points], [p["test_success"] for p in points], marker=marker,
+                label=kind.replace("_", " "))
+    for p in points:
+        ax.annotate(f"{p['sparsity']:g}", (p["int8_bytes_per_metre"], p["test_success"]), fontsize=7)
+    ax.set_xscale("log")
+    ax.set_xlabel(f"bytes kept per metre of route (Table 1's 30-step routes, {metres:.1f} m on average)")
+    ax.set_ylabel("Table 1 test success (mean of 3 seeds)")
+    ax.set_title("Memory against success: SPF at sparsity 0.4-1")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    write_figure(fig, figure, dpi=120)
+    return {"route_metres_mean": metres, "points": points, "figure": str(figure)}
+
+
 def shipped_seed(model: str) -> int | None:
     """The Table 1 seed a shipped name loads (its per-seed file), if it is one."""
     from spf_rl.hub import read_manifest
@@ -244,6 +284,7 @@ def main(argv: list[str] | None = None) -> dict:
         "latency": [latency(exports["fp32"], args.model, threads, args.steps, args.warmup) for threads in (1, 2)],
         "rss": peak_rss(exports["fp32"]),
     }
+    result["budget_curve"] = budget_curve(result["memory"], args.output.with_suffix(".png"))
     if args.episodes:
         result["success"] = success(exports, args.model, args.episodes)
     atomic_write_json(args.output, result, default=str)

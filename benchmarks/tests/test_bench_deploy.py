@@ -24,3 +24,7 @@ def test_a_short_run_writes_every_figure(tmp_path):
     assert result["weights_bytes"]["int8"]["step.onnx"] < result["weights_bytes"]["fp32"]["step.onnx"]
     success = result["success"]
     assert success["episodes"] == 2 and "vs_fp32" in success["int8-weights-float32-memory"]
+    curve = result["budget_curve"]
+    assert [p["line"] for p in curve["points"]] == ["spf-s0.4", "spf-s0.6", "spf-s0.8", "rpf-s1"]
+    assert all(p["int8_bytes_per_metre"] < p["float32_bytes_per_metre"] < p["raw_frames_bytes_per_metre"] for p in curve["points"])
+    assert (tmp_path / "deploy.png").stat().st_size > 10_000
