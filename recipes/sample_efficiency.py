@@ -19,29 +19,22 @@ import json
 import logging
 from pathlib import Path
 
-from spf_rl.cli import ArgumentParser
+from spf_rl.cli import ArgumentParser, arg_type, parse_names, parse_seeds
 from spf_rl.eval.sample_efficiency import DEFAULT_OUT, DEFAULT_SEEDS, LEVER_BY_NAME, LEVERS, run_study
 
 
 def main(argv: list[str] | None = None) -> dict:
     parser = ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--levers", default=",".join(lever.name for lever in LEVERS),
+    parser.add_argument("--levers", type=arg_type(parse_names, tuple(LEVER_BY_NAME), "lever"),
+                        default=[lever.name for lever in LEVERS],
                         help="comma-separated levers (default: all): " + ", ".join(LEVER_BY_NAME))
-    parser.add_argument("--seeds", default=",".join(map(str, DEFAULT_SEEDS)), help="comma-separated training seeds (default: %(default)s)")
+    parser.add_argument("--seeds", type=arg_type(parse_seeds), default=list(DEFAULT_SEEDS),
+                        help="comma-separated training seeds (default: 0,1,2)")
     parser.add_argument("--no-train", action="store_true", help="report the finished runs only")
     parser.add_argument("--num-resamples", type=int, default=10_000, help="bootstrap resamples (default: %(default)s)")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="the JSON (default: %(default)s; the figure beside it)")
     args = parser.parse_args(argv)
-    names = [name.strip() for name in args.levers.split(",") if name.strip()]
-    unknown = [name for name in names if name not in LEVER_BY_NAME]
-    if unknown or not names:
-        parser.error(f"argument --levers: unknown lever {unknown}; allowed: {', '.join(LEVER_BY_NAME)}")
-    try:
-        seeds = [int(seed) for seed in args.seeds.split(",")]
-    except ValueError:
-        seeds = []
-    if not seeds or min(seeds) < 0:
-        parser.error(f"argument --seeds: seeds must be comma-separated integers >= 0, got {args.seeds!r}")
+    names, seeds = args.levers, args.seeds
     if args.num_resamples < 1:
         parser.error(f"argument --num-resamples: must be >= 1, got {args.num_resamples}")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")

@@ -52,10 +52,9 @@ from __future__ import annotations
 
 import argparse
 import logging
-from collections.abc import Callable
 from pathlib import Path
 
-from spf_rl.cli import ArgumentParser
+from spf_rl.cli import ArgumentParser, arg_type, parse_names, parse_seeds
 from spf_rl.eval.table1_rows import (
     DEFAULT_SEEDS,
     QUICK_DIR,
@@ -63,21 +62,8 @@ from spf_rl.eval.table1_rows import (
     ROW_BY_NAME,
     SETS,
     Table1Options,
-    parse_names,
-    parse_seeds,
     reproduce,
 )
-
-
-def arg_type(parse: Callable, *params) -> Callable[[str], object]:
-    """``parse(text, *params)`` as an argparse type: its ``ValueError`` is the option's one error line."""
-    def parse_arg(text: str):
-        try:
-            return parse(text, *params)
-        except ValueError as err:
-            raise argparse.ArgumentTypeError(str(err)) from None
-
-    return parse_arg
 
 
 def parse_args(argv: list[str] | None) -> Table1Options:

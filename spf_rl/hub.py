@@ -300,7 +300,7 @@ def load_policy(
             policy = ExportedPolicy(path_or_name)
         except ImportError as err:
             raise ValueError(f"{path_or_name} is an export: running it needs the runtime (pip install ./runtime)") from err
-        exported_type = policy.export.manifest["model_type"]
+        exported_type = policy.model_type
         if model_type is not None and exported_type != model_type:
             raise CheckpointError(f"export {path_or_name} holds a {exported_type!r} model, but a {model_type!r} model was asked for.")
         return LoadedPolicy(policy, policy.config)

@@ -372,3 +372,15 @@ def test_a_route_memory_refuses_what_it_cannot_keep():
     data[6] = 9  # the precision code
     with pytest.raises(ValueError, match="unknown feature precision"):
         RouteMemory.from_bytes(bytes(data))
+
+
+def test_an_export_refuses_bad_settings_naming_them(exports):
+    from spf_rl.modules.exported import ExportedPolicy
+
+    directory = exports["spf"][2]
+    with pytest.raises(ValueError, match="threads must be an int >= 1"):
+        Follower(directory, threads=0)
+    with pytest.raises(ValueError, match="sparsity must be in"):
+        ExportedPolicy(directory, sparsity=1.5)
+    with pytest.raises(ValueError, match="memory_dtype must be one of"):
+        ExportedPolicy(directory, memory_dtype="int4")

@@ -158,7 +158,7 @@ def evaluate_checkpoint(target: str, options: EvalOptions) -> dict:
         from spf_rl.modules.exported import ExportedPolicy
 
         policy = ExportedPolicy(target, demo_length=options.demo_length, sparsity=options.sparsity)
-        model_type, demo_length, sparsity = policy.export.manifest["model_type"], policy.demo_length, policy.sparsity
+        model_type, demo_length, sparsity = policy.model_type, policy.demo_length, policy.sparsity
         image_size = policy.export.image_size[0]
         memory = model_memory_bytes(model_type, demo_length, sparsity, image_size)
     else:

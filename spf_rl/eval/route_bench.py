@@ -401,7 +401,7 @@ def load_models(options: BenchOptions) -> list[BenchModel]:
     for name in options.models:
         if is_export(name):  # an export directory, run by ONNX Runtime (recipes/export.py)
             path, policy = name, load_policy(name).policy
-            payload = {"model_type": policy.export.manifest["model_type"]}
+            payload = {"model_type": policy.model_type}
         else:
             path = checked_checkpoint(name)
             policy, payload = policy_from_checkpoint(path, device=options.device)

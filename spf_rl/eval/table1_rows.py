@@ -2,7 +2,7 @@
 (:data:`TABLE1_PRESET`) and every DAgger column by one rule (:data:`TABLE1_DAGGER_PRESET`), in
 ``runs/table1/``; how the seeds of its finished runs become per-seed checkpoints and a shipped name, and how every checkpoint is
 scored on the table's episode sets (cached per episode). ``recipes/table1.py`` is the
-command line (:class:`Table1Options`, :func:`parse_names`, :func:`parse_seeds`, then
+command line (:class:`Table1Options`, :func:`spf_rl.cli.parse_names`, :func:`spf_rl.cli.parse_seeds`, then
 :func:`reproduce`); :mod:`spf_rl.eval.table1` turns the records into the table.
 """
 from __future__ import annotations
@@ -494,46 +494,6 @@ def evaluate_all(
 
 
 # ---------------------------------------------------------------------- the run
-def parse_names(text: str, allowed: Sequence[str], what: str) -> list[str]:
-    """Comma-separated names, each one of ``allowed``; repeats dropped, the order kept.
-
-    Raises:
-        ValueError: an unknown name (or none), naming ``what`` and the allowed names.
-
-    Examples:
-        >>> parse_names("extended, test,extended", SETS, "set")
-        ['extended', 'test']
-        >>> parse_names("test,val", SETS, "set")
-        Traceback (most recent call last):
-        ...
-        ValueError: unknown set ['val']; allowed: test, extended
-    """
-    items = [item.strip() for item in text.split(",") if item.strip()]
-    unknown = [item for item in items if item not in allowed]
-    if unknown or not items:
-        raise ValueError(f"unknown {what} {unknown or text!r}; allowed: {', '.join(allowed)}")
-    return list(dict.fromkeys(items))
-
-
-def parse_seeds(text: str) -> list[int]:
-    """Comma-separated training seeds, sorted, repeats dropped.
-
-    Raises:
-        ValueError: not comma-separated integers >= 0.
-
-    Examples:
-        >>> parse_seeds("2,0,2")
-        [0, 2]
-    """
-    try:
-        seeds = [int(item) for item in text.split(",") if item.strip()]
-    except ValueError:
-        seeds = []
-    if not seeds or any(seed < 0 for seed in seeds):
-        raise ValueError(f"seeds must be comma-separated integers >= 0 (e.g. 0,1,2), got {text!r}")
-    return sorted(set(seeds))
-
-
 @dataclass(frozen=True)
 class Table1Options:
     """What a Table 1 run does (``recipes/table1.py``'s options), checked when made, before any work.

@@ -60,6 +60,8 @@ class ExportedPolicy(TensorDictModuleBase):
 
         if memory_dtype not in MEMORY_DTYPES:
             raise ValueError(f"memory_dtype must be one of {MEMORY_DTYPES}, got {memory_dtype!r}")
+        if sparsity is not None and not 0.0 < float(sparsity) <= 1.0:
+            raise ValueError(f"sparsity must be in (0, 1], got {sparsity!r}")
         self.export = Export(directory, threads)
         self.directory, self.threads, self.memory_dtype = str(directory), threads, memory_dtype
         self.demo_length = int(demo_length or self.export.demo_length)
@@ -77,6 +79,11 @@ class ExportedPolicy(TensorDictModuleBase):
 
     def __setstate__(self, state: dict) -> None:
         self.__init__(**state)
+
+    @property
+    def model_type(self) -> str:
+        """The exported checkpoint's model type (``"spf"``, ``"spf_random"``, ...)."""
+        return self.export.manifest["model_type"]
 
     @property
     def config(self):

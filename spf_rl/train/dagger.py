@@ -403,13 +403,14 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
             RoundStore.write(round_dir, round_config, _collect_round(policy, config, round_config, round_dir))
         barrier(ranks)
         # stored before an interruption too (collection is deterministic): reused
-        episodes = RoundStore.read(round_dir, round_config.collection()).episodes
+        round_store = RoundStore.read(round_dir, round_config.collection())
+        episodes = round_store.episodes
         collected = {"beta": beta, **behaviour_statistics(episodes)}
         sources = training_sources(bc_data, output, round_index, config.window_rounds)
         collected["training_episodes"] = sum(len(source) for source in sources)
         collected.update(_train_round(run, sources, config, round_index, ranks))
         # the pointer-collapse guard (every rank: the same weights, the same pace), on the round's own episodes
-        guard = PointerGuard.of(policy, RoundStore.read(round_dir, round_config.collection()))
+        guard = PointerGuard.of(policy, round_store)
         pace = guard.pace(policy, ranks) if guard is not None else None
         if pace is not None:
             collected["pointer_pace"] = pace
