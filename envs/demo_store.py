@@ -73,9 +73,10 @@ class DemoStoreConfig:
     Args:
         episodes: the episodes whose demonstrations it holds (:class:`~envs.episode_spec.EpisodeSpec`:
             split or houses, ``demo_length``, ``image_size``, task, routes and seed).
-            Demonstrations have neither actuation noise nor a step limit, so the store's spec
-            keeps neither (they are set to ``"none"`` and ``None``): any noise and limit
-            may play them.
+            Demonstrations have neither actuation noise nor a step limit, and are the teaching
+            world's, so the store's spec keeps neither, nor repeat conditions or a mismatched
+            memory (:mod:`envs.conditions`; all set to ``"none"`` and ``None``): any noise, limit
+            and conditions may play them.
         num_demos: number of demonstrations K.
         numbered: ``False`` (a pool of demonstrations, drawn uniformly by the env:
             demonstration ``k`` depends only on ``(episodes.seed, k)``) or ``True`` (an
@@ -112,8 +113,11 @@ class DemoStoreConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.episodes, EpisodeSpec):
             raise ValueError(f"episodes must be an EpisodeSpec, got {type(self.episodes).__name__}.")
-        if self.episodes.noise != STORE_NOISE or self.episodes.max_steps is not None:
-            object.__setattr__(self, "episodes", self.episodes.replace(noise=STORE_NOISE, max_steps=None))
+        # a store holds the teaching world's demonstrations: the repeat's noise, step limit,
+        # conditions and memory (envs.conditions) are the env's, not the store's
+        taught = {"noise": STORE_NOISE, "max_steps": None, "conditions": None, "memory_mismatch": None}
+        if any(getattr(self.episodes, key) != value for key, value in taught.items()):
+            object.__setattr__(self, "episodes", self.episodes.replace(**taught))
         if self.grid_size_cells is not None:
             check_grid_size(self.grid_size_cells, "DemoStoreConfig.grid_size_cells")
         if isinstance(self.num_demos, bool) or not isinstance(self.num_demos, int) or self.num_demos <= 0:

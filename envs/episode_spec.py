@@ -28,6 +28,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
+from envs.conditions import check_mismatch, parse_conditions
 from envs.follow import default_max_steps
 from envs.homing import FOLLOW, check_task
 from envs.house_grid import check_demo_length
@@ -39,7 +40,7 @@ from envs.transforms import DEFAULT_NOISE, make_noise_model
 EPISODES_FIELD = "episodes"
 #: Fields of :class:`EpisodeSpec` written only when set (``None`` is the default every
 #: earlier record was made with, so records without them keep their identity).
-OPTIONAL_FIELDS = ("house_seeds", "route_style", "route_lengths")
+OPTIONAL_FIELDS = ("house_seeds", "route_style", "route_lengths", "conditions", "memory_mismatch")
 
 Config = TypeVar("Config")
 
@@ -70,6 +71,11 @@ class EpisodeSpec:
             (``None``: ``demo_length``).
         seed: seed of the episode stream (episode ``j`` depends only on it and ``j``).
         house_seeds: explicit houses instead of the split's (``None``: the split's).
+        conditions: how the world of the repeat differs from the teaching's (:mod:`envs.conditions`:
+            ``"light@0.5"``, or a mixture ``"light@0.5=1,furniture@1=1"``), drawn per episode;
+            ``None``: the teaching world itself.
+        memory_mismatch: the fraction of episodes shown another route's frames with their own
+            actions (:func:`~envs.conditions.draws_mismatch`); ``None``: none.
 
     Examples:
         >>> spec = EpisodeSpec(split="val", demo_length=40, max_steps=None, route_style="tour")
@@ -92,6 +98,8 @@ class EpisodeSpec:
     route_lengths: tuple[int, int] | None = None
     seed: int = 0
     house_seeds: tuple[int, ...] | None = None
+    conditions: str | None = None
+    memory_mismatch: float | None = None
 
     def __post_init__(self) -> None:
         check_task(self.task)
@@ -112,6 +120,10 @@ class EpisodeSpec:
             split_seeds(self.split, self.num_houses)  # validates split and num_houses
         if self.route_lengths is not None and not isinstance(self.route_lengths, str):
             object.__setattr__(self, "route_lengths", tuple(self.route_lengths))  # a list in YAML and JSON
+        conditions = parse_conditions(self.conditions)
+        if conditions is not None:  # one spelling of each mixture
+            object.__setattr__(self, "conditions", conditions.spec)
+        object.__setattr__(self, "memory_mismatch", check_mismatch(self.memory_mismatch))
         mixture = route_mixture_for(self.route_style, self.route_lengths, self.demo_length)
         if mixture is not None:  # one spelling of each mixture, as stores, names and records write it
             object.__setattr__(self, "route_style", mixture.spec)

@@ -170,12 +170,12 @@ def house_polygons(house: House, atlas: _Atlas | None = None) -> list[np.ndarray
     polygons: list[np.ndarray] = []
     wall_quads = _wall_quads(house)
     for label in sorted(wall_quads):
-        key = ("wall", house.wall_texture_of_label[label])
+        key = ("wall", room_texture_key(house, "wall", label))
         for quad, _ in wall_quads[label]:
             polygons.append(np.concatenate([quad[:, :3], atlas.texcoords(key, quad[:, 3:])], axis=1))
     floor_quads = _floor_quads(house)
     for label in sorted(floor_quads):
-        key = ("floor", house.floor_texture_of_label[label])
+        key = ("floor", room_texture_key(house, "floor", label))
         for quad in floor_quads[label]:
             polygons.append(np.concatenate([quad[:, :3], atlas.texcoords(key, quad[:, 3:])], axis=1))
     for polygon in _landmark_polygons(house):
@@ -394,8 +394,10 @@ def _house_atlas(house: House) -> _Atlas:
         ("floor", house.floor_texture_of_label, floor_paths, (ATLAS_FLOOR_REPEATS, ATLAS_FLOOR_REPEATS)),
     ):
         shelf = []
-        for name in sorted(set(names.values())):
-            shelf.append(((kind, name), _tiled_cell(paths[name], *repeats)))
+        for key in sorted({room_texture_key(house, kind, label) for label in names}):
+            name, _, hue = key.partition(PAINT_KEY_SEPARATOR)
+            cell = _tiled_cell(paths[name], *repeats) if not hue else _painted_cell(paths[name], *repeats, float(hue))
+            shelf.append(((kind, key), cell))
         shelves.append(shelf)
     palette = _palette_cell()
     shelves.append([(("palette", ""), palette)])
@@ -453,6 +455,45 @@ def _tiled_cell(path: str, repeats_u: float, repeats_v: float) -> np.ndarray:
     cell = np.ascontiguousarray(cell)
     cell.setflags(write=False)
     return cell
+
+
+#: Saturation of a repainted room's colour (:attr:`~envs.scenes.House.paint`; value: the texture's luminance).
+PAINT_SATURATION = 0.6
+#: Separates a texture's name from a repainted room's hue in an atlas key.
+PAINT_KEY_SEPARATOR = "#hue="
+
+
+def room_texture_key(house: House, kind: str, label: str) -> str:
+    """The atlas key of a room's ``kind`` (``"wall"`` or ``"floor"``) texture: its labmaze texture's
+    name, and for a repainted room (:attr:`~envs.scenes.House.paint`) the new hue after
+    :data:`PAINT_KEY_SEPARATOR`.
+
+    Examples:
+        >>> from envs.scenes import build_house, with_paint
+        >>> house = build_house(0)
+        >>> room_texture_key(with_paint(house, {"A": (0.25, 0.5)}), "floor", "A").endswith("#hue=0.500000")
+        True
+    """
+    names = house.wall_texture_of_label if kind == "wall" else house.floor_texture_of_label
+    hues = house.paint.get(label)
+    if hues is None:
+        return names[label]
+    return f"{names[label]}{PAINT_KEY_SEPARATOR}{hues[0 if kind == 'wall' else 1]:.6f}"
+
+
+@functools.lru_cache(maxsize=256)
+def _painted_cell(path: str, repeats_u: float, repeats_v: float, hue: float) -> np.ndarray:
+    """:func:`_tiled_cell` repainted: each texel's luminance times a colour of ``hue`` (saturation
+    :data:`PAINT_SATURATION`) of the same luminance, so the pattern stays and the colour is new."""
+    import colorsys
+
+    cell = _tiled_cell(path, repeats_u, repeats_v).astype(np.float32)
+    weights = np.array([0.299, 0.587, 0.114], dtype=np.float32)
+    colour = np.array(colorsys.hsv_to_rgb(hue % 1.0, PAINT_SATURATION, 1.0), dtype=np.float32)
+    painted = (cell @ weights)[..., None] * (colour / float(colour @ weights))
+    painted = np.clip(np.rint(painted), 0, 255).astype(np.uint8)
+    painted.setflags(write=False)
+    return painted
 
 
 def _palette_cell() -> np.ndarray:

@@ -49,6 +49,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 
+from envs.conditions import ConditionMixture, Repeat, check_mismatch, draw_repeat, draws_mismatch, parse_conditions
 from envs.checks import check_action, check_actuation_noise, check_positive_int, resolve_houses
 from envs.demo_store import DemoStore
 from envs.demos import DEFAULT_DEMO_LENGTH, Demonstration, default_min_route_length_m, move_agents, nominal_motion
@@ -137,6 +138,15 @@ class PathFollowEnv(EnvBase):
         route_lengths: ``(shortest, longest)`` steps of sampled routes with ``route_style``,
             each route's length drawn uniformly in it (``None``: ``demo_length`` exactly);
             ``longest`` is at most ``demo_length``, to which shorter demonstrations are padded.
+        conditions: repeat conditions (:mod:`envs.conditions`: ``"light@0.5"``, a mixture
+            ``"light@0.5=1,furniture@1=1"``, or a :class:`~envs.conditions.ConditionMixture`),
+            one drawn per episode from its seed: the agent's world changes, the demonstration
+            stays the teaching world's. Adds ``condition`` (its index in
+            :data:`~envs.conditions.CONDITIONS`) and ``condition_strength``. ``None`` (default): none.
+        memory_mismatch: the fraction of episodes (drawn from each episode's seed) whose
+            demonstration frames are another route's, its actions the episode's own. Adds
+            ``memory_mismatched``, and with ``demo_store`` ``memory_id`` (the stored
+            demonstration whose frames are shown; ``demo_id`` stays the episode's). ``None``: none.
         episode_offset, episode_stride: episode numbering (:mod:`envs.episode_numbering`): agent
             ``i``'s ``k``-th episode is number ``offset + stride * (i + k * N)``, its seed a
             function of the env seed and that number alone; emitted as ``episode_index``. They
@@ -178,6 +188,8 @@ class PathFollowEnv(EnvBase):
         demonstrations: Sequence[Demonstration] | None = None,
         route_style: str | Mapping[str, float] | RouteMixture | None = None,
         route_lengths: tuple[int, int] | None = None,
+        conditions: str | Mapping[str, float] | ConditionMixture | None = None,
+        memory_mismatch: float | None = None,
         episode_offset: int = 0,
         episode_stride: int = 1,
         seed: int | None = None,
@@ -187,6 +199,8 @@ class PathFollowEnv(EnvBase):
         if expert not in (*EXPERTS, None):
             raise ValueError(f"expert must be one of {', '.join(map(repr, EXPERTS))} or None, got {expert!r}.")
         route_mixture = route_mixture_for(route_style, route_lengths, demo_length)
+        self.conditions = parse_conditions(conditions)
+        self.memory_mismatch = check_mismatch(memory_mismatch)
         self._fixed_max_steps = max_steps is not None
         max_steps = default_max_steps(demo_length) if max_steps is None else max_steps
         check_positive_int("max_steps", max_steps)
@@ -254,6 +268,8 @@ class PathFollowEnv(EnvBase):
             with_expert=self.with_expert,
             device=self.device,
             with_route_step=self.with_route_step,
+            with_conditions=self.conditions is not None,
+            with_mismatch=self.memory_mismatch is not None,
         )
         self.observation_spec = specs["observation"]
         self.action_spec = specs["action"]
@@ -263,7 +279,13 @@ class PathFollowEnv(EnvBase):
 
     def _init_state(self) -> None:
         count, n, size = self._count, self.demo_length, self.image_size
-        self._houses: list[House | None] = [None] * count
+        self._houses: list[House | None] = [None] * count  # where the agent is (the repeat's layout)
+        self._teach_houses: list[House | None] = [None] * count  # where the route was taught
+        self._repeats: list[Repeat | None] = [None] * count
+        self._condition = np.zeros(count, dtype=np.int64)
+        self._condition_strength = np.zeros(count, dtype=np.float32)
+        self._mismatched = np.zeros(count, dtype=bool)
+        self._memory_id = np.zeros(count, dtype=np.int64)
         self._demos: list[Demonstration | None] = [None] * count
         self._experts: list[GeodesicExpert | RouteExpert | None] = [None] * count
         self._pose = np.zeros((count, 3))
@@ -325,6 +347,8 @@ class PathFollowEnv(EnvBase):
             task=episodes.task,
             route_style=episodes.route_style,
             route_lengths=episodes.route_lengths,
+            conditions=episodes.conditions,
+            memory_mismatch=episodes.memory_mismatch,
             **options,
         )
 
@@ -341,8 +365,11 @@ class PathFollowEnv(EnvBase):
             self._renderer = FirstPersonRenderer(self.image_size, self.image_size)
         return self._renderer
 
-    def _render(self, indices: Sequence[int], poses: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
-        """Frames ``(len(indices), H, W, 3)`` of agents at their (or the given) poses.
+    def _render(
+        self, indices: Sequence[int], poses: np.ndarray | None = None, out: np.ndarray | None = None, houses: Sequence[House] | None = None
+    ) -> np.ndarray:
+        """Frames ``(len(indices), H, W, 3)`` of agents at their (or the given) poses, as each
+        agent sees its repeat (:mod:`envs.conditions`), or, given ``houses``, as the teacher saw them.
 
         ``out`` may be any ``(len(indices), H, W, 3)`` uint8 array (e.g. a tensor's
         ``.numpy()`` view), so that frames land in their final place with one copy.
@@ -352,8 +379,18 @@ class PathFollowEnv(EnvBase):
         if not self.render_frames:
             out[...] = 0
             return out
-        houses = [self._houses[index] for index in indices]
-        return self.renderer.render_many(houses, self._pose[list(indices)] if poses is None else poses, out=out)
+        poses = self._pose[list(indices)] if poses is None else poses
+        if houses is not None:
+            return self.renderer.render_many(houses, poses, out=out)
+        repeats = [self._repeats[index] for index in indices]
+        if all(repeat is None for repeat in repeats):
+            return self.renderer.render_many([self._houses[index] for index in indices], poses, out=out)
+        views = [None if repeat is None else repeat.view for repeat in repeats]
+        self.renderer.render_many([self._houses[index] for index in indices], poses, out=out, views=views)
+        for row, repeat in enumerate(repeats):
+            if repeat is not None and repeat.sensor is not None:
+                repeat.sense(out[row : row + 1])
+        return out
 
     # ------------------------------------------------------------------ reset
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
@@ -378,14 +415,20 @@ class PathFollowEnv(EnvBase):
 
     def _start_episode(self, index: int, demo_frames: torch.Tensor, demo_actions: torch.Tensor, pixels: torch.Tensor) -> None:
         self._episode_index[index], episode_seed = self.numbering.next(index)
-        house, demo, self._demo_id[index] = self._source.episode(index, episode_seed, self._episode_index[index])
-        self._houses[index], self._house_seed[index] = house, house.seed
+        taught, taught_demo, self._demo_id[index] = self._source.episode(index, episode_seed, self._episode_index[index])
+        repeat = None if self.conditions is None else draw_repeat(self.conditions, taught, taught_demo, episode_seed)
+        # the agent's world: the repeat's layout and the route's distances in it
+        house, demo = (taught, taught_demo) if repeat is None else (repeat.house, repeat.demonstration)
+        self._repeats[index] = repeat if repeat is not None and repeat.changes_frames else None
+        if repeat is not None:
+            self._condition[index], self._condition_strength[index] = repeat.condition.index, repeat.condition.strength
+        self._houses[index], self._teach_houses[index], self._house_seed[index] = house, taught, house.seed
         self._demos[index] = demo
         stop_radius_m = self.rules.radius(demo.shortest_length_m) if self.stop_action else None
         if self.expert == "goal":
             self._experts[index] = GeodesicExpert(house.occupancy, demo.end_field, stop_radius_m=stop_radius_m)
         else:
-            self._experts[index] = RouteExpert(house, demo, stop_radius_m=stop_radius_m)
+            self._experts[index] = RouteExpert(house, demo, stop_radius_m=stop_radius_m, check_replay=house is not taught)
         self._episode_seed[index] = episode_seed
         self._pose[index] = demo.start_pose
         self._steps[index] = 0
@@ -406,19 +449,32 @@ class PathFollowEnv(EnvBase):
         self._wall_hits[index] = 0
         demo_actions[index, :steps] = torch.from_numpy(demo.actions)
         demo_actions[index, steps:] = 0  # padding: demo_steps says where the demonstration ends
+        mismatched = self._mismatched[index] = draws_mismatch(self.memory_mismatch, episode_seed)
+        # the agent's first frame is the demonstration's first unless its world or the memory differ
+        own_first_frame = self._repeats[index] is None and not mismatched
         if self.demo_store is not None:
-            stored = self.demo_store.frames[self._demo_id[index]]
+            shown = self._memory_id[index] = self._source.mismatched_id(episode_seed, self._demo_id[index]) if mismatched else self._demo_id[index]
+            stored = self.demo_store.frames[shown]
             if self.emit_demo_frames:
                 demo_frames[index] = stored
-            pixels[index] = stored[0] if self.render_frames else 0  # the agent starts on the demo's first pose
+            if own_first_frame or not self.render_frames:
+                # the agent starts on the demo's first pose
+                pixels[index] = self.demo_store.frames[self._demo_id[index], 0] if self.render_frames else 0
+            else:
+                self._render([index], demo.start_pose[None], out=pixels[index : index + 1].numpy())
             return
         if not self.emit_demo_frames:  # unrendered (checked): blank frames, none emitted
             pixels[index] = 0
             return
         # rendered straight into the (n, H, W, 3) tensor; black padding after the demonstration
-        self._render([index] * steps, demo.poses[:steps], out=demo_frames[index, :steps].numpy())
-        demo_frames[index, steps:] = 0
-        pixels[index] = demo_frames[index, 0]  # the agent starts on the demo's first pose
+        shown_house, shown = (taught, taught_demo) if not mismatched else self._source.mismatched_route(episode_seed)
+        length = min(steps, shown.length)
+        self._render([index] * length, shown.poses[:length], out=demo_frames[index, :length].numpy(), houses=[shown_house] * length)
+        demo_frames[index, length:] = 0
+        if own_first_frame:
+            pixels[index] = demo_frames[index, 0]  # the agent starts on the demo's first pose
+        else:
+            self._render([index], demo.start_pose[None], out=pixels[index : index + 1].numpy())
 
     # ------------------------------------------------------------------- step
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -472,7 +528,7 @@ class PathFollowEnv(EnvBase):
     ) -> TensorDictBase:
         count = self._count
         # one array per dtype; every key is a view of one of them (casts as ``astype`` would)
-        floats = np.empty((count, 11 if reward is not None else 10), dtype=np.float32)
+        floats = np.empty((count, 12), dtype=np.float32)
         floats[:, 0] = self._distance
         floats[:, 1] = self._path_length
         floats[:, 2] = self._shortest
@@ -481,7 +537,8 @@ class PathFollowEnv(EnvBase):
         floats[:, 7:10] = self._fidelity
         if reward is not None:
             floats[:, 10] = reward
-        ints = np.empty((count, 7), dtype=np.int64)
+        floats[:, 11] = self._condition_strength
+        ints = np.empty((count, 9), dtype=np.int64)
         ints[:, 0] = self._steps
         ints[:, 1] = self._episode_seed
         ints[:, 2] = self._demo_id
@@ -489,8 +546,11 @@ class PathFollowEnv(EnvBase):
         ints[:, 4] = self._house_seed
         ints[:, 5] = self._wall_hits
         ints[:, 6] = self._demo_steps
-        bools = np.empty((count, 5), dtype=bool)
+        ints[:, 7] = self._condition
+        ints[:, 8] = self._memory_id
+        bools = np.empty((count, 6), dtype=bool)
         bools[:, 4] = self._lab_success
+        bools[:, 5] = self._mismatched
         bools[:, 0] = self._success
         bools[:, 1] = done
         bools[:, 2] = terminated
@@ -530,6 +590,13 @@ class PathFollowEnv(EnvBase):
             out["demo_frames"] = demo_frames
         if self.demo_store is not None:
             out["demo_id"] = int_columns[..., 2:3]
+        if self.conditions is not None:
+            out["condition"] = int_columns[..., 7:8]
+            out["condition_strength"] = float_columns[..., 11:12]
+        if self.memory_mismatch is not None:
+            out["memory_mismatched"] = bool_columns[..., 5:6]
+            if self.demo_store is not None:
+                out["memory_id"] = int_columns[..., 8:9]
         if self.with_expert:
             expert = torch.from_numpy(self.expert_actions())
             out["expert_action"] = expert if self.num_agents is not None else expert[0]
@@ -568,8 +635,18 @@ class PathFollowEnv(EnvBase):
 
     @property
     def houses(self) -> list[House | None]:
-        """The current house of each agent."""
+        """The current house of each agent: the layout it moves in (with ``conditions``, the repeat's)."""
         return list(self._houses)
+
+    @property
+    def taught_houses(self) -> list[House | None]:
+        """The house each agent's route was taught in (as :func:`~envs.scenes.build_house` makes it)."""
+        return list(self._teach_houses)
+
+    @property
+    def repeats(self) -> list[Repeat | None]:
+        """Each agent's :class:`~envs.conditions.Repeat` where its frames differ from the teaching world's, else ``None``."""
+        return list(self._repeats)
 
     def close(self, *, raise_if_closed: bool = True) -> None:
         if self._renderer is not None:

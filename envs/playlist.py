@@ -15,9 +15,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from envs.conditions import mismatch_seed
 from envs.demo_store import DemoStore
 from envs.demos import Demonstration
-from envs.follow import episode_for_seed
+from envs.follow import MAX_EPISODE_SEED, episode_for_seed
 from envs.geodesic import DistanceField
 from envs.homing import FOLLOW, HOMING, check_task, task_demonstration
 from envs.route_styles import RouteMixture
@@ -187,6 +188,24 @@ class EpisodeSource:
             episode_seed, self.house_seeds, self.demo_length, self.min_route_length_m, self.task, self.route_style
         )
         return house, demo, 0
+
+    def mismatched_route(self, episode_seed: int) -> tuple[House, Demonstration]:
+        """The route whose frames a mismatched episode of ``episode_seed`` is shown: another
+        route of the env's houses and routes, drawn from the episode seed
+        (:func:`~envs.conditions.mismatch_seed`), as the teacher saw it."""
+        return episode_for_seed(
+            mismatch_seed(episode_seed) % MAX_EPISODE_SEED, self.house_seeds, self.demo_length, self.min_route_length_m,
+            self.task, self.route_style,
+        )
+
+    def mismatched_id(self, episode_seed: int, demo_id: int) -> int:
+        """The stored demonstration whose frames a mismatched episode of ``episode_seed`` (playing
+        ``demo_id``) is shown: another one of the store, drawn from the episode seed."""
+        count = len(self.demo_store)
+        if count < 2:
+            raise ValueError(f"memory_mismatch needs a demo store of at least 2 demonstrations, {self.demo_store.root} holds {count}.")
+        other = mismatch_seed(episode_seed) % (count - 1)
+        return int(other if other < demo_id else other + 1)
 
     def env_seed(self, seed: int | None) -> int | None:
         """The seed the env's episode numbering takes for ``set_seed(seed)``: an episode

@@ -27,12 +27,14 @@ import logging
 import math
 import os
 import weakref
+from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from envs.house_mesh import house_model
-from envs.scenes import House
+from envs.scenes import FIELD_OF_VIEW_DEG, House
 
 logger = logging.getLogger(__name__)
 
@@ -164,6 +166,45 @@ class FirstPersonView:
     eye_height_m: float
 
 
+@dataclass(frozen=True)
+class RepeatView:
+    """How a repeating robot's camera and light differ from the teacher's, for one episode
+    (drawn by :mod:`envs.conditions`; ``None`` in place of a view is the teacher's own).
+
+    Args:
+        eye_offset_m: camera height above (or, negative, below) the house's eye height, metres.
+        pitch_deg: camera pitch, degrees (positive: looking up).
+        fovy_deg: vertical field of view, degrees.
+        light_rgb: factors on the light's red, green and blue (ambient and diffuse).
+        light_yaw_deg: the light's direction turned from the view direction, degrees (0: the
+            teacher's headlight, which lights along the view).
+        lamp_room: a room label where a lamp is the only light (``None``: no lamp).
+        lamp_xyz: the lamp's position, metres.
+
+    Examples:
+        >>> RepeatView(pitch_deg=5.0).fovy_deg
+        90.0
+    """
+
+    eye_offset_m: float = 0.0
+    pitch_deg: float = 0.0
+    fovy_deg: float = FIELD_OF_VIEW_DEG
+    light_rgb: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    light_yaw_deg: float = 0.0
+    lamp_room: str | None = None
+    lamp_xyz: tuple[float, float, float] | None = None
+
+
+#: Light left in a lamp-lit room besides the lamp (ambient, a fraction of the headlight's).
+LAMP_ROOM_AMBIENT = 0.15
+#: The lamp's diffuse colour and its attenuation (constant, linear, quadratic in metres).
+LAMP_RGB = (1.0, 0.85, 0.6)
+LAMP_ATTENUATION = (0.3, 0.0, 0.12)
+#: Compiled models a renderer keeps GL resources for; the least recently drawn is freed
+#: beyond this (a house's variants of :mod:`envs.conditions` come and go).
+MAX_MODELS_PER_RENDERER = 24
+
+
 def _model_of(scene: House | FirstPersonView):
     """The compiled model a scene is drawn from."""
     return scene.model if isinstance(scene, FirstPersonView) else house_model(scene)
@@ -197,7 +238,8 @@ class FirstPersonRenderer:
         self.width = int(width)
         self.height = int(height)
         self._gl = None
-        self._per_model: dict[int, tuple] = {}
+        # by id(model); each state holds its model, so an id is never reused while it is here
+        self._per_model: OrderedDict[int, tuple] = OrderedDict()
         self._buffer = np.empty((self.height, self.width, 3), dtype=np.uint8)
 
     def _activate(self) -> None:
@@ -242,29 +284,28 @@ class FirstPersonRenderer:
             viewport = mujoco.MjrRect(0, 0, self.width, self.height)
             state = (model, data, scene, context, camera, option, viewport, house)
             self._per_model[key] = state
+            while len(self._per_model) > MAX_MODELS_PER_RENDERER:
+                _, evicted = self._per_model.popitem(last=False)
+                evicted[3].free()
+        else:
+            self._per_model.move_to_end(key)
         return state
 
-    def render(self, house, pose: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-        """Render the first-person view at ``pose`` = (x metres, y metres, heading radians).
+    def render(self, house, pose: np.ndarray, out: np.ndarray | None = None, view: RepeatView | None = None) -> np.ndarray:
+        """Render the first-person view at ``pose`` = (x metres, y metres, heading radians),
+        through ``view`` (``None``: the teacher's camera and light).
 
         Returns:
             an ``(height, width, 3)`` uint8 array (a new one unless ``out`` is given).
         """
-        import mujoco
-
-        model, data, scene, context, camera, option, viewport, _ = self._model_state(house)
-        data.cam_xpos[0] = (pose[0], pose[1], house.eye_height_m)
-        data.cam_xmat[0] = _camera_matrix(float(pose[2]))
-        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, context)
-        mujoco.mjv_updateScene(model, data, option, None, camera, mujoco.mjtCatBit.mjCAT_ALL, scene)
-        mujoco.mjr_render(viewport, scene, context)
-        mujoco.mjr_readPixels(self._buffer, None, viewport, context)
         if out is None:
             out = np.empty_like(self._buffer)
-        np.copyto(out, self._buffer[::-1])
+        self.render_many([house], np.asarray(pose, dtype=np.float64)[None], out=out[None], views=[view])
         return out
 
-    def render_many(self, houses, poses: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    def render_many(
+        self, houses, poses: np.ndarray, out: np.ndarray | None = None, views: Sequence[RepeatView | None] | None = None
+    ) -> np.ndarray:
         """Render one frame per ``(house, pose)`` pair, binding the GL context once.
 
         Args:
@@ -272,6 +313,8 @@ class FirstPersonRenderer:
             poses: ``(N, 3)`` poses, one per house.
             out: optional ``(N, height, width, 3)`` uint8 array (any strides, e.g. a
                 CHW tensor's array transposed) that receives the frames.
+            views: one :class:`RepeatView` (or ``None``: the teacher's) per frame; ``None``:
+                every frame the teacher's.
 
         Returns:
             ``out``, or a new ``(N, height, width, 3)`` uint8 array.
@@ -289,18 +332,28 @@ class FirstPersonRenderer:
             state = self._per_model.get(key)
             if state is None:
                 state = self._model_state(house)
+            else:
+                self._per_model.move_to_end(key)
             model, data, scene, context, camera, option, viewport, _ = state
             if key != current:
                 mujoco.mjr_setBuffer(offscreen, context)
                 current = key
             pose = poses[row]
-            data.cam_xpos[0] = (pose[0], pose[1], house.eye_height_m)
-            data.cam_xmat[0] = _camera_matrix(float(pose[2]))
-            mujoco.mjv_updateScene(model, data, option, None, camera, everything, scene)
+            view = None if views is None else views[row]
+            if view is None:
+                data.cam_xpos[0] = (pose[0], pose[1], house.eye_height_m)
+                data.cam_xmat[0] = _camera_matrix(float(pose[2]))
+                mujoco.mjv_updateScene(model, data, option, None, camera, everything, scene)
+            else:
+                _update_scene_through(view, house, pose, model, data, option, camera, scene)
             mujoco.mjr_render(viewport, scene, context)
             mujoco.mjr_readPixels(self._buffer, None, viewport, context)
             np.copyto(out[row], self._buffer[::-1])
         return out
+
+    def models_held(self) -> int:
+        """How many compiled models this renderer holds GL resources for (at most :data:`MAX_MODELS_PER_RENDERER`)."""
+        return len(self._per_model)
 
     def release(self, house) -> None:
         """Free the GL resources held for ``house``'s model."""
@@ -353,6 +406,54 @@ def _camera_matrix(heading_rad: float) -> np.ndarray:
     c, s = math.cos(heading_rad), math.sin(heading_rad)
     # columns: camera x = right (s, -c, 0), camera y = up (0, 0, 1), camera z = backwards (-c, -s, 0)
     return np.array([s, 0.0, -c, -c, 0.0, -s, 0.0, 1.0, 0.0])
+
+
+def _pitched_camera_matrix(heading_rad: float, pitch_rad: float) -> np.ndarray:
+    """:func:`_camera_matrix` of a camera pitched by ``pitch_rad`` (positive: looking up)."""
+    c, s = math.cos(heading_rad), math.sin(heading_rad)
+    cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
+    # columns: right (s, -c, 0), up (-c sp, -s sp, cp), backwards (-c cp, -s cp, -sp)
+    return np.array([s, -c * sp, -c * cp, -c, -s * sp, -s * cp, 0.0, cp, -sp])
+
+
+def _update_scene_through(view: RepeatView, house, pose: np.ndarray, model, data, option, camera, scene) -> None:
+    """``mjv_updateScene`` for a camera and light changed by ``view``: the eye's height, pitch
+    and field of view, then the headlight's colour and direction and a lamp, edited in the scene."""
+    import mujoco
+
+    heading = float(pose[2])
+    data.cam_xpos[0] = (pose[0], pose[1], house.eye_height_m + view.eye_offset_m)
+    data.cam_xmat[0] = _pitched_camera_matrix(heading, math.radians(view.pitch_deg))
+    saved_fovy = float(model.cam_fovy[0])
+    model.cam_fovy[0] = view.fovy_deg
+    try:
+        mujoco.mjv_updateScene(model, data, option, None, camera, mujoco.mjtCatBit.mjCAT_ALL, scene)
+    finally:
+        model.cam_fovy[0] = saved_fovy
+    if scene.nlight == 0 or not scene.lights[0].headlight:
+        return
+    light, rgb = scene.lights[0], np.asarray(view.light_rgb, dtype=np.float32)
+    if view.lamp_room is not None and house.room_at(pose[:2]) == view.lamp_room:
+        # the headlight becomes the lamp: a spot hanging from the ceiling, shining down on the
+        # whole room (MuJoCo's classic renderer draws no point lights)
+        light.type = mujoco.mjtLightType.mjLIGHT_SPOT
+        light.headlight = 0
+        light.pos[:] = view.lamp_xyz
+        light.dir[:] = (0.0, 0.0, -1.0)
+        light.ambient[:] = light.ambient * LAMP_ROOM_AMBIENT * rgb
+        light.diffuse[:] = LAMP_RGB
+        light.attenuation[:] = LAMP_ATTENUATION
+        light.cutoff = 90.0
+        light.exponent = 0.0
+        return
+    light.ambient[:] = light.ambient * rgb
+    light.diffuse[:] = light.diffuse * rgb
+    if view.light_yaw_deg:
+        turned = heading + math.radians(view.light_yaw_deg)
+        light.headlight = 0
+        light.type = mujoco.mjtLightType.mjLIGHT_DIRECTIONAL
+        light.pos[:] = data.cam_xpos[0]
+        light.dir[:] = (math.cos(turned), math.sin(turned), 0.0)
 
 
 #: Colour of walls and of furniture on top-down maps (RGB in [0, 1]).

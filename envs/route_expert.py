@@ -31,7 +31,7 @@ from __future__ import annotations
 import numpy as np
 
 from envs.demos import Demonstration
-from envs.expert import FORWARD, FORWARD_STEP_M, TURN_LEFT, TURN_RIGHT, GeodesicExpert
+from envs.expert import FORWARD, FORWARD_STEP_M, TURN_LEFT, TURN_RIGHT, WALL_CONTACT_TOLERANCE_M, GeodesicExpert
 from envs.path_fidelity import drop_repeats
 from envs.scenes import House
 
@@ -66,6 +66,10 @@ class RouteExpert:
         demonstration: the route; its ``end_field`` steers the last stretch.
         stop_radius_m: if given, :data:`~envs.expert.STOP` is returned within this
             distance (geodesic) of the route's end once the last waypoint is the target.
+        check_replay: for a layout that differs from the one the route was demonstrated in
+            (:mod:`envs.conditions`' furniture): a demonstrated forward step that ``house``
+            cuts short is not replayed, and waypoints the agent cannot stand on are passed
+            over, so the expert goes around a piece on the path and rejoins it.
 
     Examples:
         >>> from envs.route_styles import driven_route
@@ -85,8 +89,10 @@ class RouteExpert:
         house: House,
         demonstration: Demonstration,
         stop_radius_m: float | None = None,
+        check_replay: bool = False,
     ) -> None:
         self.house = house
+        self.check_replay = bool(check_replay)
         poses = np.asarray(demonstration.poses, dtype=np.float64)
         self.poses, self.demo_actions = poses, np.asarray(demonstration.actions, dtype=np.int64)
         self.waypoints = drop_repeats(poses[:, :2])
@@ -112,7 +118,10 @@ class RouteExpert:
         window = self.waypoints[self.progress : self.progress + WINDOW_WAYPOINTS + 1]
         self.progress += int(np.argmin(np.hypot(*(window - xy).T)))
         target = min(self.progress + LOOKAHEAD_WAYPOINTS, self.last_waypoint)
-        while target < self.last_waypoint and np.hypot(*(self.waypoints[target] - xy)) < MIN_TARGET_M:
+        while target < self.last_waypoint and (
+            np.hypot(*(self.waypoints[target] - xy)) < MIN_TARGET_M
+            or (self.check_replay and not self.house.occupancy.is_free(self.waypoints[target]))
+        ):
             target += 1
         return target
 
@@ -174,7 +183,7 @@ class RouteExpert:
         target = self.target(pose)
         # the last stretch goes straight for the end: replaying it under noise overshoots
         matched = self.match(pose) if target < self.last_waypoint else None
-        if matched is not None:
+        if matched is not None and not (self.check_replay and self._blocked(pose, int(self.demo_actions[matched]))):
             return int(self.demo_actions[matched])
         expert = self._experts.get(target)
         if expert is None:
@@ -191,6 +200,14 @@ class RouteExpert:
             if action != FORWARD:
                 self._last_turn = (action, pose[:2].copy())
         return action
+
+    def _blocked(self, pose: np.ndarray, action: int) -> bool:
+        """Whether ``house`` cuts a forward step from ``pose`` short (a turn is never blocked)."""
+        if action != FORWARD:
+            return False
+        step = FORWARD_STEP_M * np.array([np.cos(pose[2]), np.sin(pose[2])])
+        _, travelled = self.house.occupancy.move(pose[:2], step)
+        return travelled < FORWARD_STEP_M - WALL_CONTACT_TOLERANCE_M
 
     def actions(self, poses: np.ndarray) -> np.ndarray:
         """Expert actions for the ``(N, 3)`` successive poses of one episode."""

@@ -23,6 +23,7 @@ Splits ``train`` / ``val`` / ``test`` are disjoint seed ranges (default 61 / 11 
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 from dataclasses import dataclass, field
 
@@ -146,6 +147,9 @@ class House:
     """One procedural house: layout, landmarks, MuJoCo model and free-space maps.
 
     Build it with :func:`build_house`; the model and maps are created on first use.
+    ``paint`` maps a room label to new (wall hue, floor hue) in [0, 1): the room is
+    repainted (:func:`with_paint`; empty in a built house). :func:`with_furniture` gives
+    the same house with other furniture.
     """
 
     seed: int
@@ -156,6 +160,7 @@ class House:
     floor_texture_of_label: dict[str, str]
     furniture: list[Furniture]
     panels: list[Panel]
+    paint: dict[str, tuple[float, float]] = field(default_factory=dict)
     cell_size_m: float = CELL_SIZE_M
     wall_height_m: float = WALL_HEIGHT_M
     eye_height_m: float = EYE_HEIGHT_M
@@ -250,6 +255,55 @@ def build_house(seed: int) -> House:
     house.furniture = _place_furniture(house, np.argwhere(entity == OBJECT_CHAR), rng)
     house.panels = _place_panels(house, rng)
     return house
+
+
+def with_paint(house: House, paint: dict[str, tuple[float, float]]) -> House:
+    """``house`` with rooms repainted: ``paint`` maps room labels to (wall hue, floor hue) in [0, 1).
+
+    A layout like any other (its model is compiled by :func:`envs.house_mesh.house_model`);
+    walls, furniture and the free-space maps are the house's own.
+
+    Examples:
+        >>> painted = with_paint(build_house(0), {"A": (0.0, 0.5)})
+        >>> painted.paint, painted.furniture is build_house(0).furniture
+        ({'A': (0.0, 0.5)}, True)
+    """
+    labels = {str(x) for x in np.unique(house.room_labels)} - {WALL_CHAR}
+    for label, hues in paint.items():
+        if label not in labels or len(hues) != 2 or not all(0.0 <= float(h) < 1.0 for h in hues):
+            raise ValueError(f"paint must map room labels ({sorted(labels)}) to two hues in [0, 1), got {label!r}: {hues!r}.")
+    return dataclasses.replace(house, paint={str(k): (float(v[0]), float(v[1])) for k, v in paint.items()}, _occupancy=house._occupancy, _graph=house._graph)
+
+
+def with_furniture(house: House, furniture: list[Furniture]) -> House:
+    """``house`` with ``furniture`` instead of its own: its occupancy and geodesic graph are
+    those of the new pieces (built on first use). Walls, textures and panels stay.
+
+    Examples:
+        >>> house = build_house(0)
+        >>> bare = with_furniture(house, [])
+        >>> bool(bare.occupancy.occupied.sum() < house.occupancy.occupied.sum())
+        True
+    """
+    return dataclasses.replace(house, furniture=list(furniture), _occupancy=None, _graph=None)
+
+
+def furniture_footprint(house: House, piece: Furniture) -> np.ndarray:
+    """Boolean occupancy grid (``OCCUPANCY_RESOLUTION_M``, row 0 at y = 0) of one piece in ``house``."""
+    return _footprint(piece, *_cell_centres(house))
+
+
+def random_furniture(rng: np.random.Generator, centre_xy: np.ndarray) -> Furniture:
+    """A piece of furniture drawn as :func:`build_house` draws them (kind, size, height, colour) at ``centre_xy``."""
+    kind = "box" if rng.random() < BOX_PROBABILITY else "cylinder"
+    half = rng.uniform(*BOX_HALF_SIZE_RANGE_M, size=2) if kind == "box" else np.full(2, rng.uniform(*CYLINDER_RADIUS_RANGE_M))
+    return Furniture(
+        kind=kind,
+        centre_xy=np.asarray(centre_xy, dtype=np.float64),
+        half_size_m=half,
+        height_m=float(rng.uniform(*FURNITURE_HEIGHT_RANGE_M)),
+        rgb=LANDMARK_PALETTE[int(rng.integers(len(LANDMARK_PALETTE)))],
+    )
 
 
 def _place_furniture(house: House, cells: np.ndarray, rng: np.random.Generator) -> list[Furniture]:

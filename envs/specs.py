@@ -18,6 +18,7 @@ import torch
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs.transforms import ExcludeTransform
 
+from envs.conditions import CONDITIONS
 from envs.transforms import ACTUATION_NOISE_KEY, actuation_noise_spec
 
 #: Colour channels of a frame; frames are HWC uint8, as TorchRL's pixel envs emit them.
@@ -40,6 +41,9 @@ PRIVILEGED_KEYS: tuple[str, ...] = (
     "sdtw",
     "path_length_ratio",
     "wall_hits",
+    "condition",
+    "condition_strength",
+    "memory_mismatched",
 )
 #: Done keys: ``terminated`` = success (or STOP), ``truncated`` = step limit.
 DONE_KEYS = ("done", "terminated", "truncated")
@@ -56,12 +60,18 @@ def path_follow_specs(
     with_expert: bool,
     device: torch.device | str | None,
     with_route_step: bool = False,
+    with_conditions: bool = False,
+    with_mismatch: bool = False,
 ) -> dict[str, Composite | Categorical | Unbounded]:
     """The specs of a :class:`~envs.nav_env.PathFollowEnv`: ``observation``, ``action``, ``state``, ``reward``, ``done``.
 
     ``with_route_step`` adds ``route_step`` (``[*, 1]``, 0 to ``demo_length``): the
     demonstration step the agent has come to along its route, by the route expert
     (:meth:`~envs.route_expert.RouteExpert.route_step`), a label for the policy's pointer.
+    ``with_conditions`` adds the episode's repeat condition (:mod:`envs.conditions`):
+    ``condition`` (its index in :data:`~envs.conditions.CONDITIONS`) and ``condition_strength``;
+    ``with_mismatch`` adds ``memory_mismatched`` (the frames are another route's) and, with
+    ``with_demo_id``, ``memory_id`` (the stored demonstration whose frames are shown).
 
     Examples:
         >>> specs = path_follow_specs(torch.Size([]), image_size=32, demo_length=5, num_actions=3,
@@ -115,6 +125,13 @@ def path_follow_specs(
         observation["expert_action"] = Categorical(num_actions, shape=shape, dtype=torch.int64, device=device)
     if with_route_step:
         observation["route_step"] = Bounded(0, n, shape=(*shape, 1), dtype=torch.int64, device=device)
+    if with_conditions:
+        observation["condition"] = Bounded(0, len(CONDITIONS) - 1, shape=(*shape, 1), dtype=torch.int64, device=device)
+        observation["condition_strength"] = Bounded(0.0, 1.0, shape=(*shape, 1), dtype=torch.float32, device=device)
+    if with_mismatch:
+        observation["memory_mismatched"] = flag()
+        if with_demo_id:
+            observation["memory_id"] = unbounded(1, dtype=torch.int64)
     return {
         "observation": Composite(observation, shape=shape, device=device),
         "action": Categorical(num_actions, shape=shape, dtype=torch.int64, device=device),

@@ -339,3 +339,43 @@ def plot_route_styles(house, routes: dict[str, list], path: str | Path, title: s
         paths = {f"route {i}: {demo.length} steps": demo.poses[:, :2] for i, demo in enumerate(demos, 1)}
         draw_top_down_map(house, paths=paths, ax=ax, title=style)
     return save_figure(fig, path, title)
+
+
+def plot_conditions(rows: dict[str, list[tuple[str, np.ndarray]]], path: str | Path, title: str = "repeat conditions") -> Path:
+    """A grid of frames, one row per condition: the teaching frame beside the repeat's frames at the
+    same pose (:mod:`envs.conditions`), to a PNG.
+
+    Args:
+        rows: ``{row label: [(column label, (H, W, 3) uint8 frame), ...]}``.
+        path: output PNG.
+        title: the figure's title.
+    """
+    plt = pyplot()
+    columns = max(len(frames) for frames in rows.values())
+    fig, axes = plt.subplots(len(rows), columns, figsize=(2.2 * columns, 2.3 * len(rows)), squeeze=False)
+    for axis_row, (label, frames) in zip(axes, rows.items()):
+        for ax in axis_row:
+            ax.axis("off")
+        for ax, (column, frame) in zip(axis_row, frames):
+            ax.imshow(frame)
+            ax.set_title(f"{label}: {column}" if column != "taught" else f"{label}: taught", fontsize=8)
+    return save_figure(fig, path, title)
+
+
+def plot_layout_change(taught, repeat, route, path: str | Path, title: str = "furniture changed") -> Path:
+    """Two top-down maps, the house the route was taught in and the repeat's, with the route, to a PNG.
+
+    Args:
+        taught: the teaching :class:`~envs.scenes.House`.
+        repeat: the repeat's house (:func:`envs.conditions.draw_repeat`).
+        route: ``(T, 2)`` positions of the demonstrated route.
+        path: output PNG.
+        title: the figure's title.
+    """
+    from envs.render import draw_top_down_map
+
+    plt = pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(9, 4.8))
+    draw_top_down_map(taught, paths={"route": route}, ax=axes[0], title="taught")
+    draw_top_down_map(repeat, paths={"route": route}, ax=axes[1], title="repeated")
+    return save_figure(fig, path, title)
