@@ -140,6 +140,33 @@ class EpisodeSpec:
         return route_mixture_for(self.route_style, self.route_lengths, self.demo_length)
 
     @property
+    def frames_id_key(self) -> str:
+        """The key of the stored demonstration whose frames an env of a demo store shows: ``demo_id``,
+        or with ``memory_mismatch`` set ``memory_id`` (``demo_id`` stays the episode's own route).
+
+        Examples:
+            >>> EpisodeSpec().frames_id_key, EpisodeSpec(memory_mismatch=0.5).frames_id_key
+            ('demo_id', 'memory_id')
+        """
+        return "demo_id" if self.memory_mismatch is None else "memory_id"
+
+    @property
+    def conditions_tag(self) -> str:
+        """The repeat's world in a directory name: ``""`` for the teaching world, else
+        ``"-<conditions>"`` and ``"-mismatch<fraction>"``.
+
+        Examples:
+            >>> EpisodeSpec(conditions="light@0.5=1,furniture@1=1", memory_mismatch=0.25).conditions_tag
+            '-light0.5x1.0+furniture1.0x1.0-mismatch0.25'
+        """
+        tag = ""
+        if self.conditions is not None:
+            tag += "-" + self.conditions.replace("@", "").replace("=", "x").replace(",", "+")
+        if self.memory_mismatch is not None:
+            tag += f"-mismatch{self.memory_mismatch!r}"
+        return tag
+
+    @property
     def routes_tag(self) -> str:
         """The routes in a directory name: ``""`` for the planner's, else ``"-<style>-<shortest>to<longest>"``.
 

@@ -216,6 +216,11 @@ class PathFollowEnv(EnvBase):
             split, num_houses, house_seeds, demo_store, emit_demo_frames or not render, demo_length, image_size, success_radius_m,
             self.task, grid_size_cells, route_mixture,
         )
+        if self.memory_mismatch and demo_store is not None and len(demo_store) < 2:
+            raise ValueError(
+                f"memory_mismatch={self.memory_mismatch} needs a demo_store of at least 2 demonstrations "
+                f"(another route's frames), {demo_store.root} holds {len(demo_store)}."
+            )
         self.route_style = route_mixture
         batch_size = torch.Size([] if num_agents is None else [num_agents])
         super().__init__(device=device, batch_size=batch_size)

@@ -201,9 +201,7 @@ class EpisodeSource:
     def mismatched_id(self, episode_seed: int, demo_id: int) -> int:
         """The stored demonstration whose frames a mismatched episode of ``episode_seed`` (playing
         ``demo_id``) is shown: another one of the store, drawn from the episode seed."""
-        count = len(self.demo_store)
-        if count < 2:
-            raise ValueError(f"memory_mismatch needs a demo store of at least 2 demonstrations, {self.demo_store.root} holds {count}.")
+        count = len(self.demo_store)  # at least 2 (PathFollowEnv checks)
         other = mismatch_seed(episode_seed) % (count - 1)
         return int(other if other < demo_id else other + 1)
 

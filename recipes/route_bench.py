@@ -15,6 +15,7 @@ Usage::
     python recipes/route_bench.py --quick                      # smoke run -> results/route_bench_quick.json
     python recipes/route_bench.py                              # everything -> results/route_bench.json
     python recipes/route_bench.py --models spf-s0.8,lengths-spf-s0.8 --styles driven --buckets 61-100 --out results/rb.json
+    python recipes/route_bench.py --models spf-s0.8 --buckets 10-30 --conditions none light@0.5 furniture@1 mismatch --out results/rb_worlds.json
 """
 from __future__ import annotations
 
@@ -74,6 +75,10 @@ def build_parser() -> ArgumentParser:
     parser.add_argument("--quick", action="store_true",
                         help=f"smoke run: {', '.join(QUICK_MODELS)} and open-loop, {QUICK_EPISODES} episodes, "
                              f"{', '.join(QUICK_SETS)} set, buckets {bucket_text(QUICK_BUCKETS)}")
+    parser.add_argument("--conditions", nargs="+", metavar="WORLD",
+                        help="worlds the routes are repeated in, a cell each (default: the teaching world alone): none, "
+                             "repeat conditions name@strength (envs.conditions: light, paint, furniture, camera, sensor; a "
+                             "mixture 'light@0.5=1,paint@1=1'), or mismatch (another route's frames with the route's own actions)")
     parser.add_argument("--progress", action="store_true", help="progress bars")
     return parser
 
@@ -91,6 +96,7 @@ def main(argv: list[str] | None = None) -> dict:
             sets=None if args.sets is None else parse_list(args.sets, None, "--sets"),
             episodes=args.episodes, seed=args.seed, noise=args.noise, random_sparsity=args.random_sparsity,
             num_resamples=args.num_resamples, device=args.device, num_collectors=args.num_collectors, out=args.out, quick=args.quick, progress=args.progress,
+            conditions=(None,) if args.conditions is None else tuple(args.conditions),
         )
     except ValueError as err:
         parser.error(str(err))
@@ -100,7 +106,7 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error(f"argument --models: {err}")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     content = run_bench(options, models)
-    print(content["table"])
+    print(content.get("table_by_world") or content["table"])
     print(f"-> {options.out}" + (f", {content['figure']}" if content["figure"] else ""))
     return content
 

@@ -63,6 +63,17 @@ STEP_KEYS = ("pixels", "action", "expert_action")
 ROUTE_STEP_KEY = "route_step"
 
 
+def episode_keys(episodes: EpisodeSpec) -> tuple[str, ...]:
+    """The keys stored once per episode of ``episodes``: its stored route (``demo_id``) and seed, and
+    with a mismatched memory the stored route whose frames it was shown (``memory_id``).
+
+    Examples:
+        >>> episode_keys(EpisodeSpec()), episode_keys(EpisodeSpec(memory_mismatch=0.25))[-1]
+        (('demo_id', 'episode_seed'), 'memory_id')
+    """
+    return ("demo_id", "episode_seed") + (() if episodes.memory_mismatch is None else ("memory_id",))
+
+
 def step_keys(route_style: str | None) -> tuple[str, ...]:
     """The keys stored at every step of episodes of ``route_style`` (``None``: the planner's routes).
 
@@ -135,7 +146,7 @@ class DatasetConfig:
         task = "" if e.task == FOLLOW else f"-{e.task}"
         # route styles are labelled by the route expert (envs.route_expert), which the name says
         routes = "" if e.route_style is None else f"{e.routes_tag}-routeexpert"
-        houses = e.house_seeds_tag
+        houses = e.house_seeds_tag + e.conditions_tag
         limit = "" if e.max_steps in (None, default_max_steps(e.demo_length)) else f"-T{e.max_steps}"
         name = f"{e.split}{houses}-{d.num_episodes}ep-{e.noise}-rand{d.random_action_prob}-n{e.demo_length}{limit}{routes}-{e.image_size}px-s{e.seed}"
         return Path("data") / f"{name}-{format_tag()}{task}"
@@ -158,8 +169,7 @@ def _empty_episodes(config: DatasetConfig) -> TensorDict:
     return TensorDict(
         {
             "steps": steps,
-            "demo_id": torch.zeros(e, dtype=torch.int64),
-            "episode_seed": torch.zeros(e, dtype=torch.int64),
+            **{key: torch.zeros(e, dtype=torch.int64) for key in episode_keys(config.episodes)},
             "length": torch.zeros(e, dtype=torch.int64),
             "success": torch.zeros(e, dtype=torch.bool),
             "spl": torch.zeros(e, dtype=torch.float32),
@@ -184,7 +194,7 @@ def empty_training_episodes(config: DatasetConfig) -> TensorDict:
     }
     if config.episodes.route_style is not None:  # demonstrations of several lengths
         demonstrations["demo_steps"] = torch.zeros(e, 1, dtype=torch.int64)
-    return _empty_episodes(config).exclude("demo_id").update(demonstrations)
+    return _empty_episodes(config).exclude("demo_id", "memory_id").update(demonstrations)
 
 
 def format_tag() -> str:
@@ -200,9 +210,11 @@ def format_tag() -> str:
 
 def attach_demonstrations(episodes: TensorDictBase, demos: DemoStore) -> TensorDictBase:
     """``episodes`` (in place) with ``demo_frames`` and ``demo_actions`` looked up by their ``demo_id`` in ``demos``,
-    and ``demo_steps`` where the store holds demonstrations of several lengths (a route style)."""
+    and ``demo_steps`` where the store holds demonstrations of several lengths (a route style); the frames
+    are those of ``memory_id`` where the episodes have one (a mismatched memory, :mod:`envs.conditions`)."""
     ids = episodes.get("demo_id").reshape(-1)
-    episodes.set("demo_frames", demos.frames[ids].reshape(*episodes.batch_size, *demos.frames.shape[1:]))
+    shown = episodes.get("memory_id").reshape(-1) if "memory_id" in episodes.keys() else ids
+    episodes.set("demo_frames", demos.frames[shown].reshape(*episodes.batch_size, *demos.frames.shape[1:]))
     episodes.set("demo_actions", demos.actions[ids].reshape(*episodes.batch_size, -1))
     if demos.config.episodes.route_style is not None:
         episodes.set("demo_steps", demos.steps[ids].reshape(*episodes.batch_size, 1))
@@ -233,7 +245,7 @@ def generate_chunk(config: DatasetConfig, chunk: int, demos: str | os.PathLike) 
     with torch.no_grad():
         return play_episode_steps(
             env, EpsilonExpertPolicy(config.random_action_prob), first, count, step_keys(config.episodes.route_style), config.episodes.step_limit,
-            episode_keys=("demo_id", "episode_seed"),
+            episode_keys=episode_keys(config.episodes),
         )
 
 
@@ -385,4 +397,4 @@ class EpisodeDataset(TensorStore):
         }
 
 
-__all__ = ["DatasetConfig", "DatasetError", "EpisodeDataset", "attach_demonstrations", "demos_root", "empty_training_episodes", "format_tag", "generate_chunk", "step_keys"]
+__all__ = ["DatasetConfig", "DatasetError", "EpisodeDataset", "attach_demonstrations", "demos_root", "empty_training_episodes", "episode_keys", "format_tag", "generate_chunk", "step_keys"]

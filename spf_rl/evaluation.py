@@ -155,6 +155,8 @@ class FramesFromStore(TensorDictModuleBase):
         policy: a TensorDict policy.
         demo_store: the store the env draws from (``None``: the env emits the frames, and
             ``policy`` runs as it is).
+        in_key: the key of the stored demonstration whose frames are shown
+            (:attr:`~envs.episode_spec.EpisodeSpec.frames_id_key`: ``memory_id`` with a mismatched memory).
 
     Examples:
         >>> import tempfile
@@ -172,10 +174,10 @@ class FramesFromStore(TensorDictModuleBase):
         (False, True)
     """
 
-    def __init__(self, policy: TensorDictModuleBase, demo_store: DemoStore | None = None) -> None:
+    def __init__(self, policy: TensorDictModuleBase, demo_store: DemoStore | None = None, in_key: str = "demo_id") -> None:
         super().__init__()
         self.policy = policy
-        self.lookup = frames_lookup(policy, demo_store)
+        self.lookup = frames_lookup(policy, demo_store, in_key)
         extra = list(self.lookup.in_keys) if self.lookup is not None else []
         self.in_keys = list(dict.fromkeys([k for k in policy.in_keys if self.lookup is None or k != "demo_frames"] + extra))
         self.out_keys = list(policy.out_keys)
@@ -209,10 +211,10 @@ class GreedyActor(TensorDictModuleBase):
         torch.Size([4])
     """
 
-    def __init__(self, policy: TensorDictModuleBase, demo_store: DemoStore | None = None) -> None:
+    def __init__(self, policy: TensorDictModuleBase, demo_store: DemoStore | None = None, in_key: str = "demo_id") -> None:
         super().__init__()
         self.policy = policy
-        self.fed = FramesFromStore(policy, demo_store)
+        self.fed = FramesFromStore(policy, demo_store, in_key)
         self.in_keys = list(self.fed.in_keys)
         self.out_keys = list(dict.fromkeys([*policy.out_keys, "action"]))
 
@@ -318,8 +320,9 @@ def episode_store(config: EvalConfig, root: str | os.PathLike | None = None) -> 
     return DemoStore.build(Path(root) / episode_store_name(config), episode_store_config(config), progress=False)
 
 
-def frames_lookup(policy: TensorDictModuleBase, store: DemoStore | None) -> TensorDictModule | None:
-    """The module that feeds ``policy`` its ``demo_frames`` from ``demo_id`` in ``store``
+def frames_lookup(policy: TensorDictModuleBase, store: DemoStore | None, in_key: str = "demo_id") -> TensorDictModule | None:
+    """The module that feeds ``policy`` its ``demo_frames`` from ``in_key`` (``demo_id``, or
+    ``memory_id`` with a mismatched memory: :attr:`~envs.episode_spec.EpisodeSpec.frames_id_key`) in ``store``
     (:meth:`~envs.demo_store.DemoStore.lookup_module`), or ``None`` where there is nothing
     to look up (no store, or a policy that does not read the frames).
 
@@ -338,17 +341,17 @@ def frames_lookup(policy: TensorDictModuleBase, store: DemoStore | None) -> Tens
     carriers = [m for m in policy.modules() if getattr(m, "memory_key", None) in policy.in_keys] if isinstance(
         policy, torch.nn.Module
     ) else []
-    return store.lookup_module(only_where=getattr(carriers[0], "is_init_key", "is_init") if carriers else None)
+    return store.lookup_module(in_key=in_key, only_where=getattr(carriers[0], "is_init_key", "is_init") if carriers else None)
 
 
 def with_store_lookup(
-    act: Callable[[TensorDictBase], TensorDictBase], policy: TensorDictModuleBase, store: DemoStore | None
+    act: Callable[[TensorDictBase], TensorDictBase], policy: TensorDictModuleBase, store: DemoStore | None, in_key: str = "demo_id"
 ) -> Callable[[TensorDictBase], TensorDictBase]:
     """``act`` (a callable running ``policy``) fed ``demo_frames`` looked up from
     ``demo_id`` in ``store`` (on the CPU, before it runs, :func:`frames_lookup`), the
     frames dropped after it.
     """
-    lookup = frames_lookup(policy, store)
+    lookup = frames_lookup(policy, store, in_key)
     if lookup is None:
         return act
 
@@ -381,7 +384,7 @@ def evaluate_policy(policy: TensorDictModuleBase, config: EvalConfig, progress: 
                 if config.num_collectors == 1:
                     env = make_eval_env(config, policy, store)
                     stack.callback(env.close)
-                    act = with_store_lookup(greedy_on_device(policy), policy, store)
+                    act = with_store_lookup(greedy_on_device(policy), policy, store, config.episodes.frames_id_key)
                     records = run_episodes(env, act, config.num_episodes, progress=progress)
                 else:
                     stack.enter_context(torch_threads_kept())  # restored after the shutdown below
@@ -452,7 +455,7 @@ def _worker_collector(policy: TensorDictModuleBase, config: EvalConfig, store: D
     """A multi-process collector of ``config.num_collectors`` workers, each stepping a batched
     env (episode numbers ``w, w + W, ...``) with a CPU copy of ``policy`` (:class:`GreedyActor`)."""
     workers = config.num_collectors
-    actor = GreedyActor(copy.deepcopy(policy).cpu().eval(), store)
+    actor = GreedyActor(copy.deepcopy(policy).cpu().eval(), store, config.episodes.frames_id_key)
     factories = [functools.partial(make_eval_env, config, actor.policy, store, w, workers) for w in range(workers)]
     agents = min(config.num_agents, config.num_episodes)
     return Collector(

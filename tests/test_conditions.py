@@ -226,3 +226,26 @@ def test_a_mixture_has_one_spelling_and_enters_the_episodes_identity():
     assert "conditions" not in EpisodeSpec().identity()  # earlier records keep their identity
     assert parse_conditions(spec.conditions).probabilities[Condition("none")] == 0.5
 
+
+
+def test_a_dataset_keeps_the_frames_a_mismatched_episode_was_shown_and_its_own_actions(tmp_path):
+    from spf_rl.data import DatasetConfig, EpisodeDataset
+
+    spec = EpisodeSpec(split="test", num_houses=2, demo_length=8, max_steps=10, image_size=16, seed=1,
+                       conditions="light@1", memory_mismatch=0.5)
+    config = DatasetConfig(episodes=spec, num_episodes=8, chunk_size=8, num_agents=4)
+    assert "light1.0x1.0-mismatch0.5" in config.default_dir().name
+    dataset = EpisodeDataset.build(tmp_path / "data", config, num_workers=1, progress=False)
+    episodes = dataset.episodes
+    mismatched = episodes["memory_id"] != episodes["demo_id"]
+    assert 0 < int(mismatched.sum()) < 8
+    batch = dataset[list(range(8))]
+    demos = dataset.demos
+    assert torch.equal(batch["demo_frames"], demos.frames[episodes["memory_id"]])
+    assert torch.equal(batch["demo_actions"], demos.actions[episodes["demo_id"]])
+
+
+def test_a_store_with_one_demonstration_cannot_show_another_route(tmp_path):
+    store = DemoStore.build(tmp_path / "one", DemoStoreConfig.of(EpisodeSpec(**SMALL), 1), progress=False)
+    with pytest.raises(ValueError, match="memory_mismatch=1.0 needs a demo_store of at least 2 demonstrations"):
+        PathFollowEnv(demo_store=store, memory_mismatch=1.0, emit_demo_frames=False, **{k: v for k, v in SMALL.items()})

@@ -66,6 +66,9 @@ QUICK_EPISODES = 8
 DEFAULT_EPISODES = 128
 QUICK_BUCKETS = ((10, 30), (31, 60))
 QUICK_SETS = ("test",)
+#: A world of the condition axis (``--conditions``): the mismatched-memory cell, every episode shown
+#: another route's frames with its own actions (``memory_mismatch=1``; open-loop replay is its floor).
+MISMATCH = "mismatch"
 DEFAULT_OUT = Path("results/route_bench.json")
 QUICK_OUT = Path("results/route_bench_quick.json")
 #: Per-episode scores reported (mean and interval), and those compared with open-loop replay.
@@ -110,6 +113,34 @@ def parse_list(text: str, allowed: Sequence[str] | None, option: str) -> tuple[s
         allowed_text = f"; allowed: {', '.join(allowed)}" if allowed is not None else ""
         raise ValueError(f"argument {option}: {'unknown ' + str(unknown) if unknown else 'no names in ' + repr(text)}{allowed_text}")
     return items
+
+
+def parse_world(text: str | None) -> str | None:
+    """A world of the condition axis: ``None`` (or ``"none"``) for the teaching world, :data:`MISMATCH`,
+    or repeat conditions (:func:`~envs.conditions.parse_conditions`: ``"light@0.5"``, a mixture), in
+    their one spelling.
+
+    Raises:
+        ValueError: bad conditions, naming ``--conditions``.
+
+    Examples:
+        >>> parse_world("none"), parse_world("mismatch"), parse_world("light@.5")
+        (None, 'mismatch', 'light@0.5=1.0')
+        >>> parse_world("fog@1")
+        Traceback (most recent call last):
+        ...
+        ValueError: argument --conditions: conditions: unknown condition 'fog'; allowed names are none, light, paint, furniture, camera, sensor (or mismatch).
+    """
+    from envs.conditions import parse_conditions
+
+    if text is None or str(text).strip() == "none":
+        return None
+    if str(text).strip() == MISMATCH:
+        return MISMATCH
+    try:
+        return parse_conditions(str(text)).spec
+    except ValueError as err:
+        raise ValueError(f"argument --conditions: {str(err).rstrip('.')} (or {MISMATCH}).") from None
 
 
 def check_buckets(buckets: Sequence[Sequence[int]]) -> tuple[tuple[int, int], ...]:
@@ -245,6 +276,9 @@ class BenchOptions:
         num_collectors: processes playing a cell's episodes (how, never which: the same episodes and scores).
         store_root: where episode stores go (``None``: :func:`~spf_rl.evaluation.episode_store_root`).
         progress: progress bars.
+        conditions: the worlds the routes are repeated in (:func:`parse_world`): ``None`` the teaching
+            world (the default, alone), repeat conditions, or :data:`MISMATCH`; a cell per world x set x
+            style x bucket, on the same routes.
 
     Raises:
         ValueError: a bad option, naming it (``argument --episodes: ...``).
@@ -277,6 +311,7 @@ class BenchOptions:
     num_collectors: int = 1
     store_root: str | None = None
     progress: bool = False
+    conditions: tuple[str | None, ...] = (None,)
     set_houses: dict = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -314,30 +349,36 @@ class BenchOptions:
             check_device(self.device)
         except ValueError as err:
             raise ValueError(f"argument --device: {err}") from err
+        worlds = tuple(dict.fromkeys(parse_world(world) for world in self.conditions))
+        if not worlds:
+            raise ValueError("argument --conditions: no worlds")
+        put("conditions", worlds)
         houses = {**SETS, "test": self.test_houses}
         put("set_houses", {name: houses[name] for name in self.sets})
 
 
 # -------------------------------------------------------------------------- cells
-def cell_key(set_name: str, style: str, bucket: Sequence[int]) -> str:
-    """The key of a cell in the JSON: ``"<set>/<style>/<lo>-<hi>"``.
+def cell_key(set_name: str, style: str, bucket: Sequence[int], world: str | None = None) -> str:
+    """The key of a cell in the JSON: ``"<set>/<style>/<lo>-<hi>"``, then ``"/<world>"`` in a changed world.
 
     Examples:
-        >>> cell_key("test", "tour", (10, 30))
-        'test/tour/10-30'
+        >>> cell_key("test", "tour", (10, 30)), cell_key("test", "tour", (10, 30), "light@1.0=1.0")
+        ('test/tour/10-30', 'test/tour/10-30/light@1.0=1.0')
     """
-    return f"{set_name}/{style}/{bucket_name(bucket)}"
+    return f"{set_name}/{style}/{bucket_name(bucket)}" + ("" if world is None else f"/{world}")
 
 
-def cell_config(options: BenchOptions, set_name: str, style: str, bucket: Sequence[int]):
+def cell_config(options: BenchOptions, set_name: str, style: str, bucket: Sequence[int], world: str | None = None):
     """The :class:`~spf_rl.evaluation.EvalConfig` of a cell: routes of ``style`` and ``bucket``
-    lengths padded to the longest, each with its own step limit."""
+    lengths padded to the longest, each with its own step limit, repeated in ``world``
+    (:func:`parse_world`; the routes and their stored demonstrations are the same in every world)."""
     from envs.episode_spec import EpisodeSpec
     from spf_rl.evaluation import EvalConfig, episode_store_root
 
     episodes = EpisodeSpec(
         split="test", num_houses=options.set_houses[set_name], seed=options.seed, noise=options.noise,
         demo_length=bucket[1], max_steps=None, route_style=style, route_lengths=tuple(bucket), image_size=options.image_size,
+        conditions=None if world in (None, MISMATCH) else world, memory_mismatch=1.0 if world == MISMATCH else None,
     )
     return EvalConfig(
         episodes, num_episodes=options.episodes, num_agents=options.num_agents, num_collectors=options.num_collectors,
@@ -553,12 +594,31 @@ def format_table(content: dict) -> str:
             paired = row.get("vs_open_loop", {})
             marks = {m: "*" if m in paired and paired[m]["p_two_sided"] < ALPHA else "" for m in BENCH_PAIRED_METRICS}
             entries.append(f"{row['success']['mean']:.2f}{marks['success']} / {row['ndtw']['mean']:.2f}{marks['ndtw']}")
-        lines.append(f"| {cell['set']} | {cell['style']} | {bucket_name(cell['bucket'])} | " + " | ".join(entries) + " |")
+        lines.append(f"| {cell['set']} | {_style_in(cell)} | {bucket_name(cell['bucket'])} | " + " | ".join(entries) + " |")
     lines += ["", f"success / nDTW, mean over {content['setup']['episodes']} episodes per cell; * after a number: paired "
               "difference from open-loop replay on the same episodes, two-sided p < 0.05 (house-level bootstrap)."]
     if content["setup"].get("seed_groups"):
         lines[-1] += " (n seeds): the seeds' columns pooled, means over seeds and episodes, paired tests pooled over seeds."
     return "\n".join(lines)
+
+
+def world_label(world: str | None) -> str:
+    """A world of the condition axis as tables name it: ``"none"`` for the teaching world,
+    ``"light@0.5"`` for one condition, the mixture's spelling otherwise.
+
+    Examples:
+        >>> world_label(None), world_label("light@0.5=1.0"), world_label("mismatch")
+        ('none', 'light@0.5', 'mismatch')
+    """
+    if world is None:
+        return "none"
+    return world[: -len("=1.0")] if world.count("=") == 1 and world.endswith("=1.0") else world
+
+
+def _style_in(cell: dict) -> str:
+    """A cell's style, after its world where that is not the teaching world."""
+    world = cell.get("world")
+    return cell["style"] if world is None else f"{world_label(world)}: {cell['style']}"
 
 
 def by_style(content: dict) -> dict:
@@ -577,7 +637,7 @@ def by_style(content: dict) -> dict:
     out: dict = {}
     for cell in content["cells"].values():
         for label, row in (cell.get("stats") or {}).items():
-            into = out.setdefault(cell["set"], {}).setdefault(cell["style"], {}).setdefault(
+            into = out.setdefault(cell["set"], {}).setdefault(_style_in(cell), {}).setdefault(
                 label, {"success": 0.0, "ndtw": 0.0, "episodes": 0})
             for metric in ("success", "ndtw"):
                 into[metric] += row[metric]["mean"] * row["episodes"]
@@ -624,7 +684,7 @@ def format_by_model(content: dict) -> str:
         styles = means[set_name]
         lines += [f"**{set_name}** (success, mean over {content['setup']['episodes']} episodes per cell; "
                   "a style's column: over all of its lengths)", "",
-                  "| model | " + " | ".join([f"{c['style']} {bucket_name(c['bucket'])}" for c in columns] + list(styles)) + " |",
+                  "| model | " + " | ".join([f"{_style_in(c)} {bucket_name(c['bucket'])}" for c in columns] + list(styles)) + " |",
                   "|---" * (1 + len(columns) + len(styles)) + "|"]
         for label in labels:
             entries = []
@@ -640,6 +700,88 @@ def format_by_model(content: dict) -> str:
         lines.append("")
     lines.append("* after a number: paired difference from open-loop replay on the same episodes, two-sided p < 0.05 "
                  "(house-level bootstrap).")
+    return "\n".join(lines)
+
+
+def by_world(content: dict, num_resamples: int) -> dict:
+    """Each model's (and seed group's) success and nDTW per world of the condition axis, pooled over
+    the world's complete cells (styles x buckets) of a set, with house-level intervals and the paired
+    difference from open-loop replay on the same episodes (a seed group: each episode's scores averaged
+    over its seeds first): ``{set: {world: {label: {"success", "ndtw", "episodes", "vs_open_loop"}}}}``.
+
+    Examples:
+        >>> cells = {"a": {"set": "test", "world": "light@1.0=1.0", "stats": {}, "episodes": {"house_seed": [0, 0, 1, 1]},
+        ...   "models": {"open_loop": {"columns": {"success": [0, 0, 1, 0], "ndtw": [0.2] * 4}},
+        ...              "m": {"columns": {"success": [1, 1, 1, 0], "ndtw": [0.8] * 4}}}}}
+        >>> row = by_world({"setup": {"models": {"open_loop": {}, "m": {}}}, "cells": cells}, 200)["test"]["light@1.0"]["m"]
+        >>> row["success"]["mean"], row["episodes"], row["vs_open_loop"]["success"]["difference"]
+        (0.75, 4, 0.5)
+    """
+    setup = content["setup"]
+    groups = {label: [label] for label in setup["models"]}
+    groups.update(setup.get("seed_groups", {}))
+    pooled: dict = {}
+    for cell in content["cells"].values():
+        if cell.get("stats") is None:
+            continue
+        into = pooled.setdefault(cell["set"], {}).setdefault(world_label(cell.get("world")), {"houses": [], "columns": {}})
+        into["houses"] += list(cell["episodes"]["house_seed"])
+        for label, members in groups.items():
+            if not all(m in cell["models"] for m in members):
+                continue
+            columns = into["columns"].setdefault(label, {"success": [], "ndtw": []})
+            for metric in columns:
+                values = np.asarray([cell["models"][m]["columns"][metric] for m in members], dtype=float).mean(axis=0)
+                columns[metric] += values.tolist()
+    out: dict = {}
+    for set_name, worlds in pooled.items():
+        for world, data in worlds.items():
+            houses = np.asarray(data["houses"])
+            floor = data["columns"].get(OPEN_LOOP)
+            for label, columns in data["columns"].items():
+                if len(columns["success"]) != houses.size:
+                    continue  # a model missing from some of the world's cells
+                row: dict = {"episodes": int(houses.size)}
+                for metric, values in columns.items():
+                    values = np.asarray(values)
+                    row[metric] = {"mean": float(values.mean()),
+                                   "ci": list(hierarchical_bootstrap_ci(values, houses, DEFAULT_CONFIDENCE, num_resamples))}
+                if label != OPEN_LOOP and floor is not None:
+                    row["vs_open_loop"] = paired_against(columns, floor, houses, num_resamples)
+                out.setdefault(set_name, {}).setdefault(world, {})[label] = row
+    return out
+
+
+def format_by_world(worlds: dict, labels: Sequence[str]) -> str:
+    """Markdown of :func:`by_world`: per set, a row per world, a column per model: success [95% CI],
+    with ``*`` where the paired difference from open-loop replay has two-sided p < 0.05 and ``v`` where
+    the model is below open-loop replay with p < 0.05.
+
+    Examples:
+        >>> row = {"success": {"mean": 0.5, "ci": [0.4, 0.6]}, "vs_open_loop": {"success": {"difference": -0.2, "p_two_sided": 0.01}}}
+        >>> print(format_by_world({"test": {"none": {"m": row}}}, ["m"]).splitlines()[4])
+        | none | 0.50 [0.40, 0.60] v |
+    """
+    lines: list[str] = []
+    for set_name, rows in worlds.items():
+        lines += [f"**{set_name}**", "", "| world | " + " | ".join(labels) + " |", "|---" * (1 + len(labels)) + "|"]
+        for world, models in rows.items():
+            entries = []
+            for label in labels:
+                row = models.get(label)
+                if row is None:
+                    entries.append("-")
+                    continue
+                paired = row.get("vs_open_loop", {}).get("success")
+                mark = ""
+                if paired is not None and paired["p_two_sided"] < ALPHA:
+                    mark = " v" if paired["difference"] < 0 else "*"
+                low, high = row["success"]["ci"]
+                entries.append(f"{row['success']['mean']:.2f} [{low:.2f}, {high:.2f}]{mark}")
+            lines.append(f"| {world} | " + " | ".join(entries) + " |")
+        lines.append("")
+    lines.append("success, pooled over the world's cells (styles x lengths), 95% house-level bootstrap interval; * above "
+                 "open-loop replay, v below it (paired on the same episodes, two-sided p < 0.05).")
     return "\n".join(lines)
 
 
@@ -679,6 +821,33 @@ def plot_bench(content: dict, path: str | Path) -> Path:
                                   f"{setup['noise']} noise)")
 
 
+def plot_worlds(content: dict, path: str | Path) -> Path:
+    """Success (95% CI) per world of the condition axis (:func:`by_world`), a bar per model, a panel per set, to a PNG."""
+    from spf_rl.viz import pyplot, save_figure
+
+    plt = pyplot()
+    worlds = content["by_world"]
+    labels = report_labels(content["setup"])
+    fig, axes = plt.subplots(len(worlds), 1, figsize=(max(6.0, 1.2 * len(next(iter(worlds.values())))), 3.6 * len(worlds)), squeeze=False)
+    width = 0.8 / len(labels)
+    for ax, (set_name, rows) in zip(axes[:, 0], worlds.items()):
+        names = list(rows)
+        for k, label in enumerate(labels):
+            xs = [i + (k - (len(labels) - 1) / 2) * width for i, world in enumerate(names) if label in rows[world]]
+            means = [rows[world][label]["success"]["mean"] for world in names if label in rows[world]]
+            errors = [(rows[w][label]["success"]["mean"] - rows[w][label]["success"]["ci"][0],
+                       rows[w][label]["success"]["ci"][1] - rows[w][label]["success"]["mean"]) for w in names if label in rows[w]]
+            style = {"color": "lightgray", "edgecolor": "black", "hatch": "//"} if label == OPEN_LOOP else {}
+            ax.bar(xs, means, width, yerr=np.asarray(errors).T if errors else None, capsize=2, label=label, **style)
+        ax.set_xticks(range(len(names)), names, rotation=30, ha="right", fontsize=8)
+        ax.set_ylim(0, 1.02)
+        ax.set_ylabel("success (95% CI)")
+        ax.set_title(set_name, fontsize=9)
+    axes[0][0].legend(fontsize=6, ncol=2)
+    setup = content["setup"]
+    return save_figure(fig, path, f"route benchmark by world: success pooled over styles and lengths ({setup['episodes']} episodes per cell)")
+
+
 # ------------------------------------------------------------------------ the run
 def setup_of(options: BenchOptions, models: list[BenchModel]) -> dict:
     """The set-up written to the JSON."""
@@ -688,7 +857,7 @@ def setup_of(options: BenchOptions, models: list[BenchModel]) -> dict:
         "episodes": options.episodes, "seed": options.seed, "noise": options.noise, "split": "test",
         "sets": dict(options.set_houses), "styles": list(options.styles), "buckets": [list(b) for b in options.buckets],
         "max_steps": "each route's own: ceil(5/3 n)", "image_size": options.image_size, "num_resamples": options.num_resamples,
-        "random_sparsity": options.random_sparsity, "env_version": ENV_VERSION,
+        "random_sparsity": options.random_sparsity, "env_version": ENV_VERSION, "conditions": list(options.conditions),
         "models": {m.label: dict(m.info) for m in models},
         "seed_groups": seed_groups([m.label for m in models]),
     }
@@ -732,16 +901,16 @@ def run_bench(options: BenchOptions, models: list[BenchModel] | None = None) -> 
     out = Path(options.out)
     previous = load_previous(out)
     content = {"recipe": RECIPE, "setup": setup_of(options, models), "statistics": STATISTICS, "cells": {}}
-    plan = [(s, style, b) for s in options.sets for style in options.styles for b in options.buckets]
-    for set_name, style, bucket in plan:
-        key = cell_key(set_name, style, bucket)
-        config = cell_config(options, set_name, style, bucket)
+    plan = [(w, s, style, b) for w in options.conditions for s in options.sets for style in options.styles for b in options.buckets]
+    for world, set_name, style, bucket in plan:
+        key = cell_key(set_name, style, bucket, world)
+        config = cell_config(options, set_name, style, bucket, world)
         identity = episodes_key(config)
         old = previous.pop(key, None)
         if old is not None and (changed := changed_fields(old.get("key"), identity)):
             logger.info("%s: the file's episodes were made with other %s: evaluating again", key, ", ".join(changed))
             old = None
-        cell = {"set": set_name, "style": style, "bucket": list(bucket), "key": identity,
+        cell = {"set": set_name, "style": style, "bucket": list(bucket), "world": world, "key": identity,
                 "episodes": (old or {}).get("episodes"), "models": {}, "stats": None}
         content["cells"][key] = cell
         for model in models:
@@ -769,12 +938,17 @@ def run_bench(options: BenchOptions, models: list[BenchModel] | None = None) -> 
     content["table"] = format_table(content)
     content["table_by_model"] = format_by_model(content)
     content["by_style"] = by_style(content)
+    if options.conditions != (None,):
+        content["by_world"] = by_world(content, options.num_resamples)
+        content["table_by_world"] = format_by_world(content["by_world"], report_labels(content["setup"]))
     from spf_rl.viz import plot_if_available
 
-    figure = plot_if_available(plot_bench, content, out.with_suffix(".png"))
+    plot = plot_worlds if "by_world" in content else plot_bench
+    figure = plot_if_available(plot, content, out.with_suffix(".png"))
     content["figure"] = None if figure is None else str(figure)
     atomic_write_json(out, content, indent=1)
     from envs.atomic_io import atomic_write_text
 
-    atomic_write_text(out.with_suffix(".md"), content["table"] + "\n\n" + content["table_by_model"] + "\n")
+    tables = [content.get("table_by_world"), content["table"], content["table_by_model"]]
+    atomic_write_text(out.with_suffix(".md"), "\n\n".join(t for t in tables if t) + "\n")
     return content

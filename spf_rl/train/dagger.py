@@ -58,7 +58,7 @@ from envs.episode_spec import check_sizes_match
 from envs.episodes import STEPS_PER_BATCH, gather_episode_steps
 from envs.scripted import behaviour_coins
 from spf_rl.checkpoint import load_checkpoint, save_checkpoint
-from spf_rl.data import DatasetConfig, EpisodeDataset, demos_root, step_keys
+from spf_rl.data import DatasetConfig, EpisodeDataset, demos_root, episode_keys, step_keys
 from spf_rl.device import DEFAULT_DEVICE, check_device, exact_float32, module_device, torch_threads_kept
 from spf_rl.evaluation import EvalConfig, FramesFromStore, evaluate_policy, summarize_episodes
 from spf_rl.hub import DEFAULT_START_CHECKPOINT, checked_checkpoint, shipped_file_sha256
@@ -493,7 +493,7 @@ def _collect_round(policy: TensorDictModuleBase, config: DAggerConfig, round_con
     collectors (:func:`~spf_rl.train.collection.make_collector` with the store), each kept whole."""
     demos = DemoStore.build(demos_root(round_dir), round_demo_config(round_config), progress=False)
     policy.eval()
-    behaviour = ExpertMixturePolicy(FramesFromStore(policy, demos), round_config.beta)
+    behaviour = ExpertMixturePolicy(FramesFromStore(policy, demos, round_config.episodes.frames_id_key), round_config.beta)
     with torch_threads_kept():  # a multi-process collector changes them (retraining must not see it)
         return _play_round(policy, behaviour, config, round_config, demos)
 
@@ -517,7 +517,7 @@ def _play_round(
         with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
             return gather_episode_steps(
                 collector, 0, round_config.num_episodes, step_keys(round_config.episodes.route_style), env.episodes.step_limit,
-                episode_keys=("demo_id", "episode_seed"), progress=config.progress,
+                episode_keys=episode_keys(round_config.episodes), progress=config.progress,
             )
     finally:
         collector.shutdown()

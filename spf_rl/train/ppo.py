@@ -160,7 +160,7 @@ class _PPORun:
             device=self.device,
         )
         self.demo_store = training_demo_store(config, self.env_config)  # frames looked up where segments start:
-        self.frames_lookup = frames_lookup(self.policy, self.demo_store)  # every row starts one
+        self.frames_lookup = frames_lookup(self.policy, self.demo_store, self.env_config.episodes.frames_id_key)  # every row starts one
         self.advantage_module = GAE(gamma=config.gamma, lmbda=config.lmbda, value_network=None, average_gae=False)
         self.layout = {"frames_per_batch": config.frames_per_batch, "rows_per_batch": config.rows_per_batch}
         # the one training loop's state: two optimisers (no schedule), last.pt and best.pt with the value head
@@ -212,7 +212,7 @@ class _PPORun:
         config = self.config
         num_iterations = config.num_iterations
         collector = make_collector(
-            FramesFromStore(Autocast(self.actor) if config.amp else self.actor, self.demo_store),
+            FramesFromStore(Autocast(self.actor) if config.amp else self.actor, self.demo_store, self.env_config.episodes.frames_id_key),
             self.env_config,
             config.collector,
             frames_per_batch=config.frames_per_batch,
