@@ -17,7 +17,9 @@ repeats the route ``--repeats`` times, each under its own actuation noise, greed
 ``--homing`` it brings the route home instead: each repeat starts at the route's end, facing back along it, and
 must return to the route's start, its memory the env's homing demonstration of the route (frames rendered looking
 back along it, :mod:`envs.homing`), with ``homing-spf-s0.8`` (SPF 0.8 trained on homing episodes,
-``python recipes/bc.py --preset bc_homing``) unless ``--checkpoint`` says otherwise. Written to ``--out``:
+``python recipes/bc.py --preset bc_homing``) unless ``--checkpoint`` says otherwise. With ``--conditions``
+the repeats happen in a changed world (:mod:`envs.conditions`: at dusk, repainted, the furniture moved,
+another camera or sensor); the route's memory is still the taught one. Written to ``--out``:
 
 * ``teach.mp4`` (where ``imageio-ffmpeg`` is installed) or ``teach.gif``: the demonstration's view beside
   repeat 1's, with the map;
@@ -31,6 +33,7 @@ Usage::
     python recipes/teach.py --house 0 --start 7.5,1.5,0 --actions FFFFFFLLLFLFLFFRFFLFFRFFLFFRFR --repeats 8
     python recipes/teach.py --house 0 --waypoints "7.5,1.5;9.5,1.5;9.5,5.5;12.5,5.5" --noise paper_symmetric
     python recipes/teach.py --house 0 --start 7.5,1.5,0 --actions FFFFFFLLLFLFLFFRFFLFFRFFLFFRFR --homing
+    python recipes/teach.py --house 0 --start 7.5,1.5,0 --actions FFFFFFLLLFLFLFFRFFLFFRFFLFFRFR --conditions light@1
 """
 from __future__ import annotations
 
@@ -64,6 +67,9 @@ def build_parser() -> ArgumentParser:
     parser.add_argument("--out", default=repeat.DEFAULT_OUT, help=f"output directory (default {repeat.DEFAULT_OUT})")
     parser.add_argument("--device", default="auto", help="where the policy runs: auto (CUDA if available, else CPU), cpu, cuda, cuda:N")
     parser.add_argument("--homing", action="store_true", help="bring the route home: from its end back to its start")
+    parser.add_argument("--conditions", help="repeat in a changed world (envs.conditions): name@strength with name one of "
+                        "light, paint, furniture, camera, sensor and strength in [0, 1], e.g. light@0.5, or a mixture "
+                        "'light@1=1,furniture@1=1' (each repeat draws its own change)")
     parser.add_argument("--no-video", action="store_true", help="skip the video (the slowest output)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser
@@ -75,7 +81,7 @@ def setup(parser: ArgumentParser, args: argparse.Namespace):
     try:
         options = repeat.TeachOptions(
             house=args.house, noise=args.noise, seed=args.seed, repeats=args.repeats, out=args.out, checkpoint=args.checkpoint,
-            homing=args.homing, video=not args.no_video, progress=not args.quiet,
+            homing=args.homing, video=not args.no_video, progress=not args.quiet, conditions=args.conditions,
         )
         if args.actions is None and args.waypoints is None and not sys.stdin.isatty():
             raise ValueError("no route given and no terminal for the keyboard: give --actions or --waypoints.")

@@ -140,6 +140,8 @@ def test_waypoints_give_the_planned_route(tmp_path):
         (["--actions", "F" * 198], "--actions: step 17 of 198 .* runs into a wall"),
         (["--waypoints", "7.5,1.5;20,1.5"], r"--waypoints: waypoint 2 \(20\.00, 1\.50\) is outside the house"),
         (["--actions", "LR" * 100], "--actions: the route has 200 steps; a taught route may have at most 198"),
+        (["--actions", ROUTE, "--conditions", "dusk@1"], "--conditions: unknown condition 'dusk'; allowed names are none, light"),
+        (["--actions", ROUTE, "--conditions", "light@2"], r"--conditions: the strength of 'light' must be a number in \[0, 1\], got 2.0"),
     ],
 )
 def test_bad_input_is_refused_before_any_work(argv, message, tmp_path, capsys):
@@ -223,3 +225,31 @@ def test_teach_refuses_an_unknown_device(tmp_path, capsys):
     with pytest.raises(SystemExit):
         teach.main(["--actions", "F" * 30, "--device", "tpu", "--out", str(tmp_path)])
     assert "--device" in capsys.readouterr().err
+
+
+def test_a_repeat_at_dusk_sees_the_changed_world_and_says_so(taught, tmp_path):
+    _, plain = taught
+    content = teach.main(headless(tmp_path, "--actions", ROUTE, "--repeats", "4", "--seed", "3", "--conditions", "light@1", "--no-video"))
+    assert content["conditions"] == "light@1.0=1.0" and "conditions" not in plain
+    assert content["route"] == plain["route"]  # the same taught route, repeated in another world
+    assert (tmp_path / "teach_map.png").is_file()
+
+
+def test_repeats_in_a_changed_world_keep_the_taught_memory(tmp_path):
+    from spf_rl.hub import load_policy
+    from spf_rl.teach.repeat import repeat_route
+
+    demo = demonstration_from_actions(build_house(0), np.array([7.5, 1.5, 0.0]), ROUTE)
+    policy, config = load_policy(DEFAULT_CHECKPOINT)
+    repeats, demo_frames, _ = repeat_route(policy.eval(), demo, repeats=2, noise="paper", seed=1, max_steps=50,
+                                           image_size=config.image_size[0], progress=False, demo_length=config.demo_length,
+                                           conditions="furniture@1")
+    assert all(r.house.seed == 0 and r.house is not build_house(0) for r in repeats)
+    dusk, _, _ = repeat_route(policy.eval(), demo, repeats=1, noise="paper", seed=1, max_steps=5, image_size=config.image_size[0],
+                              progress=False, demo_length=config.demo_length, conditions="light@1")
+    assert dusk[0].frames[0].mean() < 0.8 * demo_frames[0].mean()  # the first pose, seen at dusk
+    assert not np.array_equal(repeats[0].house.occupancy.occupied, build_house(0).occupancy.occupied)
+    plain, plain_frames, _ = repeat_route(policy.eval(), demo, repeats=2, noise="paper", seed=1, max_steps=50,
+                                          image_size=config.image_size[0], progress=False, demo_length=config.demo_length)
+    assert np.array_equal(demo_frames, plain_frames)  # the memory is the taught one
+    assert np.array_equal(plain[0].frames[0], demo_frames[0])  # in the teaching world the agent starts on the taught view

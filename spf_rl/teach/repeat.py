@@ -30,6 +30,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from tqdm.auto import tqdm
 
 from envs.atomic_io import atomic_write_json
+from envs.conditions import parse_conditions
 from envs.demos import Demonstration
 from envs.episode_spec import EpisodeSpec
 from envs.episodes import episode_record
@@ -114,8 +115,14 @@ class TeachOptions:
     homing: bool = False
     video: bool = True
     progress: bool = True
+    conditions: str | None = None
 
     def __post_init__(self) -> None:
+        try:
+            mixture = parse_conditions(self.conditions)
+        except ValueError as err:
+            raise ValueError(f"--{err}") from None
+        object.__setattr__(self, "conditions", None if mixture is None else mixture.spec)
         if self.noise not in NOISE_PRESETS:
             raise ValueError(f"--noise must be one of {', '.join(sorted(NOISE_PRESETS))}, got {self.noise!r}.")
         if self.seed < 0:
@@ -155,6 +162,7 @@ class Repeat:
     record: dict
     poses: np.ndarray
     frames: np.ndarray
+    house: object = None
 
 
 def repeat_route(
@@ -169,6 +177,7 @@ def repeat_route(
     progress: bool = True,
     task: str = FOLLOW,
     demo_length: int | None = None,
+    conditions: str | None = None,
 ) -> tuple[list[Repeat], np.ndarray, Demonstration]:
     """The policy follows ``demo`` (or brings it home) ``repeats`` times under ``noise``, greedily.
 
@@ -184,6 +193,8 @@ def repeat_route(
         task: ``"follow"`` (repeat the route) or ``"homing"`` (return from its end to its start).
         demo_length: the env's (and the policy's) demonstration length, to which a shorter
             route is padded (the policy reads ``demo_steps``); ``None``: the route's own.
+        conditions: the world of the repeats (:mod:`envs.conditions`, e.g. ``"light@1"``): each
+            repeat draws its change from its own episode seed; ``None``: the teaching world.
 
     Returns:
         (the repeats, in agent order; the played demonstration's ``(n, H, W, 3)`` frames;
@@ -191,17 +202,21 @@ def repeat_route(
     """
     spec = EpisodeSpec(
         house_seeds=(demo.house_seed,), noise=noise, demo_length=demo.length if demo_length is None else demo_length,
-        max_steps=max_steps, image_size=image_size, task=task, seed=seed,
+        max_steps=max_steps, image_size=image_size, task=task, seed=seed, conditions=conditions,
     )
     env = make_env(spec, repeats, primer=policy.make_tensordict_primer(), seeded=True, demonstrations=[demo])
     base = env.base_env
     bar = tqdm(total=max_steps, desc=f"{repeats} repeats", unit="step", disable=not progress)
     try:
         with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+            start = env.reset()
+            houses = base.houses  # the world each repeat runs in (changed by ``conditions``)
             # lazy stack: the demo frames every step holds are not copied max_steps times
             rollout = env.rollout(
                 max_steps,
                 greedy_on_device(policy),
+                auto_reset=False,
+                tensordict=start,
                 break_when_any_done=False,
                 return_contiguous=False,
                 callback=lambda *_: bar.update(1),
@@ -222,6 +237,7 @@ def repeat_route(
                 record={"repeat": agent + 1, **episode_record(final)},
                 poses=torch.cat([pose[agent, : last + 1], next_pose[agent, last : last + 1]]).numpy().astype(np.float64),
                 frames=torch.cat([pixels[agent, : last + 1], next_pixels[agent, last : last + 1]]).numpy(),
+                house=houses[agent],
             )
         )
     return out, rollout[0, 0].get("demo_frames")[: demo.length].numpy(), base.demonstrations[0]
@@ -243,7 +259,8 @@ def demo_label(demo: Demonstration) -> str:
 
 
 def write_map(demo: Demonstration, repeats: list[Repeat], path: Path, title: str) -> Path:
-    """The top-down map with the demonstration played, every repeat and the success radius, as a PNG."""
+    """The top-down map with the demonstration played, every repeat and the success radius, as a PNG:
+    the house as repeat 1 found it (its furniture moved, under ``furniture`` conditions)."""
     pyplot()  # matplotlib, or an ImportError that says how to install it
     from matplotlib.patches import Circle
 
@@ -251,7 +268,8 @@ def write_map(demo: Demonstration, repeats: list[Repeat], path: Path, title: str
     for repeat in repeats:
         outcome = "success" if repeat.record["success"] else "failure"
         paths[f"repeat {repeat.record['repeat']} ({outcome})"] = repeat.poses[:, :2]
-    ax = draw_top_down_map(build_house(demo.house_seed), paths=paths, title=title)
+    house = repeats[0].house if repeats and repeats[0].house is not None else build_house(demo.house_seed)
+    ax = draw_top_down_map(house, paths=paths, title=title)
     ax.lines[0].set_zorder(DEMO_ZORDER)  # the demonstration on top of the repeats
     ax.title.set_fontsize(TITLE_FONTSIZE)
     ax.add_patch(Circle(demo.end_xy, success_radius_m(demo), fill=False, linestyle="--", color="black"))
@@ -348,13 +366,16 @@ def teach_and_repeat(policy, demo: Demonstration, options: TeachOptions, *, imag
                 options.checkpoint, "brings it home" if options.homing else "repeats", options.repeats, options.noise)
     repeats, demo_frames, played = repeat_route(
         policy, demo, repeats=options.repeats, noise=options.noise, seed=options.seed, max_steps=max_steps,
-        image_size=image_size, progress=options.progress, task=task, demo_length=demo_length,
+        image_size=image_size, progress=options.progress, task=task, demo_length=demo_length, conditions=options.conditions,
     )
     setup = {"checkpoint": options.checkpoint, "task": task, "noise": options.noise, "seed": options.seed, "max_steps": max_steps}
+    if options.conditions is not None:
+        setup["conditions"] = options.conditions
     content = results(demo, repeats, setup, played)
     successes = sum(r.record["success"] for r in repeats)
     what = "bring it home" if options.homing else "succeed"
-    title = f"house {demo.house_seed}: {successes}/{len(repeats)} repeats {what} ({options.noise} noise)"
+    world = "" if options.conditions is None else f", {options.conditions}"
+    title = f"house {demo.house_seed}: {successes}/{len(repeats)} repeats {what} ({options.noise} noise{world})"
     logger.info("drawing the map")
     files = {"map": write_map(played, repeats, out / MAP_NAME, title).name}
     if options.video:
