@@ -52,6 +52,7 @@ Usage::
     python benchmarks/bench_env.py            # about 4-5 minutes
     python benchmarks/bench_env.py --quick    # about 1 minute
     python benchmarks/bench_env.py --plot-only  # redraw env.png from env.json
+    python benchmarks/bench_env.py --conditions # the repeat conditions against none -> env_conditions.json
 """
 from __future__ import annotations
 
@@ -77,6 +78,7 @@ from envs.render import select_gl_backend
 logger = logging.getLogger("bench_env")
 
 RESULTS_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "results" / "env.json"
+CONDITIONS_PATH = RESULTS_PATH.with_name("env_conditions.json")
 
 
 def parse_args() -> argparse.Namespace:
@@ -96,6 +98,8 @@ def parse_args() -> argparse.Namespace:
     )
     parser.add_argument("--output", type=Path, default=RESULTS_PATH)
     parser.add_argument("--plot-only", action="store_true", help="redraw the PNG from an existing --output JSON")
+    parser.add_argument("--conditions", action="store_true",
+                        help=f"time the repeat conditions instead (bench_env_conditions.py) -> {CONDITIONS_PATH.relative_to(RESULTS_PATH.parents[2])}")
     return parser.parse_args()
 
 
@@ -110,6 +114,19 @@ def main() -> None:
     # the GL back-end goes into the process environment now: recorded in the JSON, inherited by workers
     select_gl_backend()
     config = BenchConfig(args.image_size, args.num_houses, args.demo_length, args.seed, args.quick, args.demo_store)
+    if args.conditions:
+        from bench_env_conditions import bench_conditions, format_conditions
+
+        from envs.atomic_io import atomic_write_json
+
+        load = MachineLoad.start()
+        output = bench_conditions(config)
+        output["machine"], load_note = load.finish()
+        output["notes"] = [load_note] if load_note else []
+        atomic_write_json(CONDITIONS_PATH, output, indent=1)
+        print(format_conditions(output))
+        print(f"-> {CONDITIONS_PATH}")
+        return
     paths = BenchPaths(config)
     wanted = set(args.only) if args.only else set(DESCRIPTIONS)
     if "dmc" in wanted:  # optional path (only when named): benchmarks/bench_dmc.py, writes benchmarks/results/dmc.json
