@@ -12,6 +12,7 @@ Examples:
 """
 from __future__ import annotations
 
+from envs.conditions import CONDITIONS, parse_conditions
 from envs.demo_store import DemoStore, DemoStoreConfig
 from envs.episode_spec import EpisodeSpec
 from envs.factory import make_env, make_parallel_path_follow_env, make_path_follow_env
@@ -23,6 +24,7 @@ from envs.user_demos import RouteError, RouteRecorder, demonstration_from_action
 from envs.version import ENV_VERSION
 
 __all__ = [
+    "CONDITIONS",
     "ENV_VERSION",
     "NOISE_PRESETS",
     "PRIVILEGED_KEYS",
@@ -41,4 +43,5 @@ __all__ = [
     "make_env",
     "make_parallel_path_follow_env",
     "make_path_follow_env",
+    "parse_conditions",
 ]
