@@ -1,6 +1,8 @@
 """Repeat conditions (envs.conditions): the agent's world changes, the demonstration never does."""
 from __future__ import annotations
 
+import importlib.util
+
 import numpy as np
 import pytest
 import torch
@@ -249,3 +251,33 @@ def test_a_store_with_one_demonstration_cannot_show_another_route(tmp_path):
     store = DemoStore.build(tmp_path / "one", DemoStoreConfig.of(EpisodeSpec(**SMALL), 1), progress=False)
     with pytest.raises(ValueError, match="memory_mismatch=1.0 needs a demo_store of at least 2 demonstrations"):
         PathFollowEnv(demo_store=store, memory_mismatch=1.0, emit_demo_frames=False, **{k: v for k, v in SMALL.items()})
+
+
+@pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason="ray is not installed (pip install '.[distributed]')")
+def test_ray_actors_play_the_same_changed_episodes_as_a_local_collector(tmp_path, ray_cluster):
+    from envs.episodes import gather_episode_steps
+    from spf_rl.evaluation import FramesFromStore
+    from spf_rl.modules import SPFConfig, make_spf_policy
+    from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig, make_collector
+    from spf_rl.train.dagger import ExpertMixturePolicy
+
+    spec = EpisodeSpec(num_houses=1, demo_length=5, max_steps=6, image_size=32, seed=2, conditions="camera@1=1,sensor@1=1",
+                       memory_mismatch=0.5)
+    env_config = CollectionEnvConfig(episodes=spec)
+    store = DemoStore.build(tmp_path / "store", DemoStoreConfig.of(spec, 6), progress=False)
+    policy = make_spf_policy(SPFConfig(demo_length=5, sparsity=0.4, feature_dim=8, hidden_size=8, image_size=(32, 32))).eval()
+    behaviour = ExpertMixturePolicy(FramesFromStore(policy, store, spec.frames_id_key), beta=0.0)
+
+    def play(config):
+        collector = make_collector(behaviour, env_config, config, frames_per_batch=config.total_agents * 5, seed=2, demo_store=store.root)
+        try:
+            with torch.no_grad():
+                return gather_episode_steps(collector, 0, 6, ("pixels", "action", "condition"), 6, ("demo_id", "episode_seed", "memory_id"))
+        finally:
+            collector.shutdown()
+
+    local = play(CollectorConfig(num_agents=2))
+    remote = play(CollectorConfig(backend="ray", num_collectors=2, num_agents=2))
+    for key in ("pixels", "action", "condition"):
+        assert torch.equal(local["steps", key], remote["steps", key]), key
+    assert torch.equal(local["memory_id"], remote["memory_id"]) and (local["memory_id"] != local["demo_id"]).any()
