@@ -14,6 +14,7 @@ Usage::
     python recipes/evaluate.py routes-spf --demo-length 30        # the same weights on 30-step routes
     python recipes/evaluate.py exports/spf-s0.8                   # an export (recipes/export.py), run by ONNX Runtime
     python recipes/evaluate.py checkpoints/ --device cpu     # default --device auto: CUDA if available
+    python recipes/evaluate.py spf-s0.8 --conditions light@0.5   # repeated at dusk (envs.conditions)
 
 A shipped name's JSON is named ``checkpoints_<name>-...``, a file's after its path.
 The policy runs on ``--device``; the env and its rendering on the CPU.
@@ -24,6 +25,7 @@ import argparse
 import logging
 from pathlib import Path
 
+from envs.episode_spec import EpisodeSpec
 from envs.scenes import SPLIT_SEED_OFFSETS
 from envs.transforms import DEFAULT_NOISE, NOISE_PRESETS
 from spf_rl.cli import ArgumentParser
@@ -94,6 +96,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
         "--num-collectors", type=int, default=1,
         help="processes playing the episodes, each with a CPU copy of the policy (same episodes and scores; default: 1)",
     )
+    parser.add_argument("--conditions", help="repeat in a changed world (envs.conditions): name@strength, name one of "
+                        "light, paint, furniture, camera, sensor, strength in [0, 1], or a mixture 'light@0.5=1,paint@1=1'")
+    parser.add_argument("--memory-mismatch", type=float, help="fraction of episodes shown another route's frames with their own actions")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -112,6 +117,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
     if args.sparsity is not None and not 0.0 < args.sparsity <= 1.0:
         parser.error(f"--sparsity must be in (0, 1] (the fraction of the demonstration's frames kept), got {args.sparsity}")
     try:
+        EpisodeSpec(conditions=args.conditions, memory_mismatch=args.memory_mismatch)
+    except ValueError as err:
+        parser.error(f"--{str(err).replace('memory_mismatch', 'memory-mismatch')}")
+    try:
         device = resolve_device(args.device, name="--device")
         targets = expand_targets(args.paths)
         for target in targets:  # every checkpoint loads, before any episode is played or file written
@@ -123,7 +132,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         split=args.split, episodes=args.episodes, noise=args.noise, seed=args.seed, num_agents=args.num_agents,
         max_steps=args.max_steps, demo_length=args.demo_length, image_size=args.image_size, sparsity=args.sparsity,
         model_type=args.model_type, device=device, store_root=args.store_root, num_collectors=args.num_collectors,
-        progress=not args.no_progress,
+        progress=not args.no_progress, conditions=args.conditions, memory_mismatch=args.memory_mismatch,
     )
     results = []
     for target, result, destination in evaluate_checkpoints(targets, options, Path(args.out)):

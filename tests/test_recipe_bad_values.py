@@ -182,6 +182,11 @@ IN_PROCESS = [
     ("dagger", "--quick checkpoint=corrupt.pt", "invalid configuration: checkpoint: checkpoint corrupt.pt is corrupt"),
     ("ppo_finetune", "--quick checkpoint=corrupt.pt", "invalid configuration: checkpoint: checkpoint corrupt.pt is corrupt"),
     ("visualize", "spf-s0.7", "argument checkpoint: unknown checkpoint name 'spf-s0.7'"),
+    # repeat conditions (envs.conditions)
+    ("evaluate", "spf-s0.8 --conditions fog@1", "--conditions: unknown condition 'fog'; allowed names are none, light"),
+    ("evaluate", "spf-s0.8 --memory-mismatch 1.5", "--memory-mismatch must be a number in [0, 1], got 1.5"),
+    ("route_bench", "--models spf-s0.8 --conditions light@-1", "argument --conditions: ", "the strength of 'light' must be a number in [0, 1]"),
+    ("route_bench", "--models spf-s0.8 --conditions paint@1=-2", "argument --conditions: ", "the weight of 'paint@1.0' must be a finite number >= 0"),
 ]
 
 

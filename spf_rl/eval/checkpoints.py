@@ -61,6 +61,9 @@ class EvalOptions:
             episode start; the scores are the same).
         num_collectors: processes playing the episodes (the same episodes and scores).
         progress: show progress bars.
+        conditions: the world of the repeat (:mod:`envs.conditions`, e.g. ``"light@0.5"``; ``None``:
+            the teaching world).
+        memory_mismatch: the fraction of episodes shown another route's frames (``None``: none).
     """
 
     split: str = "test"
@@ -77,6 +80,8 @@ class EvalOptions:
     store_root: str | None = None
     num_collectors: int = 1
     progress: bool = True
+    conditions: str | None = None
+    memory_mismatch: float | None = None
 
 
 def expand_targets(paths: Sequence[str]) -> list[str]:
@@ -118,6 +123,8 @@ def output_name(target: str, options: EvalOptions, shipped: frozenset[str] | set
         'checkpoints_spf_random-s0.2-1-at0.6-test-paper-seed2.json'
         >>> output_name("open_loop", EvalOptions(sparsity=0.6))
         'open_loop-test-paper-seed2.json'
+        >>> output_name("spf-s0.8", EvalOptions(conditions="light@0.5"), {"spf-s0.8"})
+        'checkpoints_spf-s0.8-test-paper-light0.5x1.0-seed2.json'
     """
     if target == OPEN_LOOP:
         name = target
@@ -127,7 +134,8 @@ def output_name(target: str, options: EvalOptions, shipped: frozenset[str] | set
         name = Path(target).with_suffix("").as_posix().replace("/", "_").strip("_.")
     if options.sparsity is not None and target != OPEN_LOOP:
         name += f"-at{options.sparsity:g}"
-    return f"{name}-{options.split}-{options.noise}-seed{options.seed}.json"
+    world = EpisodeSpec(conditions=options.conditions, memory_mismatch=options.memory_mismatch).conditions_tag
+    return f"{name}-{options.split}-{options.noise}{world}-seed{options.seed}.json"
 
 
 def evaluate_checkpoint(target: str, options: EvalOptions) -> dict:
@@ -189,6 +197,8 @@ def evaluate_checkpoint(target: str, options: EvalOptions) -> dict:
         demo_length=demo_length,
         max_steps=default_max_steps(demo_length) if options.max_steps is None else options.max_steps,
         image_size=image_size,
+        conditions=options.conditions,
+        memory_mismatch=options.memory_mismatch,
     )
     eval_config = EvalConfig(
         episodes,
