@@ -7,9 +7,15 @@ the demonstration's first frame are the same pose, seen in the repeat's world an
 teaching world. For furniture the episode shown is the first (of ``--search`` seeds) whose
 first frame the change alters most; its map, taught and repeated, is drawn beside.
 
+It also measures, on ``--episodes`` episodes of the test houses (30-step planner routes, the
+route bench's seed), how much each condition changes: the mean absolute pixel change of the
+agent's first frame (0-255), and under furniture the share of routes with a piece standing on
+the demonstrated path and the share whose end the changed layout puts farther or nearer
+(geodesic) -> ``--stats`` (``results/conditions.json``).
+
 Usage::
 
-    python recipes/conditions.py          # -> docs/conditions.png, docs/conditions_furniture.png
+    python recipes/conditions.py          # -> docs/conditions.png, docs/conditions_furniture.png, results/conditions.json
     python recipes/conditions.py --seed 3 --image-size 96 --out figures/conditions.png
 """
 from __future__ import annotations
@@ -19,8 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
+from envs.atomic_io import atomic_write_json
 from envs.conditions import CONDITIONS
 from envs.nav_env import PathFollowEnv
+from spf_rl.evaluation import TEST_SEED
 from spf_rl.cli import ArgumentParser
 from spf_rl.viz import plot_conditions, plot_layout_change
 
@@ -36,15 +44,38 @@ def _first_frames(condition: str, seed: int, image_size: int, demo_length: int) 
     return td["demo_frames"][0].numpy(), td["pixels"].numpy(), env
 
 
+def change_stats(world: str, episodes: int, seed: int) -> dict:
+    """How much ``world`` changes the first ``episodes`` episodes of the test houses (see the module)."""
+    batch = 16
+    env = PathFollowEnv("test", demo_length=30, conditions=world, num_agents=batch)
+    env.set_seed(seed)
+    pixel_change, on_path, distance_changed = [], [], []
+    for _ in range(-(-episodes // batch)):
+        td = env.reset()
+        pixel_change += (td["pixels"].float() - td["demo_frames"][:, 0].float()).abs().mean((1, 2, 3)).tolist()
+        for house, taught, demo in zip(env.houses, env.taught_houses, env.demonstrations):
+            on_path.append(any(not house.occupancy.is_free(xy) for xy in demo.poses[:, :2]))
+            distance_changed.append(abs(demo.shortest_length_m - taught.graph.distance_field(demo.end_xy).at(demo.start_pose[:2])) > 1e-6)
+    env.close()
+    out = {"first_frame_pixel_change": float(np.mean(pixel_change[:episodes]))}
+    if world.startswith("furniture"):
+        out["piece_on_path"] = float(np.mean(on_path[:episodes]))
+        out["route_length_changed"] = float(np.mean(distance_changed[:episodes]))
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seed", type=int, default=0, help="the episodes' env seed (default 0)")
     parser.add_argument("--search", type=int, default=40, help="episode seeds searched for a visible furniture change (default 40)")
     parser.add_argument("--image-size", type=int, default=128, help="frame side, pixels (default 128)")
     parser.add_argument("--out", default="docs/conditions.png", help="output PNG (default docs/conditions.png; the map beside it)")
+    parser.add_argument("--episodes", type=int, default=256, help="episodes measured per condition and strength (default 256)")
+    parser.add_argument("--stats", default="results/conditions.json", help="the measurements' JSON (default results/conditions.json)")
     args = parser.parse_args(argv)
-    if args.seed < 0 or args.search < 1 or args.image_size < 16:
-        parser.error(f"--seed must be >= 0, --search >= 1 and --image-size >= 16, got {args.seed}, {args.search}, {args.image_size}.")
+    if args.seed < 0 or args.search < 1 or args.image_size < 16 or args.episodes < 1:
+        parser.error(f"--seed must be >= 0, --search and --episodes >= 1 and --image-size >= 16, got {args.seed}, "
+                     f"{args.search}, {args.episodes}, {args.image_size}.")
     demo_length = 30
     rows: dict[str, list[tuple[str, np.ndarray]]] = {}
     for name in CONDITIONS[1:]:
@@ -71,6 +102,13 @@ def main(argv: list[str] | None = None) -> None:
         rows[name] = frames
     written = plot_conditions(rows, args.out, "the route's first pose, taught and repeated under each condition")
     print(f"-> {written}")
+    stats = {f"{name}@{strength}": change_stats(f"{name}@{strength}", args.episodes, TEST_SEED)
+             for name in CONDITIONS[1:] for strength in STRENGTHS}
+    atomic_write_json(args.stats, {"recipe": "recipes/conditions.py", "episodes": args.episodes, "split": "test",
+                                   "routes": "planner, 30 steps", "seed": TEST_SEED, "stats": stats}, indent=1)
+    for world, row in stats.items():
+        print(world, ", ".join(f"{key} {value:.3f}" for key, value in row.items()))
+    print(f"-> {args.stats}")
 
 
 if __name__ == "__main__":
