@@ -14,14 +14,18 @@ Exports ``--model`` (default ``spf-s0.8``) in float32 and int8 weights (:mod:`sp
   teaches a route and follows it;
 * ``success`` (``--episodes`` > 0): the export on Table 1's test episodes at each memory precision and with
   int8 weights, paired against the float32 export on the same episodes (:func:`spf_rl.eval.paired.compare`),
-  and the float32 export's per-episode success against the eager policy's (Table 1's cached records).
+  and the float32 export's per-episode success against the eager policy's (Table 1's cached records);
+* ``route_success`` (``--route-episodes`` > 0): the same for ``--route-model`` (default ``routes-spf``) on the
+  route bench's test cells (every style x length bucket, at sparsity 0.8), per cell and pooled
+  (``--only-routes``: this alone, merged into the earlier output).
 
 Writes ``benchmarks/results/deploy.json``. ARM boards (a Jetson, a Raspberry Pi) are not measured here.
 
 Usage::
 
     python benchmarks/bench_deploy.py                         # everything (minutes; success on 1,000 episodes)
-    python benchmarks/bench_deploy.py --episodes 0 --steps 500   # bytes and latency only
+    python benchmarks/bench_deploy.py --episodes 0 --route-episodes 0 --steps 500   # bytes and latency only
+    python benchmarks/bench_deploy.py --only-routes             # routes-spf's route-bench cells at each precision
 """
 from __future__ import annotations
 
@@ -203,6 +207,47 @@ def success(exports: dict[str, Path], model: str, episodes: int) -> dict:
     return out
 
 
+#: The route bench's cells of the route model's success at each precision (test set, every style and bucket).
+ROUTE_SPARSITY = 0.8
+
+
+def route_success(exports: dict[str, Path], model: str, episodes: int, workdir: Path) -> dict:
+    """The route model's export at each memory precision and with int8 weights on the route bench's cells
+    (test set, every style x length bucket, ``episodes`` per cell, sparsity :data:`ROUTE_SPARSITY`), each
+    cell and all of them pooled paired against the float32 export on the same episodes."""
+    from spf_rl.eval.route_bench import OPEN_LOOP, BenchModel, BenchOptions, paired_against, run_bench
+    from spf_rl.modules.exported import ExportedPolicy
+
+    variants = {f"fp32-weights-{dtype}-memory": (exports["fp32"], dtype) for dtype in PRECISIONS}
+    variants["int8-weights-float32-memory"] = (exports["int8"], "float32")
+    models = [BenchModel(OPEN_LOOP, None, None, {"checkpoint": None, "model_type": OPEN_LOOP})]
+    for name, (directory, dtype) in variants.items():
+        models.append(BenchModel(name, ExportedPolicy(directory, memory_dtype=dtype), ROUTE_SPARSITY,
+                                 {"checkpoint": str(directory), "memory_dtype": dtype, "played_at_sparsity": ROUTE_SPARSITY}))
+    options = BenchOptions(models=(), sets=("test",), episodes=episodes, out=workdir / f"route_bench_{model}_precisions.json")
+    content = run_bench(options, models)
+    reference = "fp32-weights-float32-memory"
+    out: dict = {"model": model, "episodes_per_cell": episodes, "sparsity": ROUTE_SPARSITY, "cells": {}, "pooled": {}}
+    pooled = {name: [] for name in variants}
+    houses: list = []
+    for key, cell in content["cells"].items():
+        columns = {name: cell["models"][name]["columns"] for name in variants}
+        houses += list(cell["episodes"]["house_seed"])
+        out["cells"][key] = {name: {"success": float(np.mean(columns[name]["success"]))} for name in variants}
+        for name in variants:
+            pooled[name] += list(columns[name]["success"])
+            if name != reference:
+                out["cells"][key][name]["vs_fp32"] = paired_against(columns[name], columns[reference], cell["episodes"]["house_seed"],
+                                                                     10_000, metrics=("success",))["success"]
+    for name, values in pooled.items():
+        out["pooled"][name] = {"success": float(np.mean(values)), "episodes": len(values)}
+        if name != reference:
+            out["pooled"][name]["vs_fp32"] = paired_against({"success": values}, {"success": pooled[reference]}, houses, 10_000,
+                                                           metrics=("success",))["success"]
+        logger.info("routes %s: success %.3f", name, out["pooled"][name]["success"])
+    return out
+
+
 #: Table 1's lines drawn on the budget curve (their sparsity, their test success over seeds).
 CURVE_LINES = ("spf-s0.4", "spf-s0.6", "spf-s0.8", "rpf-s1")
 #: A run that tested on Table 1's test episodes, for the routes' lengths in metres (every line plays the same episodes).
@@ -258,10 +303,13 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--steps", type=int, default=2000, help="timed steps per latency figure (default: %(default)s)")
     parser.add_argument("--warmup", type=int, default=100)
     parser.add_argument("--episodes", type=int, default=1000, help="Table 1 test episodes for the success figures (0: none)")
+    parser.add_argument("--route-model", default="routes-spf", help="the route model whose route-bench cells are played at each precision (default: %(default)s)")
+    parser.add_argument("--route-episodes", type=int, default=128, help="episodes per route-bench cell for --route-model (0: none; default: %(default)s)")
+    parser.add_argument("--only-routes", action="store_true", help="only the route model's success at each precision, merged into --output")
     parser.add_argument("--output", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
-    if args.steps < 1 or args.warmup < 0 or args.episodes < 0:
-        parser.error("--steps must be >= 1, --warmup and --episodes >= 0")
+    if args.steps < 1 or args.warmup < 0 or args.episodes < 0 or args.route_episodes < 0:
+        parser.error("--steps must be >= 1, --warmup, --episodes and --route-episodes >= 0")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
 
     from spf_rl_runtime import Follower
@@ -270,6 +318,18 @@ def main(argv: list[str] | None = None) -> dict:
     from spf_rl.device import machine_info
     from spf_rl.export import export_checkpoint
 
+    if args.only_routes:  # merged into the benchmark's earlier output
+        if not args.route_episodes:
+            parser.error("--only-routes needs --route-episodes > 0")
+        route_exports = {weights: args.exports / f"{args.route_model}-{weights}" for weights in ("fp32", "int8")}
+        for weights, path in route_exports.items():
+            export_checkpoint(args.route_model, path, weights=weights)
+        result = json.loads(args.output.read_text()) if args.output.is_file() else {}
+        result["route_success"] = route_success(route_exports, args.route_model, args.route_episodes, args.exports)
+        result["route_success"]["command"] = "python benchmarks/bench_deploy.py " + " ".join(argv if argv is not None else sys.argv[1:])
+        atomic_write_json(args.output, result, default=str)
+        logger.info("wrote %s", args.output)
+        return result
     exports = {weights: args.exports / f"{args.model}-{weights}" for weights in ("fp32", "int8")}
     manifests = {weights: export_checkpoint(args.model, path, weights=weights) for weights, path in exports.items()}
     result = {
@@ -287,6 +347,11 @@ def main(argv: list[str] | None = None) -> dict:
     result["budget_curve"] = budget_curve(result["memory"], args.output.with_suffix(".png"))
     if args.episodes:
         result["success"] = success(exports, args.model, args.episodes)
+    if args.route_episodes:
+        route_exports = {weights: args.exports / f"{args.route_model}-{weights}" for weights in ("fp32", "int8")}
+        for weights, path in route_exports.items():
+            export_checkpoint(args.route_model, path, weights=weights)
+        result["route_success"] = route_success(route_exports, args.route_model, args.route_episodes, args.exports)
     atomic_write_json(args.output, result, default=str)
     logger.info("wrote %s", args.output)
     return result

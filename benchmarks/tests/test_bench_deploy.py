@@ -13,7 +13,7 @@ def test_a_short_run_writes_every_figure(tmp_path):
 
     out = tmp_path / "deploy.json"
     result = bench_deploy.main(["--exports", str(tmp_path / "exports"), "--steps", "5", "--warmup", "1", "--episodes", "2",
-                                "--output", str(out)])
+                                "--route-episodes", "0", "--output", str(out)])
     assert json.loads(out.read_text())["model"] == "spf-s0.8"
     rows = {(r["route_steps"], r["sparsity"]): r for r in result["memory"]}
     assert len(rows) == 10 and rows[(100, 0.4)]["kept_frames"] == 40
@@ -28,3 +28,19 @@ def test_a_short_run_writes_every_figure(tmp_path):
     assert [p["line"] for p in curve["points"]] == ["spf-s0.4", "spf-s0.6", "spf-s0.8", "rpf-s1"]
     assert all(p["int8_bytes_per_metre"] < p["float32_bytes_per_metre"] < p["raw_frames_bytes_per_metre"] for p in curve["points"])
     assert (tmp_path / "deploy.png").stat().st_size > 10_000
+
+
+def test_the_route_models_cells_at_each_precision_merge_into_the_output(tmp_path):
+    import bench_deploy
+
+    out = tmp_path / "deploy.json"
+    out.write_text(json.dumps({"model": "spf-s0.8"}))
+    result = bench_deploy.main(["--exports", str(tmp_path / "exports"), "--only-routes", "--route-episodes", "1", "--output", str(out)])
+    assert result["model"] == "spf-s0.8"  # the earlier figures kept
+    routes = json.loads(out.read_text())["route_success"]
+    assert routes["model"] == "routes-spf" and len(routes["cells"]) == 9
+    pooled = routes["pooled"]
+    assert set(pooled) == {"fp32-weights-float32-memory", "fp32-weights-float16-memory", "fp32-weights-int8-memory",
+                           "int8-weights-float32-memory"}
+    assert all(row["episodes"] == 9 for row in pooled.values())
+    assert "vs_fp32" in pooled["fp32-weights-int8-memory"] and "vs_fp32" not in pooled["fp32-weights-float32-memory"]
