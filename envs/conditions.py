@@ -53,7 +53,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from envs.demos import Demonstration
-from envs.geodesic import count_components, navigable_beside
+from envs.geodesic import DistanceField, count_components, navigable_beside
 from envs.geometry import GEODESIC_RESOLUTION_M, OCCUPANCY_RESOLUTION_M
 from envs.render import RepeatView
 from envs.scenes import (
@@ -371,13 +371,17 @@ def _changed_furniture(house: House, strength: float, rng: np.random.Generator) 
     return kept
 
 
-def _fits_route(house: House, demonstration: Demonstration) -> bool:
-    """Whether the route's start and end are free in ``house`` and its end reachable from its start."""
+def _route_field(house: House, demonstration: Demonstration) -> DistanceField | None:
+    """The route end's distance field in ``house``, or ``None`` where the agent cannot stand at the
+    route's start or end there, or cannot reach its end from its start."""
     start, end = demonstration.start_pose[:2], demonstration.end_xy
     if not (house.occupancy.is_free(start) and house.occupancy.is_free(end)):
-        return False
+        return None
     graph = house.graph
-    return bool(graph.navigable.ravel()[graph.node(start)] and np.isfinite(graph.distance_field(end).at(start)))
+    if not graph.navigable.ravel()[graph.node(start)]:
+        return None
+    field = graph.distance_field(end)
+    return field if np.isfinite(field.at(start)) else None
 
 
 # ------------------------------------------------------------------------ repeat
@@ -484,14 +488,14 @@ def draw_repeat(mixture: ConditionMixture, house: House, demonstration: Demonstr
         order = [(first + j) % VARIANTS_PER_HOUSE for j in range(VARIANTS_PER_HOUSE)] + list(range(VARIANTS_PER_HOUSE, MAX_FURNITURE_DRAWS))
         for k in order:
             variant = house_variant(house.seed, "furniture", s, k)
-            if _fits_route(variant, demonstration):
+            end_field = _route_field(variant, demonstration)
+            if end_field is not None:
                 break
         else:
             raise RuntimeError(
                 f"no furniture change at strength {s} in {MAX_FURNITURE_DRAWS} draws leaves the route of episode seed "
                 f"{episode_seed} in house {house.seed} feasible."
             )
-        end_field = variant.graph.distance_field(demonstration.end_xy)
         repeat.house = variant
         repeat.demonstration = dataclasses.replace(
             demonstration, end_field=end_field, shortest_length_m=float(end_field.at(demonstration.start_pose[:2]))
