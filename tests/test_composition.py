@@ -131,7 +131,9 @@ def test_hide_privileged_removes_them_from_the_policy_input() -> None:
     assert {"pixels", "demo_frames", "demo_actions"} <= policy_input
     assert not set(env.rollout(3).keys(True, True)) & set(PRIVILEGED_KEYS)
     # without it they are there (route_step with the route expert's labels only)
-    assert set(PRIVILEGED_KEYS) <= set(PathFollowEnv(**SMALL, with_expert=True, expert="route").observation_spec.keys())
+    assert set(PRIVILEGED_KEYS) <= set(
+        PathFollowEnv(**SMALL, with_expert=True, expert="route", conditions="none", memory_mismatch=0.0).observation_spec.keys()
+    )
     assert "route_step" not in PathFollowEnv(**SMALL, with_expert=True, expert="goal").observation_spec.keys()
     # an env without expert labels: the keys it has are hidden, the one it lacks ignored
     env = TransformedEnv(PathFollowEnv(**SMALL), HidePrivileged())

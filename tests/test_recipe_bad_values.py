@@ -96,6 +96,8 @@ CASES = [
     case("paired-missing-json", "paired.py", "{tmp}/a.json {tmp}/b.json --out {out}/paired.json", "no evaluation JSON", "a.json"),
     case("expert_stats-episodes", "expert_stats.py", "--episodes 0 --output {out}/stats.json", "--episodes must be a positive int"),
     case("route_styles-lengths", "route_styles.py", "--lengths -5 --out {out}/routes.png", "--lengths", "-5"),
+    case("conditions-episodes", "conditions.py", "--episodes 0 --out {out}/conditions.png --stats {out}/conditions.json",
+         "--search and --episodes >= 1", "0"),
     case("sample_efficiency-lever", "sample_efficiency.py", "--levers faster --out {out}/study.json", "argument --levers", "faster"),
 ]
 
