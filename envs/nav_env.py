@@ -49,8 +49,8 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 
-from envs.conditions import ConditionMixture, Repeat, check_mismatch, draw_repeat, draws_mismatch, parse_conditions
 from envs.checks import check_action, check_actuation_noise, check_positive_int, resolve_houses
+from envs.conditions import ConditionMixture, Repeat, check_mismatch, draw_repeat, draws_mismatch, parse_conditions
 from envs.demo_store import DemoStore
 from envs.demos import DEFAULT_DEMO_LENGTH, Demonstration, default_min_route_length_m, move_agents, nominal_motion
 from envs.episode_numbering import EpisodeNumbering

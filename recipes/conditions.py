@@ -28,8 +28,8 @@ import numpy as np
 from envs.atomic_io import atomic_write_json
 from envs.conditions import CONDITIONS
 from envs.nav_env import PathFollowEnv
-from spf_rl.evaluation import TEST_SEED
 from spf_rl.cli import ArgumentParser
+from spf_rl.evaluation import TEST_SEED
 from spf_rl.viz import plot_conditions, plot_layout_change
 
 #: The strengths drawn.
