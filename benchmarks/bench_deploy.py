@@ -16,7 +16,9 @@ Exports ``--model`` (default ``spf-s0.8``) in float32 and int8 weights (:mod:`sp
   int8 weights, paired against the float32 export on the same episodes (:func:`spf_rl.eval.paired.compare`),
   and the float32 export's per-episode success against the eager policy's (Table 1's cached records);
 * ``route_success`` (``--route-episodes`` > 0): the same for ``--route-model`` (default ``routes-spf``) on the
-  route bench's test cells (every style x length bucket, at sparsity 0.8), per cell and pooled
+  route bench's test cells (every style x length bucket), per cell and pooled, at each sparsity of
+  :data:`ROUTE_SPARSITIES` (``{"sparsity_0.8": ..., "sparsity_0.4": ...}``), and the float32 export's
+  per-episode success against the eager checkpoint's (the route bench's records of it)
   (``--only-routes``: this alone, merged into the earlier output).
 
 Writes ``benchmarks/results/deploy.json``. ARM boards (a Jetson, a Raspberry Pi) are not measured here.
@@ -37,6 +39,7 @@ import platform
 import subprocess
 import sys
 import time
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -207,14 +210,14 @@ def success(exports: dict[str, Path], model: str, episodes: int) -> dict:
     return out
 
 
-#: The route bench's cells of the route model's success at each precision (test set, every style and bucket).
-ROUTE_SPARSITY = 0.8
+#: The sparsities the route model's cells are played at: the route bench's, and the 8 KB target's.
+ROUTE_SPARSITIES = (0.8, 0.4)
 
 
-def route_success(exports: dict[str, Path], model: str, episodes: int, workdir: Path) -> dict:
+def route_success(exports: dict[str, Path], model: str, episodes: int, workdir: Path, sparsity: float) -> dict:
     """The route model's export at each memory precision and with int8 weights on the route bench's cells
-    (test set, every style x length bucket, ``episodes`` per cell, sparsity :data:`ROUTE_SPARSITY`), each
-    cell and all of them pooled paired against the float32 export on the same episodes."""
+    (test set, every style x length bucket, ``episodes`` per cell, played at ``sparsity``), each cell and
+    all of them pooled paired against the float32 export on the same episodes."""
     from spf_rl.eval.route_bench import OPEN_LOOP, BenchModel, BenchOptions, paired_against, run_bench
     from spf_rl.modules.exported import ExportedPolicy
 
@@ -222,30 +225,76 @@ def route_success(exports: dict[str, Path], model: str, episodes: int, workdir: 
     variants["int8-weights-float32-memory"] = (exports["int8"], "float32")
     models = [BenchModel(OPEN_LOOP, None, None, {"checkpoint": None, "model_type": OPEN_LOOP})]
     for name, (directory, dtype) in variants.items():
-        models.append(BenchModel(name, ExportedPolicy(directory, memory_dtype=dtype), ROUTE_SPARSITY,
-                                 {"checkpoint": str(directory), "memory_dtype": dtype, "played_at_sparsity": ROUTE_SPARSITY}))
-    options = BenchOptions(models=(), sets=("test",), episodes=episodes, out=workdir / f"route_bench_{model}_precisions.json")
+        models.append(BenchModel(name, ExportedPolicy(directory, memory_dtype=dtype), sparsity,
+                                 {"checkpoint": str(directory), "memory_dtype": dtype, "played_at_sparsity": sparsity}))
+    options = BenchOptions(models=(), sets=("test",), episodes=episodes, out=workdir / f"route_bench_{model}_s{sparsity}_precisions.json")
     content = run_bench(options, models)
     reference = "fp32-weights-float32-memory"
-    out: dict = {"model": model, "episodes_per_cell": episodes, "sparsity": ROUTE_SPARSITY, "cells": {}, "pooled": {}}
-    pooled = {name: [] for name in variants}
-    houses: list = []
+    out: dict = {"model": model, "episodes_per_cell": episodes, "sparsity": sparsity, "cells": {}}
     for key, cell in content["cells"].items():
         columns = {name: cell["models"][name]["columns"] for name in variants}
-        houses += list(cell["episodes"]["house_seed"])
         out["cells"][key] = {name: {"success": float(np.mean(columns[name]["success"]))} for name in variants}
         for name in variants:
-            pooled[name] += list(columns[name]["success"])
             if name != reference:
                 out["cells"][key][name]["vs_fp32"] = paired_against(columns[name], columns[reference], cell["episodes"]["house_seed"],
                                                                      10_000, metrics=("success",))["success"]
-    for name, values in pooled.items():
-        out["pooled"][name] = {"success": float(np.mean(values)), "episodes": len(values)}
-        if name != reference:
-            out["pooled"][name]["vs_fp32"] = paired_against({"success": values}, {"success": pooled[reference]}, houses, 10_000,
-                                                           metrics=("success",))["success"]
+    out["fp32_vs_eager"] = route_vs_eager(model, content, ROUTE_EAGER_SOURCES.get(sparsity))
+    out["pooled"] = pool_cells(content["cells"].values(), list(variants), reference)
+    buckets = sorted({key.rsplit("/", 1)[1] for key in content["cells"]}, key=lambda bucket: int(bucket.split("-")[0]))
+    out["pooled_by_length"] = {bucket: pool_cells([cell for key, cell in content["cells"].items() if key.endswith("/" + bucket)],
+                                                  list(variants), reference) for bucket in buckets}
+    for name in variants:
         logger.info("routes %s: success %.3f", name, out["pooled"][name]["success"])
     return out
+
+
+def pool_cells(cells: Iterable[dict], names: list[str], reference: str) -> dict:
+    """Each of ``names``' success pooled over the route-bench ``cells``, paired against ``reference``'s
+    (house-level resampling over every pooled episode)."""
+    from spf_rl.eval.route_bench import paired_against
+
+    cells = list(cells)
+    houses = [house for cell in cells for house in cell["episodes"]["house_seed"]]
+    values = {name: [v for cell in cells for v in cell["models"][name]["columns"]["success"]] for name in names}
+    out = {}
+    for name in names:
+        out[name] = {"success": float(np.mean(values[name])), "episodes": len(values[name])}
+        if name != reference:
+            out[name]["vs_fp32"] = paired_against({"success": values[name]}, {"success": values[reference]}, houses, 10_000,
+                                                  metrics=("success",))["success"]
+    return out
+
+
+#: The route bench's runs that played the route models eagerly, on the same cells and episodes, per sparsity.
+ROUTE_EAGER_SOURCES = {0.8: Path("results/route_bench_routes_more_3seeds_128ep.json"),
+                       0.4: Path("results/route_bench_routes_more_3seeds_s0.4_128ep.json")}
+
+
+def route_vs_eager(model: str, content: dict, source: Path | None) -> dict | None:
+    """The float32 export's successes against the eager checkpoint's on the same route-bench episodes
+    (the run in ``source``, the label of the file ``model`` names), cell by cell; ``None`` where there is no
+    such run, or it lacks the checkpoint or played other episodes."""
+    from spf_rl.hub import read_manifest
+
+    label = read_manifest()["names"].get(model, "").removesuffix(".pt")
+    if not label or source is None or not source.is_file():
+        return None
+    eager = json.loads(source.read_text())["cells"]
+    differing = total = 0
+    for key, cell in content["cells"].items():
+        stored = eager.get(key, {})
+        if label not in stored.get("models", {}) or stored["episodes"]["house_seed"] != cell["episodes"]["house_seed"]:
+            return None
+        exported = cell["models"]["fp32-weights-float32-memory"]["columns"]["success"]
+        played = stored["models"][label]["columns"]["success"]
+        differing += sum(a != b for a, b in zip(exported, played))
+        total += len(played)
+    return {"eager_source": str(source), "eager_label": label, "episodes": total, "episodes_differing": int(differing)}
+
+
+def route_successes(exports: dict[str, Path], model: str, episodes: int, workdir: Path) -> dict:
+    """:func:`route_success` at each sparsity of :data:`ROUTE_SPARSITIES`, keyed ``sparsity_<s>``."""
+    return {f"sparsity_{sparsity}": route_success(exports, model, episodes, workdir, sparsity) for sparsity in ROUTE_SPARSITIES}
 
 
 #: Table 1's lines drawn on the budget curve (their sparsity, their test success over seeds).
@@ -325,7 +374,7 @@ def main(argv: list[str] | None = None) -> dict:
         for weights, path in route_exports.items():
             export_checkpoint(args.route_model, path, weights=weights)
         result = json.loads(args.output.read_text()) if args.output.is_file() else {}
-        result["route_success"] = route_success(route_exports, args.route_model, args.route_episodes, args.exports)
+        result["route_success"] = route_successes(route_exports, args.route_model, args.route_episodes, args.exports)
         result["route_success"]["command"] = "python benchmarks/bench_deploy.py " + " ".join(argv if argv is not None else sys.argv[1:])
         atomic_write_json(args.output, result, default=str)
         logger.info("wrote %s", args.output)
@@ -351,7 +400,7 @@ def main(argv: list[str] | None = None) -> dict:
         route_exports = {weights: args.exports / f"{args.route_model}-{weights}" for weights in ("fp32", "int8")}
         for weights, path in route_exports.items():
             export_checkpoint(args.route_model, path, weights=weights)
-        result["route_success"] = route_success(route_exports, args.route_model, args.route_episodes, args.exports)
+        result["route_success"] = route_successes(route_exports, args.route_model, args.route_episodes, args.exports)
     atomic_write_json(args.output, result, default=str)
     logger.info("wrote %s", args.output)
     return result

@@ -19,17 +19,18 @@ resets within 25% (ratio >= 0.75).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 import torch
 from bench_env_paths import NUM_ACTIONS, WARMUP_FRAMES, BenchConfig, make_bench_env, median_fps
 
-from envs.conditions import VARIANTS_PER_HOUSE, draw_repeat, house_variant, parse_conditions
+from envs.conditions import LAMP_HEIGHT_M, LIGHT_DIMMING, LIGHT_TINT, VARIANTS_PER_HOUSE, draw_repeat, house_variant, parse_conditions
 from envs.demos import apply_motion, nominal_motion
 from envs.follow import episode_for_seed
 from envs.house_mesh import house_model
-from envs.render import FirstPersonRenderer
+from envs.render import FirstPersonRenderer, RepeatView
 from envs.scenes import split_seeds
 
 #: The worlds timed: the teaching world, then each condition at full strength.
@@ -37,6 +38,8 @@ WORLDS = ("none", "light@1", "paint@1", "furniture@1", "camera@1", "sensor@1")
 #: Frames per timed chunk (times the config's scale).
 RAW_CHUNK_FRAMES = 1000
 ENV_CHUNK_FRAMES = 400
+#: Calls per timed repeat of a part of the sensor's change or of one render (:func:`time_per_call`).
+PART_CALLS = 2000
 #: Targets: a world's rate over ``none``'s.
 RAW_TARGET, ENV_TARGET = 0.9, 0.75
 
@@ -152,7 +155,91 @@ def bench_conditions(config: BenchConfig, worlds: tuple[str, ...] = WORLDS) -> d
                   "env_chunk_frames": env_frames, "noise": "paper", "variants_per_house": VARIANTS_PER_HOUSE},
         "targets": {"raw_ratio_to_none": RAW_TARGET, "env_ratio_to_none": ENV_TARGET},
         "results": results,
+        "sensor_floor": sensor_floor(config.image_size, 1e6 / base["raw_fps"], config.seed),
+        "light_parts": light_parts(config.image_size, house_seeds[0], config.seed),
     }
+
+
+def time_per_call(function: Callable[[], object], calls: int | None = None, repeats: int = 5) -> float:
+    """Median over ``repeats`` of the microseconds per call of ``function`` (after one call), ``calls``
+    (default :data:`PART_CALLS`) calls each."""
+    calls = PART_CALLS if calls is None else calls
+    function()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        for _ in range(calls):
+            function()
+        times.append((time.perf_counter() - start) / calls * 1e6)
+    return float(np.median(times))
+
+
+def sensor_floor(image_size: int, render_us: float, seed: int = 0) -> dict:
+    """What the sensor's change costs per frame at full strength, part by part, against ``render_us``
+    (a frame of ``none``'s render loop), and the blur's cost by other means: why its render-loop
+    target (within 10%: at most ``render_us / 9`` per frame) is out of reach at this frame size."""
+    from scipy.ndimage import correlate1d, gaussian_filter
+
+    from envs.conditions import (
+        BLUR_TRUNCATE,
+        NOISE_BANK_FRAMES,
+        SENSOR_BLUR_PX,
+        SENSOR_EXPOSURE_CHANGE,
+        SENSOR_NOISE,
+        SensorChange,
+        _blur_matrices,
+    )
+
+    rng = np.random.default_rng(seed)
+    frame = rng.integers(0, 256, (1, image_size, image_size, 3), dtype=np.uint8)
+    sensor = SensorChange(1.0 + SENSOR_EXPOSURE_CHANGE, SENSOR_BLUR_PX, SENSOR_NOISE)
+    bank = sensor.noise_bank(frame.shape[1:], rng)
+    rows, columns = _blur_matrices(image_size, sensor.blur_px, sensor.exposure), _blur_matrices(image_size, sensor.blur_px, 1.0).T
+    channels = np.ascontiguousarray(frame[0].transpose(2, 0, 1), dtype=np.float32)
+    kernel = rows[image_size // 2, image_size // 2 - 3 : image_size // 2 + 4] / sensor.exposure
+    size = frame.size
+
+    def noise_only() -> None:
+        values = frame[0].astype(np.float32)
+        offset = int(rng.integers(len(bank) - size + 1))
+        values += bank[offset : offset + size].reshape(values.shape)
+        np.rint(values, out=values)
+        np.clip(values, 0, 255, out=values)
+        frame[0] = values
+
+    parts = {
+        "sensor_change": time_per_call(lambda: sensor.apply(frame.copy(), bank, rng)),
+        "blur_and_exposure_matrix_products": time_per_call(lambda: rows @ channels @ columns),
+        "noise_round_clip_cast": time_per_call(noise_only),
+        "blur_scipy_gaussian_filter": time_per_call(lambda: gaussian_filter(
+            frame.astype(np.float32), sigma=(0, SENSOR_BLUR_PX, SENSOR_BLUR_PX, 0), mode="nearest", truncate=BLUR_TRUNCATE)),
+        "blur_scipy_two_correlate1d": time_per_call(lambda: correlate1d(correlate1d(
+            frame, kernel, axis=1, output=np.float32, mode="nearest"), kernel, axis=2, mode="nearest")),
+    }
+    budget = render_us / RAW_TARGET - render_us
+    return {
+        "description": "microseconds per frame at strength 1, median of 5 x 2,000 calls; render_us: none's render loop",
+        "image_size": image_size, "noise_bank_frames": NOISE_BANK_FRAMES, "render_us": render_us,
+        "budget_us_for_render_target": budget, "parts_us": parts,
+        "best_render_ratio_with_the_blur_alone": render_us / (render_us + parts["blur_and_exposure_matrix_products"]),
+    }
+
+
+def light_parts(image_size: int, house_seed: int, seed: int = 0) -> dict:
+    """Microseconds per frame of one render at a route's start under the teacher's light, the light's
+    colour alone, colour and turn, and the lamp of its room: where light's render-loop cost comes from."""
+    house, demo = episode_for_seed(seed, [house_seed], 30, 0.6)
+    pose = demo.start_pose.copy()
+    room = house.room_at(pose[:2])
+    rgb = tuple(1.0 - LIGHT_DIMMING * (1.0 + t) for t in LIGHT_TINT)
+    views = {"teacher": None, "colour": RepeatView(light_rgb=rgb), "colour_turned": RepeatView(light_rgb=rgb, light_yaw_deg=45.0),
+             "lamp_in_its_room": RepeatView(light_rgb=rgb, light_yaw_deg=45.0, lamp_room=room, lamp_xyz=(float(pose[0]), float(pose[1]), LAMP_HEIGHT_M))}
+    renderer = FirstPersonRenderer(image_size, image_size)
+    try:
+        parts = {name: time_per_call(lambda view=view: renderer.render(house, pose, view=view)) for name, view in views.items()}
+    finally:
+        renderer.close()
+    return {"description": "microseconds per frame, one pose, median of 5 x 2,000 renders", "parts_us": parts}
 
 
 def format_conditions(output: dict) -> str:
@@ -162,4 +249,10 @@ def format_conditions(output: dict) -> str:
     for world, row in output["results"].items():
         lines.append(f"| {world} | {row['raw_fps']:.0f} | {row['raw_ratio_to_none']:.2f}{'' if row['raw_within_target'] else ' (missed)'} "
                      f"| {row['env_steps_per_s']:.0f} | {row['env_ratio_to_none']:.2f}{'' if row['env_within_target'] else ' (missed)'} |")
+    floor = output.get("sensor_floor")
+    if floor:
+        parts = ", ".join(f"{name} {us:.0f} us" for name, us in floor["parts_us"].items())
+        lines.append(f"\nsensor per frame: {parts}; render {floor['render_us']:.0f} us (budget {floor['budget_us_for_render_target']:.0f} us)")
+    if output.get("light_parts"):
+        lines.append("light, one render: " + ", ".join(f"{name} {us:.0f} us" for name, us in output["light_parts"]["parts_us"].items()))
     return "\n".join(lines)

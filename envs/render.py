@@ -23,6 +23,7 @@ from __future__ import annotations
 import atexit
 import ctypes
 import ctypes.util
+import functools
 import logging
 import math
 import os
@@ -416,6 +417,14 @@ def _pitched_camera_matrix(heading_rad: float, pitch_rad: float) -> np.ndarray:
     return np.array([s, -c * sp, -c * cp, -c, -s * sp, -s * cp, 0.0, cp, -sp])
 
 
+@functools.lru_cache(maxsize=256)
+def _light_factors(rgb: tuple[float, float, float]) -> np.ndarray:
+    """A view's light factors as the scene's float32 (made once per view)."""
+    factors = np.asarray(rgb, dtype=np.float32)
+    factors.flags.writeable = False
+    return factors
+
+
 def _update_scene_through(view: RepeatView, house, pose: np.ndarray, model, data, option, camera, scene) -> None:
     """``mjv_updateScene`` for a camera and light changed by ``view``: the eye's height, pitch
     and field of view, then the headlight's colour and direction and a lamp, edited in the scene."""
@@ -432,7 +441,7 @@ def _update_scene_through(view: RepeatView, house, pose: np.ndarray, model, data
         model.cam_fovy[0] = saved_fovy
     if scene.nlight == 0 or not scene.lights[0].headlight:
         return
-    light, rgb = scene.lights[0], np.asarray(view.light_rgb, dtype=np.float32)
+    light, rgb = scene.lights[0], _light_factors(view.light_rgb)
     if view.lamp_room is not None and house.room_at(pose[:2]) == view.lamp_room:
         # the headlight becomes the lamp: a spot hanging from the ceiling, shining down on the
         # whole room (MuJoCo's classic renderer draws no point lights)
@@ -446,8 +455,9 @@ def _update_scene_through(view: RepeatView, house, pose: np.ndarray, model, data
         light.cutoff = 90.0
         light.exponent = 0.0
         return
-    light.ambient[:] = light.ambient * rgb
-    light.diffuse[:] = light.diffuse * rgb
+    ambient, diffuse = light.ambient, light.diffuse  # views into the scene: scaled in place
+    ambient *= rgb
+    diffuse *= rgb
     if view.light_yaw_deg:
         turned = heading + math.radians(view.light_yaw_deg)
         light.headlight = 0

@@ -138,6 +138,39 @@ def test_the_same_episode_seed_gives_the_same_change_in_any_layout():
         assert repeat.condition.index == int(batched["condition"][agent])
 
 
+@pytest.mark.parametrize("exposure, blur_px", [(1.5, 1.0), (0.75, 0.5), (1.25, 0.25)])
+def test_the_sensors_exposure_and_blur_are_a_gaussian_filter_of_the_scaled_frame(exposure, blur_px):
+    from scipy.ndimage import gaussian_filter
+
+    from envs.conditions import BLUR_TRUNCATE, SensorChange
+
+    frames = np.random.default_rng(0).integers(0, 256, (2, 20, 24, 3), dtype=np.uint8)
+    changed = frames.copy()
+    SensorChange(exposure, blur_px, noise=0.0).apply(changed, np.zeros(4 * 20 * 24 * 3, np.float32), np.random.default_rng(1))
+    scaled = frames.astype(np.float32) * np.float32(exposure)
+    expected = np.clip(np.rint(gaussian_filter(scaled, sigma=(0, blur_px, blur_px, 0), mode="nearest", truncate=BLUR_TRUNCATE)), 0, 255)
+    assert np.abs(changed.astype(int) - expected.astype(int)).max() <= 1
+    assert (changed != expected).mean() < 0.001
+
+
+def test_the_sensors_noise_is_new_every_frame_with_the_drawn_spread_and_the_same_for_the_same_seed():
+    from envs.conditions import SensorChange
+
+    sensor = SensorChange(exposure=1.0, blur_px=1e-3, noise=8.0)
+    grey = np.full((6, 32, 32, 3), 128, dtype=np.uint8)
+
+    def sensed(seed):
+        frames, rng = grey.copy(), np.random.default_rng(seed)
+        sensor.apply(frames, sensor.noise_bank(grey.shape[1:], rng), rng)
+        return frames.astype(float) - 128
+
+    noise = sensed(4)
+    assert np.array_equal(noise, sensed(4)) and not np.array_equal(noise, sensed(5))
+    assert abs(noise.std() - 8.0) < 0.3 and abs(noise.mean()) < 0.3
+    assert all(not np.array_equal(noise[i], noise[i + 1]) for i in range(5))
+    assert abs(np.corrcoef(noise[0, :, :-1].ravel(), noise[0, :, 1:].ravel())[0, 1]) < 0.05  # neighbours independent
+
+
 def test_conditions_work_through_a_parallel_env():
     spec = EpisodeSpec(seed=3, conditions="sensor@1", **SMALL)
     env = ParallelEnv(2, make_env_factory(spec), mp_start_method="spawn")

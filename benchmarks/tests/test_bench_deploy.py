@@ -37,10 +37,14 @@ def test_the_route_models_cells_at_each_precision_merge_into_the_output(tmp_path
     out.write_text(json.dumps({"model": "spf-s0.8"}))
     result = bench_deploy.main(["--exports", str(tmp_path / "exports"), "--only-routes", "--route-episodes", "1", "--output", str(out)])
     assert result["model"] == "spf-s0.8"  # the earlier figures kept
-    routes = json.loads(out.read_text())["route_success"]
+    by_sparsity = json.loads(out.read_text())["route_success"]
+    assert {key: routes["sparsity"] for key, routes in by_sparsity.items() if key != "command"} == {"sparsity_0.8": 0.8, "sparsity_0.4": 0.4}
+    routes = by_sparsity["sparsity_0.4"]
     assert routes["model"] == "routes-spf" and len(routes["cells"]) == 9
     pooled = routes["pooled"]
     assert set(pooled) == {"fp32-weights-float32-memory", "fp32-weights-float16-memory", "fp32-weights-int8-memory",
                            "int8-weights-float32-memory"}
     assert all(row["episodes"] == 9 for row in pooled.values())
+    assert list(routes["pooled_by_length"]) == ["10-30", "31-60", "61-100"]
+    assert all(row["episodes"] == 3 for bucket in routes["pooled_by_length"].values() for row in bucket.values())
     assert "vs_fp32" in pooled["fp32-weights-int8-memory"] and "vs_fp32" not in pooled["fp32-weights-float32-memory"]
