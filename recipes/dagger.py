@@ -17,6 +17,7 @@ Usage::
     python recipes/dagger.py --preset dagger_spf_rpf_pointer  # after SPF 0.8 with RPF's pointer rule (python recipes/table1.py --rows spf_rpf_pointer-s0.8)
     python recipes/dagger.py --preset dagger_routes           # after bc.py --preset bc_routes: rounds on the routes people teach
     python recipes/dagger.py --preset dagger_routes_pointer_more seed=S   # 10 more rounds after dagger_routes_pointer seed=S
+    python recipes/dagger.py --preset dagger_routes_robust seed=S  # from routes-spf seed S, repeating in changed worlds (#62)
     python recipes/dagger.py checkpoint=runs/bc/spf-s0.8-seed0/best.pt rounds=6
     python recipes/dagger.py collector.backend=ray collector.num_collectors=2 device=cpu   # pip install '.[distributed]'
     python recipes/dagger.py device=cuda:1                    # the learner on the second GPU (default device=auto)

@@ -17,13 +17,28 @@ from envs.conditions import (
 )
 from envs.demo_store import DemoStore, DemoStoreConfig
 from envs.episode_spec import EpisodeSpec
-from envs.factory import make_env
+from envs.factory import make_env as _make_env
 from envs.follow import episode_for_seed
 from envs.nav_env import PathFollowEnv
 from envs.render import MAX_MODELS_PER_RENDERER, FirstPersonRenderer
 from envs.scenes import build_house, split_seeds
 
 SMALL = {"split": "test", "num_houses": 3, "demo_length": 12, "image_size": 24}
+_OPEN: list = []
+
+
+def make_env(*args, **kwargs):
+    """:func:`envs.factory.make_env`, closed when the test ends (its GL context released before EGL goes)."""
+    env = _make_env(*args, **kwargs)
+    _OPEN.append(env)
+    return env
+
+
+@pytest.fixture(autouse=True)
+def _close_envs():
+    yield
+    while _OPEN:
+        _OPEN.pop().close(raise_if_closed=False)
 CHANGED = ["light@0.5", "light@1", "paint@1", "camera@0.5", "camera@1", "sensor@0.5", "sensor@1"]
 
 
@@ -123,6 +138,7 @@ def test_the_same_episode_seed_gives_the_same_change_in_any_layout():
     spec = EpisodeSpec(seed=9, conditions="light@1=1,camera@0.5=1,sensor@1=1,paint@0.5=1", **SMALL)
     batched = make_env(spec, 4, seeded=True).reset()
     serial = SerialEnv(2, lambda: make_env(spec, 2, seeded=False))
+    _OPEN.append(serial)
     serial.set_seed(9)
     # agent i's k-th episode is number i + 4k in the batched env: play the same numbers one at a time
     single = make_env(spec, None, episode_stride=4, seeded=True)
@@ -186,7 +202,7 @@ def test_conditions_work_through_a_parallel_env():
 def make_env_factory(spec):
     from functools import partial
 
-    return partial(make_env, spec, None)
+    return partial(_make_env, spec, None)
 
 
 def test_a_mismatched_memory_shows_another_routes_frames_with_the_episodes_own_actions(teaching):

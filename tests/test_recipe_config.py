@@ -254,3 +254,18 @@ def test_routes_dagger_starts_from_the_routes_bc_run_on_its_data_and_routes():
             assert (evaluation.route_style, evaluation.route_lengths, evaluation.demo_length) == (
                 data.route_style, data.route_lengths, 100
             )
+
+
+def test_the_robust_route_preset_starts_from_routes_spf_and_repeats_in_changed_worlds():
+    from spf_rl.hub import read_manifest
+    from spf_rl.train.dagger import DAggerConfig
+
+    robust = load_config(DAggerConfig, "dagger", ["seed=2"], preset="dagger_routes_robust")
+    more = load_config(DAggerConfig, "dagger", ["seed=2"], preset="dagger_routes_pointer_more")
+    assert robust.checkpoint == f"checkpoints/{read_manifest()['names']['routes-spf'].replace('seed0', 'seed2')}"
+    assert robust.round_seed_offset > more.round_seed_offset and robust.output_dir != more.output_dir
+    assert robust.optim == more.optim and robust.rounds == more.rounds and robust.bc_data == more.bc_data
+    for episodes in (robust.env.episodes, robust.val.episodes):
+        assert "light@1.0" in episodes.conditions and "none" in episodes.conditions and episodes.memory_mismatch == 0.2
+        assert episodes.route_style == more.env.episodes.route_style and episodes.demo_length == 100
+    assert robust.bc_data.episodes.conditions is None  # BC data stays the teaching world's
