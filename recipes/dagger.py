@@ -37,6 +37,7 @@ from spf_rl.config import config_or_exit, load_config
 PRESETS = (
     "dagger_quick", "dagger_control", "dagger_long", "dagger_rpf", "dagger_rpf_original", "dagger_spf_rpf_pointer",
     "dagger_pointer_long", "dagger_table1", "dagger_routes", "dagger_routes_pointer", "dagger_routes_pointer_more",
+    "dagger_routes_robust",
 )
 
 
@@ -62,7 +63,8 @@ def main(argv: list[str] | None = None) -> dict:
         "dagger_table1 (Table 1's one DAgger rule, after bc.py --preset bc_table1), "
         "dagger_routes (after bc.py --preset bc_routes: rounds on the same route mixture) "
         "dagger_routes_pointer (dagger_routes with a pointer loss, optim.pointer_coef 0.1) "
-        "or dagger_routes_pointer_more (10 more such rounds from dagger_routes_pointer's kept weights, on fresh routes)",
+        "dagger_routes_pointer_more (10 more such rounds from dagger_routes_pointer's kept weights, on fresh routes) "
+        "or dagger_routes_robust (from routes-spf's weights, every round repeated in a changed world: issue #62)",
     )
     parser.add_argument("overrides", nargs="*", help="key=value config overrides")
     args = parser.parse_args(argv)
