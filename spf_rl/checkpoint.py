@@ -27,7 +27,6 @@ import json
 import logging
 import os
 from collections.abc import Container
-from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -154,7 +153,7 @@ def save_checkpoint(path: str | os.PathLike, model_type: str, config: SPFConfig,
         raise ValueError(f"model_type must be one of {MODEL_TYPES}, got {model_type!r}.")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    config_dict = asdict(config)
+    config_dict = config.to_dict()
     config_dict["image_size"] = list(config_dict["image_size"])
     if config_dict["sparsity_range"] is not None:
         config_dict["sparsity_range"] = list(config_dict["sparsity_range"])

@@ -23,7 +23,6 @@ that :class:`spf_rl_runtime.Follower` (the ``runtime/`` distribution, numpy and 
 from __future__ import annotations
 
 import copy
-import dataclasses
 import logging
 import os
 from pathlib import Path
@@ -34,6 +33,7 @@ from torch import nn
 
 from envs.atomic_io import atomic_write_json
 from spf_rl.checkpoint import file_sha256
+from spf_rl.modules.anchor import reanchor
 from spf_rl.modules.policy import SPFPolicy
 
 logger = logging.getLogger(__name__)
@@ -105,6 +105,7 @@ class StepGraph(nn.Module):
         self.num_actions = policy.config.num_actions
         self.paper_rule = policy.cell.pointer_update == "paper"
         self.gru, self.logits_head, self.pointer_head = policy.cell.gru, policy.cell.logits_head, policy.cell.pointer_head
+        self.anchor, self.anchor_gate, self.anchor_radius = policy.attention.anchor, policy.cell.anchor_gate, policy.cell.anchor_radius
 
     def forward(self, frame, memory, slot_indices, demo_actions, route_length, eta, hidden):
         num_actions = self.num_actions
@@ -113,11 +114,14 @@ class StepGraph(nn.Module):
         last = route_length.reshape(-1, 1).long() - 1
         actions = demo_actions.long()
         parts = []
+        anchor = ()
         if self.use_memory:  # w_j = exp(-|eta - M*_j|) over the used slots, then the weighted sum
             slots = slot_indices.long()
             used = (slots >= 0) & (slots <= last)
             weights = torch.exp(-(eta - slots.clamp(min=0).to(eta.dtype)).abs()).masked_fill(~used, 0.0)
             parts.append((weights.unsqueeze(-1) * memory.to(eta.dtype)).sum(-2))
+            if self.anchor is not None:  # where the frame says the agent is (spf_rl.modules.anchor)
+                anchor = self.anchor.locate(phi, memory.to(eta.dtype), slots.clamp(min=0), used, eta)
         window = None
         if self.lab_rpf:  # the original RPF: mu is the attended memory, no action window
             mu = parts[0]
@@ -139,6 +143,10 @@ class StepGraph(nn.Module):
         logits = self.logits_head(hidden_next)
         increment = torch.tanh(self.pointer_head(hidden_next))
         eta_next = eta + increment if self.paper_rule else torch.minimum(eta + 1.0 + increment, last.to(eta.dtype))
+        if anchor:
+            eta_next = reanchor(eta_next, eta, *anchor, hidden_next, self.anchor_gate, self.anchor_radius)
+            if not self.paper_rule:
+                eta_next = torch.minimum(eta_next, last.to(eta.dtype))
         return logits, eta_next.reshape(-1), hidden_next
 
 
@@ -241,7 +249,7 @@ def export_policy(policy: SPFPolicy, out: str | os.PathLike, model_type: str, we
             _quantize(path)
     if not policy.use_memory:
         (out / TEACH_FILE).unlink(missing_ok=True)  # an earlier export's, in the same directory
-    config = dataclasses.asdict(policy.config)
+    config = policy.config.to_dict()
     manifest = {
         "format_version": EXPORT_FORMAT_VERSION,
         "model_type": model_type,

@@ -85,9 +85,13 @@ def policy_sha256(policy: Any) -> str | None:
         return None
     config = getattr(policy, "config", None)
     sparsity = getattr(policy, "sparsity", None)
+    if hasattr(config, "to_dict"):  # SPFConfig: fields added since models shipped count only when set
+        config = config.to_dict()
+    elif dataclasses.is_dataclass(config):
+        config = dataclasses.asdict(config)
     return content_sha256({
         "weights": dict(weights),
-        "config": dataclasses.asdict(config) if dataclasses.is_dataclass(config) else None,
+        "config": config if isinstance(config, dict) else None,
         "sparsity": None if sparsity is None else float(sparsity),
     })
 

@@ -441,3 +441,26 @@ def test_random_sparsity_rounds_do_not_depend_on_the_global_rng(tmp_path):
     a = load_checkpoint(tmp_path / "a" / "dagger" / "last.pt")["model"]
     b = load_checkpoint(tmp_path / "b" / "dagger" / "last.pt")["model"]
     assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_a_run_grows_an_anchor_and_trains_it_on_changed_worlds_and_mismatched_memories(tmp_path):
+    """DAgger from a checkpoint without an anchor, ``anchor_radius`` set: rounds of a route style (the
+    pointer and anchor labels) repeated under a condition with mismatched memories; the kept weights anchor."""
+    from spf_rl.train.run import OptimConfig
+
+    torch.manual_seed(0)
+    config = SPFConfig(demo_length=12, feature_dim=8, hidden_size=8, image_size=(32, 32), pointer_update="rpf", sparsity_range=(0.2, 1.0))
+    start = build_policy("spf_random", config)
+    save_checkpoint(tmp_path / "start.pt", "spf_random", config, {"model": start.state_dict()})
+    episodes = EpisodeSpec(num_houses=1, demo_length=12, max_steps=None, image_size=32, route_style="driven", route_lengths=(10, 12),
+                           conditions="light@0.5=1,none=1", memory_mismatch=0.5)
+    run = tiny_config(tmp_path, tmp_path / "start.pt", rounds=1, anchor_radius=3, env=CollectionEnvConfig(episodes=episodes),
+                      optim=OptimConfig(lr=3e-4, cosine_schedule=False, pointer_coef=0.1))
+    results = train_dagger(run)
+    kept = load_checkpoint(tmp_path / "dagger" / "best.pt")
+    last = load_checkpoint(tmp_path / "dagger" / "last.pt")
+    assert kept["model_config"].anchor_radius == 3 and last["model_config"].anchor_radius == 3
+    assert any(key.startswith("cell.anchor_gate") for key in last["model"])
+    assert results["history"][-1]["train_pointer_loss"] > 0
+    shipped = {key: value for key, value in last["model"].items() if "anchor" not in key}
+    assert any(not torch.equal(value, start.state_dict()[key]) for key, value in shipped.items())  # trained on

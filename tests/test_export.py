@@ -32,6 +32,7 @@ CASES = {
     "rpf": ("rpf", {}),
     "rpf_original": ("rpf_original", {}),
     "action_only": ("action_only", {}),
+    "spf_random-anchor": ("spf_random", {"sparsity_range": (0.2, 1.0), "pointer_update": "rpf", "anchor_radius": 2}),
 }
 
 

@@ -77,6 +77,7 @@ CASES = [
     case("make_dataset-feature_dim", "make_dataset.py", "--quick model.feature_dim=0 data_dir={out}/data", "model.feature_dim must be a positive int"),
     case("table1-sparsity", "table1.py", f"{TABLE1_OUT} sparsity=1.7", "model.sparsity", "(0, 1]"),
     case("dagger-rounds", "dagger.py", "--quick rounds=-1 output_dir={out}/run", "rounds must be", "-1"),
+    case("dagger-anchor_radius", "dagger.py", "--quick anchor_radius=0 output_dir={out}/run", "anchor_radius must be a positive int", "0"),
     case("ppo_finetune-frames_per_batch", "ppo_finetune.py", "--quick frames_per_batch=-5 output_dir={out}/run", "frames_per_batch must be a positive int"),
     case("make_demo_store-num_demos", "make_demo_store.py", "store.num_demos=-3 root={out}/store", "num_demos", "-3"),
     # a missing checkpoint path

@@ -1,6 +1,7 @@
 """TensorDict modules of the SPF path-following policy: encoder, sparse memory, memory attention, cell, policy."""
 from __future__ import annotations
 
+from spf_rl.modules.anchor import PointerAnchor
 from spf_rl.modules.attention import (
     MemoryAttention,
     PointerAttention,
@@ -41,6 +42,7 @@ __all__ = [
     "MemoryAttention",
     "MemoryEncoder",
     "OpenLoopPolicy",
+    "PointerAnchor",
     "PointerAttention",
     "RPFAttention",
     "SPFCell",

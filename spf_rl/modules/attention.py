@@ -29,8 +29,17 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import nn
 
+from spf_rl.modules.anchor import PointerAnchor
 from spf_rl.modules.memory import padded_memory_indices, validate_sparsity
-from spf_rl.modules.td_utils import DEMO_STEPS_KEY, demo_lengths, flat_or_zeros, init_flags, with_batch_dim
+from spf_rl.modules.td_utils import (
+    ANCHOR_CONFIDENCE_KEY,
+    ANCHOR_KEY,
+    DEMO_STEPS_KEY,
+    demo_lengths,
+    flat_or_zeros,
+    init_flags,
+    with_batch_dim,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -320,6 +329,9 @@ class MemoryAttention(TensorDictModuleBase):
             ``n_i`` (int64 ``[1]``); ``None``: never read. Defaults ``"demo_steps"``.
         mu_key, action_window_key, eta_used_key (NestedKey): outputs. Defaults ``"mu"``,
             ``"action_window"``, ``"eta_used"``.
+        anchor (PointerAnchor, optional): also locate the current frame among the slots near
+            the pointer (:mod:`spf_rl.modules.anchor`), reading ``pixel_features_key`` and
+            writing ``anchor_key`` and ``anchor_confidence_key``. Defaults to ``None``.
 
     Examples:
         >>> import torch
@@ -349,9 +361,17 @@ class MemoryAttention(TensorDictModuleBase):
         action_window_key: NestedKey = "action_window",
         eta_used_key: NestedKey = "eta_used",
         demo_steps_key: NestedKey | None = DEMO_STEPS_KEY,
+        anchor: PointerAnchor | None = None,
+        pixel_features_key: NestedKey = "pixel_features",
+        anchor_key: NestedKey = ANCHOR_KEY,
+        anchor_confidence_key: NestedKey = ANCHOR_CONFIDENCE_KEY,
     ) -> None:
         super().__init__()
+        if anchor is not None and indices is None:
+            raise ValueError("an anchor needs a visual memory to match the frame against; this attention is action-only.")
         self.attention = attention
+        self.anchor = anchor
+        self.pixel_features_key, self.anchor_key, self.anchor_confidence_key = pixel_features_key, anchor_key, anchor_confidence_key
         self.sparsity = None if sparsity is None else validate_sparsity(sparsity)
         self.register_buffer("indices", None if indices is None else torch.as_tensor(indices, dtype=torch.long), persistent=False)
         self.eta_key, self.is_init_key, self.demo_actions_key = eta_key, is_init_key, demo_actions_key
@@ -360,8 +380,8 @@ class MemoryAttention(TensorDictModuleBase):
         self.mu_key, self.action_window_key, self.eta_used_key = mu_key, action_window_key, eta_used_key
         self.demo_steps_key = demo_steps_key
         optional = [key for key in (self.memory_key, memory_mask_key, demo_steps_key) if key is not None]
-        self.in_keys = [eta_key, is_init_key, demo_actions_key, *optional]
-        self.out_keys = [mu_key, action_window_key, eta_used_key]
+        self.in_keys = [eta_key, is_init_key, demo_actions_key, *optional] + ([pixel_features_key] if anchor is not None else [])
+        self.out_keys = [mu_key, action_window_key, eta_used_key] + ([anchor_key, anchor_confidence_key] if anchor is not None else [])
 
     def attend(
         self,
@@ -373,17 +393,39 @@ class MemoryAttention(TensorDictModuleBase):
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """``mu`` ``[*, out_dim]`` and the action window ``[*, 2k+1, C]`` on tensors; ``lengths``
         (int ``[*, 1]``, optional): each row's demonstration length ``n_i``."""
-        if lengths is None:
-            return self.attention(memory, self.indices, demo_actions, eta, return_window=True, mask=mask)
-        indices = self.indices
-        if indices is not None:
-            lengths = lengths.to(indices.device)
-            if self.sparsity is None:
-                used = indices < lengths  # [*, l]
-            else:
-                indices, used = padded_memory_indices(lengths, demo_actions.shape[-1], self.sparsity)
-            mask = used if mask is None else mask.to(dtype=torch.bool) & used
+        indices, mask = self.slots(demo_actions.shape[-1], mask, lengths)
         return self.attention(memory, indices, demo_actions, eta, return_window=True, mask=mask, lengths=lengths)
+
+    def slots(
+        self, demo_length: int, mask: torch.Tensor | None, lengths: torch.Tensor | None
+    ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        """Each memory slot's route step (``[l]``, or ``[*, l]`` per row) and which slots hold the
+        route's frames (``mask`` and the slots within each row's ``lengths``; ``None``: all)."""
+        indices = self.indices
+        if lengths is None or indices is None:
+            return indices, mask
+        lengths = lengths.to(indices.device)
+        if self.sparsity is None:
+            used = indices < lengths  # [*, l]
+        else:
+            indices, used = padded_memory_indices(lengths, demo_length, self.sparsity)
+        return indices, used if mask is None else mask.to(dtype=torch.bool) & used
+
+    def locate(
+        self,
+        memory: torch.Tensor,
+        phi: torch.Tensor,
+        eta: torch.Tensor,
+        demo_length: int,
+        mask: torch.Tensor | None = None,
+        lengths: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The anchor and its confidence ``[*, 1]`` (:meth:`PointerAnchor.locate`) of the frame's
+        features ``phi`` among the slots of ``memory`` near ``eta``."""
+        if self.anchor is None:
+            raise RuntimeError("this attention has no anchor (SPFConfig.anchor_radius is None).")
+        indices, used = self.slots(demo_length, mask, lengths)
+        return self.anchor.locate(phi, memory, indices, used, eta)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """One step: read ``eta`` (0 where ``is_init``), write ``mu``, ``action_window``, ``eta_used``."""
@@ -403,4 +445,13 @@ class MemoryAttention(TensorDictModuleBase):
         td.set(self.mu_key, mu)
         td.set(self.action_window_key, window)
         td.set(self.eta_used_key, eta)
+        if self.anchor is not None:
+            phi = td.get(self.pixel_features_key)
+            flat = phi.reshape(-1, phi.shape[-1]).shape[0]
+            place, confidence = self.locate(
+                memory.reshape(flat, *memory.shape[-2:]), phi.reshape(flat, -1), eta.reshape(flat, 1), demo_actions.shape[-1],
+                None if mask is None else mask.reshape(flat, -1), None if lengths is None else lengths.reshape(flat, 1),
+            )
+            td.set(self.anchor_key, place.reshape(*batch, 1))
+            td.set(self.anchor_confidence_key, confidence.reshape(*batch, 1))
         return td

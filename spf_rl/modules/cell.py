@@ -24,8 +24,18 @@ from torch import nn
 from torchrl.data import Unbounded
 from torchrl.envs import TensorDictPrimer
 
+from spf_rl.modules.anchor import anchor_gate, reanchor
 from spf_rl.modules.config import POINTER_UPDATES
-from spf_rl.modules.td_utils import DEMO_STEPS_KEY, demo_lengths, flat_or_zeros, init_flags, next_key, with_batch_dim
+from spf_rl.modules.td_utils import (
+    ANCHOR_CONFIDENCE_KEY,
+    ANCHOR_KEY,
+    DEMO_STEPS_KEY,
+    demo_lengths,
+    flat_or_zeros,
+    init_flags,
+    next_key,
+    with_batch_dim,
+)
 
 __all__ = ["SPFCell"]
 
@@ -48,6 +58,9 @@ class SPFCell(TensorDictModuleBase):
         initial_pointer_step (float): ``tanh(b)`` of the untrained network, in ``(-1, 1)``.
         head_hidden (int, optional): hidden units of 2-layer action and pointer heads (the
             RPF lab code's); ``None`` (default): linear heads.
+        anchor_radius (float, optional): re-anchor the next pointer on the anchor the attention
+            found (:func:`~spf_rl.modules.anchor.reanchor`, a learned gate), reading ``anchor``
+            and ``anchor_confidence``; ``None`` (default): the rule alone.
 
     Keyword Args:
         mu_key, pixel_features_key, action_window_key, eta_used_key, is_init_key (NestedKey): inputs.
@@ -82,6 +95,7 @@ class SPFCell(TensorDictModuleBase):
         pointer_update: str = "paper",
         initial_pointer_step: float = 0.0,
         head_hidden: int | None = None,
+        anchor_radius: float | None = None,
         *,
         mu_key: NestedKey = "mu",
         pixel_features_key: NestedKey = "pixel_features",
@@ -93,6 +107,8 @@ class SPFCell(TensorDictModuleBase):
         logits_key: NestedKey = "logits",
         features_key: NestedKey = "features",
         demo_steps_key: NestedKey | None = DEMO_STEPS_KEY,
+        anchor_key: NestedKey = ANCHOR_KEY,
+        anchor_confidence_key: NestedKey = ANCHOR_CONFIDENCE_KEY,
     ) -> None:
         super().__init__()
         if pointer_update not in POINTER_UPDATES:
@@ -111,9 +127,12 @@ class SPFCell(TensorDictModuleBase):
         self.hidden_key, self.eta_key = hidden_key, eta_key
         self.logits_key, self.features_key = logits_key, features_key
         self.demo_steps_key = demo_steps_key
+        self.anchor_radius = None if anchor_radius is None else float(anchor_radius)
+        self.anchor_gate = None if anchor_radius is None else anchor_gate(hidden_size)
+        self.anchor_key, self.anchor_confidence_key = anchor_key, anchor_confidence_key
         self.in_keys = [mu_key, pixel_features_key, action_window_key, eta_used_key, is_init_key, hidden_key] + (
             [demo_steps_key] if demo_steps_key is not None else []
-        )
+        ) + ([anchor_key, anchor_confidence_key] if anchor_radius is not None else [])
         self.out_keys = [logits_key, features_key, next_key(hidden_key), next_key(eta_key)]
 
     def make_tensordict_primer(self) -> TensorDictPrimer:
@@ -138,11 +157,22 @@ class SPFCell(TensorDictModuleBase):
         eta: torch.Tensor,
         h: torch.Tensor,
         lengths: torch.Tensor | None = None,
+        place: torch.Tensor | None = None,
+        confidence: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """One step on flat tensors -> (logits, next hidden state, next pointer); ``lengths``
-        (int ``[*, 1]``, optional): each row's demonstration length."""
+        (int ``[*, 1]``, optional): each row's demonstration length; ``place`` and ``confidence``
+        (``[*, 1]``): the anchor, with ``anchor_radius``."""
         h_next = self.gru(torch.cat([mu, phi, window.flatten(-2)], -1), h)
-        return self.logits_head(h_next), h_next, self.update_pointer(eta, self.pointer_head(h_next), lengths)
+        eta_next = self.update_pointer(eta, self.pointer_head(h_next), lengths)
+        if self.anchor_gate is not None:
+            if place is None or confidence is None:
+                raise ValueError("this cell re-anchors its pointer: step() needs the anchor's place and confidence.")
+            eta_next = reanchor(eta_next, eta, place, confidence, h_next, self.anchor_gate, self.anchor_radius)
+            if self.pointer_update == "rpf":  # the rule's cap holds after the anchor too
+                last = float(self.demo_length - 1) if lengths is None else (lengths.to(eta.device) - 1).to(eta.dtype)
+                eta_next = torch.minimum(eta_next, torch.as_tensor(last, dtype=eta.dtype, device=eta.device))
+        return self.logits_head(h_next), h_next, eta_next
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """One step: hidden state reset where ``is_init``, then eqs. 3-4."""
@@ -163,6 +193,11 @@ class SPFCell(TensorDictModuleBase):
             eta.reshape(flat, 1),
             h.reshape(flat, self.hidden_size),
             None if lengths is None else lengths.reshape(flat, 1),
+            *(
+                (td.get(self.anchor_key).reshape(flat, 1), td.get(self.anchor_confidence_key).reshape(flat, 1))
+                if self.anchor_gate is not None
+                else ()
+            ),
         )
         td.set(self.logits_key, logits.reshape(*batch, self.num_actions))
         td.set(self.features_key, h_next.reshape(*batch, self.hidden_size))

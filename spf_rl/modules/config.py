@@ -1,7 +1,7 @@
 """Configuration of the SPF policy and its baselines: :class:`SPFConfig` and the model's named constants."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Literal
 
 import torch
@@ -27,6 +27,8 @@ POINTER_UPDATES = ("paper", "rpf")
 MEMORY_MODES = ("sparse", "full", "none")
 #: Memory networks: SPF's (psi over attended features + action window) or the RPF lab code's.
 ARCHITECTURES = ("spf", "rpf_original")
+#: Fields of :class:`SPFConfig` added after models were shipped: kept in its dict only when set.
+OPTIONAL_FIELDS = ("anchor_radius",)
 #: Sparsity used by the full-memory (RPF) baseline.
 FULL_MEMORY_SPARSITY = 1.0
 
@@ -79,6 +81,10 @@ class SPFConfig:
         architecture (str): ``"spf"`` (default) or ``"rpf_original"``, the RPF lab
             code's memory network (:mod:`spf_rl.modules.rpf`; needs full memory and
             the ``"rpf"`` pointer rule). ``mu_dim`` is then the memory-slot size.
+        anchor_radius (int, optional): re-anchor the pointer on the memory slot the current
+            frame matches within this many route steps of it (:mod:`spf_rl.modules.anchor`:
+            the pointer may then go back); ``None`` (default): no anchor, as the paper. Needs
+            visual memory and SPF's architecture. Not in the SPF paper.
 
     Examples:
         >>> cfg = SPFConfig(sparsity=0.4)
@@ -104,6 +110,7 @@ class SPFConfig:
     initial_pointer_step: float = DEFAULT_INITIAL_POINTER_STEP
     sparsity_range: tuple[float, float] | None = None
     architecture: Literal["spf", "rpf_original"] = "spf"
+    anchor_radius: int | None = None
 
     def __post_init__(self) -> None:
         if self.architecture not in ARCHITECTURES:
@@ -153,6 +160,15 @@ class SPFConfig:
             raise ValueError(
                 f"soft_action_memory must be a bool or None (auto), got {self.soft_action_memory!r}."
             )
+        if self.anchor_radius is not None and (
+            isinstance(self.anchor_radius, bool) or not isinstance(self.anchor_radius, int) or self.anchor_radius < 1
+        ):
+            raise ValueError(f"anchor_radius must be a positive int (route steps) or None, got {self.anchor_radius!r}.")
+        if self.anchor_radius is not None and (self.memory_mode == "none" or self.architecture != "spf"):
+            raise ValueError(
+                f"anchor_radius needs visual memory and architecture='spf' (got memory_mode={self.memory_mode!r}, "
+                f"architecture={self.architecture!r}); set anchor_radius=None."
+            )
         self.image_size = tuple(self.image_size)  # type: ignore[assignment]
         if len(self.image_size) != 2 or any(
             not isinstance(s, int) or s < 1 for s in self.image_size
@@ -160,6 +176,18 @@ class SPFConfig:
             raise ValueError(
                 f"image_size must be (height, width) in pixels, got {self.image_size!r}."
             )
+
+    def to_dict(self) -> dict:
+        """The fields as a dict, as checkpoints, exports and the result cache keep them: the fields of
+        :data:`OPTIONAL_FIELDS` only when set, so a model without them keeps the identity it had
+        before they existed.
+
+        Examples:
+            >>> "anchor_radius" in SPFConfig().to_dict(), SPFConfig(anchor_radius=8).to_dict()["anchor_radius"]
+            (False, 8)
+        """
+        out = asdict(self)
+        return {key: value for key, value in out.items() if not (key in OPTIONAL_FIELDS and value is None)}
 
     @property
     def use_soft_action_memory(self) -> bool:

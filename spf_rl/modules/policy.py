@@ -32,6 +32,7 @@ from torch import nn
 from torchrl.envs import TensorDictPrimer
 from torchrl.modules.tensordict_module.rnn import recurrent_mode
 
+from spf_rl.modules.anchor import PointerAnchor
 from spf_rl.modules.attention import MemoryAttention, PointerAttention
 from spf_rl.modules.cell import SPFCell
 from spf_rl.modules.config import SPFConfig
@@ -238,6 +239,8 @@ class SPFPolicy(TensorDictModuleBase):
             demo_actions_key=demo_actions_key,
             eta_used_key=eta_used_key,
             demo_steps_key=demo_steps_key,
+            anchor=None if config.anchor_radius is None else PointerAnchor(self.feature_dim, config.anchor_radius),
+            pixel_features_key=pixel_features_key,
         )
         self.cell = SPFCell(
             (mu_dim, self.feature_dim, pointer_attention.window_dim),
@@ -247,6 +250,7 @@ class SPFPolicy(TensorDictModuleBase):
             config.pointer_update,
             config.initial_pointer_step,
             RPF_HEAD_HIDDEN if lab_rpf else None,
+            config.anchor_radius,
             pixel_features_key=pixel_features_key,
             eta_used_key=eta_used_key,
             is_init_key=is_init_key,
@@ -272,10 +276,16 @@ class SPFPolicy(TensorDictModuleBase):
             [logits_key, features_key, eta_used_key]
             + ([memory_mask_key] if self.random_sparsity else [])
             + [pixel_features_key, self.attention.mu_key, self.attention.action_window_key]
+            + ([self.attention.anchor_key, self.attention.anchor_confidence_key] if self.anchors else [])
             + [next_key(key) for key in state_keys]
         )
 
     # ------------------------------------------------------------------ helpers
+    @property
+    def anchors(self) -> bool:
+        """Whether the pointer is re-anchored on the frame (``config.anchor_radius``, :mod:`spf_rl.modules.anchor`)."""
+        return self.attention.anchor is not None
+
     @property
     def memory_length(self) -> int:
         """Number of slots in ``memory_features``: ``l`` (``n`` with ``sparsity_range``; 0 without memory)."""
@@ -446,6 +456,8 @@ class SPFPolicy(TensorDictModuleBase):
             self.eta_used_key: stacked["eta_used"],
             self.attention.mu_key: stacked["mu"],
             self.attention.action_window_key: stacked["window"],
+            **({self.attention.anchor_key: stacked["anchor"], self.attention.anchor_confidence_key: stacked["anchor_confidence"]}
+               if self.anchors else {}),
             next_key(self.hidden_key): stacked["h"],
             next_key(self.eta_key): stacked["eta_next"],
         }
@@ -471,7 +483,8 @@ class SPFPolicy(TensorDictModuleBase):
         ``[rows, T]`` segment starts, ``h0`` / ``eta0`` ``[rows, T, *]`` the states a segment
         starts from; returns each output stacked to ``[rows, T, *]``."""
         h, eta = h0[:, 0], eta0[:, 0]
-        outputs: dict[str, list[torch.Tensor]] = {name: [] for name in ("logits", "h", "eta_used", "eta_next", "mu", "window")}
+        names = ("logits", "h", "eta_used", "eta_next", "mu", "window") + (("anchor", "anchor_confidence") if self.anchors else ())
+        outputs: dict[str, list[torch.Tensor]] = {name: [] for name in names}
         for t in range(len(phi)):
             segment_start = start[:, t].unsqueeze(-1)
             h = torch.where(segment_start, h0[:, t], h)
@@ -482,8 +495,11 @@ class SPFPolicy(TensorDictModuleBase):
                 memory = feats.index_select(0, segment[:, t])
                 mask = masks.index_select(0, segment[:, t]) if masks is not None else None
             mu, window = self.attention.attend(memory, demo_actions[t], eta, mask, step_lengths[t])
-            logits, h, eta_next = self.cell.step(mu, phi[t], window, eta, h, step_lengths[t])
-            for name, value in zip(outputs, (logits, h, eta, eta_next, mu, window)):
+            anchor = (
+                self.attention.locate(memory, phi[t], eta, demo_actions[t].shape[-1], mask, step_lengths[t]) if self.anchors else ()
+            )
+            logits, h, eta_next = self.cell.step(mu, phi[t], window, eta, h, step_lengths[t], *anchor)
+            for name, value in zip(outputs, (logits, h, eta, eta_next, mu, window, *anchor)):
                 outputs[name].append(value)
             eta = eta_next
         return {name: torch.stack(values, 1) for name, values in outputs.items()}

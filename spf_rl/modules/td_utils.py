@@ -12,6 +12,10 @@ from tensordict.utils import NestedKey
 #: ``[*batch, 1]``, ``1 <= n_i <= demo_length``); ``demo_frames`` and ``demo_actions`` are
 #: padded after it. Absent, every demonstration is ``demo_length`` steps long.
 DEMO_STEPS_KEY = "demo_steps"
+#: Keys of the pointer's anchor (:mod:`spf_rl.modules.anchor`): the route step the current frame
+#: matches near the pointer, and how well it matches (an expected cosine), ``[*batch, 1]`` each.
+ANCHOR_KEY = "anchor"
+ANCHOR_CONFIDENCE_KEY = "anchor_confidence"
 
 
 def next_key(key: NestedKey) -> tuple[str, ...]:

@@ -38,7 +38,8 @@ from spf_rl.device import DEFAULT_DEVICE, autocast, check_device, module_device
 from spf_rl.evaluation import TEST_SEED, VAL_SEED, EvalConfig, episode_store_root, evaluate_policy
 from spf_rl.modules.policy import SPFPolicy
 from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
-from spf_rl.modules.views import episodes_to_sequence, model_memory_bytes
+from spf_rl.modules.td_utils import ANCHOR_KEY
+from spf_rl.modules.views import MEMORY_MISMATCHED_KEY, episodes_to_sequence, model_memory_bytes
 from spf_rl.records_cache import TEST_EPISODES_FILE, records_key, write_records
 from spf_rl.train.distributed import ShardedSampler, barrier, init_distributed
 from spf_rl.train.pointer_guard import RESTARTS_KEY, PointerGuard, restart_run
@@ -182,14 +183,14 @@ def bc_loss(
     if parts is not None:
         parts["cross_entropy"] = loss.item()
     if pointer_coef > 0:
-        pointer = pointer_loss(sequence)
+        pointer = pointer_loss(sequence, getattr(getattr(policy, "config", None), "anchor_radius", None))
         loss = loss + pointer_coef * pointer
         if parts is not None:
             parts["pointer"] = pointer.item()
     return loss, accuracy
 
 
-def pointer_loss(sequence: TensorDict) -> torch.Tensor:
+def pointer_loss(sequence: TensorDict, anchor_radius: float | None = None) -> torch.Tensor:
     """Huber loss (threshold 1 step) between the pointer each valid step used (``eta_used``) and
     the agent's place on the route then (``route_step``, at most each demonstration's last step).
 
@@ -201,6 +202,8 @@ def pointer_loss(sequence: TensorDict) -> torch.Tensor:
     Args:
         sequence: the policy's output on a ``[B, T]`` sequence with ``mask``, ``eta_used``,
             ``route_step`` and, for demonstrations of several lengths, ``demo_steps``.
+        anchor_radius: the policy's ``anchor_radius``: with it, the :func:`anchor_loss` of the
+            policy's ``anchor`` is added (``None``: the pointer alone).
 
     Examples:
         >>> sequence = TensorDict({"eta_used": torch.tensor([[[0.0], [3.0], [9.0]]]),
@@ -216,7 +219,34 @@ def pointer_loss(sequence: TensorDict) -> torch.Tensor:
     target = sequence.get(ROUTE_STEP_KEY)[mask].reshape(-1)
     if "demo_steps" in sequence.keys():  # the route's end pose counts as its last step
         target = torch.minimum(target, sequence.get("demo_steps")[mask].reshape(-1) - 1)
-    return F.smooth_l1_loss(eta, target.to(eta.dtype))
+    target = target.to(eta.dtype)
+    loss = F.smooth_l1_loss(eta, target)
+    if anchor_radius is not None and ANCHOR_KEY in sequence.keys():
+        loss = loss + anchor_loss(sequence, eta, target, anchor_radius)
+    return loss
+
+
+def anchor_loss(sequence: TensorDict, eta: torch.Tensor, target: torch.Tensor, radius: float) -> torch.Tensor:
+    """For a policy that re-anchors its pointer (:mod:`spf_rl.modules.anchor`): the Huber loss between
+    its anchor and the agent's place (``target``, as :func:`pointer_loss` reads it) on the valid steps
+    where that place lies within ``radius`` of the pointer (``eta``: the anchor's search band) and the memory
+    holds the route's own frames (not :data:`~spf_rl.modules.views.MEMORY_MISMATCHED_KEY`); 0 where no
+    step qualifies. It teaches the frame-to-slot match directly, before the gate opens.
+
+    Examples:
+        >>> sequence = TensorDict({"anchor": torch.tensor([[[2.0], [9.0]]]), "mask": torch.tensor([[True, True]]),
+        ...     "memory_mismatched": torch.tensor([[False, False]])}, [1, 2])
+        >>> anchor_loss(sequence, torch.tensor([2.0, 30.0]), torch.tensor([1.0, 4.0]), 8.0)  # step 2: outside the band
+        tensor(0.5000)
+    """
+    mask = sequence.get("mask")
+    place = sequence.get(ANCHOR_KEY)[mask].float().reshape(-1)
+    counted = (target - eta).abs() <= radius
+    if MEMORY_MISMATCHED_KEY in sequence.keys():
+        counted = counted & ~sequence.get(MEMORY_MISMATCHED_KEY)[mask].reshape(-1)
+    if not bool(counted.any()):
+        return place.sum() * 0.0
+    return F.smooth_l1_loss(place[counted], target[counted])
 
 
 def train_bc(config: BCConfig) -> dict:

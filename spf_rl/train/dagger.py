@@ -62,6 +62,8 @@ from spf_rl.data import DatasetConfig, EpisodeDataset, demos_root, episode_keys,
 from spf_rl.device import DEFAULT_DEVICE, check_device, exact_float32, module_device, torch_threads_kept
 from spf_rl.evaluation import EvalConfig, FramesFromStore, evaluate_policy, summarize_episodes
 from spf_rl.hub import DEFAULT_START_CHECKPOINT, checked_checkpoint, shipped_file_sha256
+from spf_rl.modules.config import SPFConfig
+from spf_rl.modules.policy import SPFPolicy
 from spf_rl.modules.registry import build_policy
 from spf_rl.records_cache import TEST_EPISODES_FILE, read_records, records_key, write_records
 from spf_rl.train.bc import bc_loss, check_pointer_labels, default_test_config, default_val_config
@@ -163,6 +165,9 @@ class DAggerConfig:
             round_seed_offset)``. 0 by default; a run that continues an earlier run's kept
             weights sets it to that run's ``rounds``, so that its rounds draw routes the
             earlier rounds did not.
+        anchor_radius: grow an anchor of this radius (:mod:`spf_rl.modules.anchor`) onto a starting
+            checkpoint that has none: its layers drawn from ``seed``, its gate nearly shut, every other
+            weight loaded as it was. ``None`` (default): the checkpoint's own network.
         episodes_per_round: learner episodes collected per round.
         beta0: expert probability in round 1.
         beta_decay: ``beta`` is multiplied by this each round.
@@ -196,6 +201,7 @@ class DAggerConfig:
     device: str = DEFAULT_DEVICE
     rounds: int = 10
     round_seed_offset: int = 0
+    anchor_radius: int | None = None
     episodes_per_round: int = 256
     beta0: float = 0.0
     beta_decay: float = 0.5
@@ -221,7 +227,7 @@ class DAggerConfig:
             value, least = getattr(self, name), 0 if name in ("rounds", "round_seed_offset") else 1
             if isinstance(value, bool) or not isinstance(value, int) or value < least:
                 raise ValueError(f"{name} must be a {'non-negative' if least == 0 else 'positive'} int, got {value!r}.")
-        for name in ("steps_per_round", "window_rounds"):
+        for name in ("steps_per_round", "window_rounds", "anchor_radius"):
             value = getattr(self, name)
             if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
                 raise ValueError(f"{name} must be a positive int or None, got {value!r}.")
@@ -267,6 +273,41 @@ def episode_seed_of_round(config: DAggerConfig, round_index: int) -> int:
     return int(np.random.SeedSequence([config.seed, round_index + config.round_seed_offset]).generate_state(1)[0] % (2**31))
 
 
+def start_policy(
+    model_type: str, policy_config: SPFConfig, weights: dict, anchor_radius: int | None, seed: int
+) -> tuple[SPFConfig, SPFPolicy]:
+    """The policy DAgger starts from: ``weights`` in the checkpoint's network, or, with ``anchor_radius``
+    and a network without an anchor, that network grown an anchor (its layers drawn from ``seed``).
+
+    Raises:
+        ValueError: the checkpoint has an anchor of another radius, or its weights do not fit.
+
+    Examples:
+        >>> from spf_rl.modules import SPFConfig
+        >>> from spf_rl.modules.registry import build_policy
+        >>> config = SPFConfig(demo_length=6, feature_dim=8, hidden_size=8, image_size=(16, 16), pointer_update="rpf")
+        >>> grown_config, grown = start_policy("spf", config, build_policy("spf", config).state_dict(), 4, seed=0)
+        >>> grown_config.anchor_radius, grown.anchors
+        (4, True)
+    """
+    if anchor_radius is None or policy_config.anchor_radius == anchor_radius:
+        policy = build_policy(model_type, policy_config)
+        policy.load_state_dict(weights)
+        return policy_config, policy
+    if policy_config.anchor_radius is not None:
+        raise ValueError(f"anchor_radius={anchor_radius} but the checkpoint's policy already anchors with radius {policy_config.anchor_radius}.")
+    grown_config = replace(policy_config, anchor_radius=anchor_radius)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        policy = build_policy(model_type, grown_config)
+    missing, unexpected = policy.load_state_dict(weights, strict=False)
+    foreign = [key for key in missing if "anchor" not in key]
+    if unexpected or foreign:
+        raise ValueError(f"the checkpoint's weights do not fit its network grown an anchor (missing {foreign}, unexpected {unexpected}).")
+    logger.info("grew an anchor of radius %d onto the starting policy (%d new tensors)", anchor_radius, len(missing))
+    return grown_config, policy
+
+
 def train_dagger(config: DAggerConfig) -> dict:
     """Run (or resume) DAgger and return its results (also written to ``results.json``).
 
@@ -298,8 +339,8 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
             f"env.demo_length / env.image_size ({env.episodes.demo_length}, {env.episodes.image_size}) must match the checkpoint's "
             f"({policy_config.demo_length}, {policy_config.image_size})."
         )
-    policy = build_policy(model_type, policy_config).to(device)
-    policy.load_state_dict(payload["model"])
+    policy_config, policy = start_policy(model_type, policy_config, payload["model"], config.anchor_radius, config.seed)
+    policy = policy.to(device)
     logger.info("DAgger on %s%s", device, " with bf16 autocast for retraining" if config.optim.amp else "")
     run = TrainingRun(output, model_type, policy_config, policy, config.optim, loss_fn=bc_loss, ranks=ranks, unit="round")
     val_config, test_config = config.val, config.test
