@@ -269,3 +269,12 @@ def test_the_robust_route_preset_starts_from_routes_spf_and_repeats_in_changed_w
         assert "light@1.0" in episodes.conditions and "none" in episodes.conditions and episodes.memory_mismatch == 0.2
         assert episodes.route_style == more.env.episodes.route_style and episodes.demo_length == 100
     assert robust.bc_data.episodes.conditions is None  # BC data stays the teaching world's
+
+
+def test_the_anchor_preset_differs_from_the_robust_one_in_the_anchor_alone():
+    from spf_rl.train.dagger import DAggerConfig
+
+    robust = load_config(DAggerConfig, "dagger", ["seed=1"], preset="dagger_routes_robust")
+    anchor = load_config(DAggerConfig, "dagger", ["seed=1"], preset="dagger_routes_robust_anchor")
+    assert anchor.anchor_radius == 8 and robust.anchor_radius is None
+    assert dataclasses.replace(anchor, anchor_radius=None, output_dir=robust.output_dir) == robust
