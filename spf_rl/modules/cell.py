@@ -164,6 +164,7 @@ class SPFCell(TensorDictModuleBase):
         (int ``[*, 1]``, optional): each row's demonstration length; ``place`` and ``confidence``
         (``[*, 1]``): the anchor, with ``anchor_radius``."""
         h_next = self.gru(torch.cat([mu, phi, window.flatten(-2)], -1), h)
+        logits = self.logits_head(h_next)  # before the pointer head: the order of their gradients' sum into h_next
         eta_next = self.update_pointer(eta, self.pointer_head(h_next), lengths)
         if self.anchor_gate is not None:
             if place is None or confidence is None:
@@ -172,7 +173,7 @@ class SPFCell(TensorDictModuleBase):
             if self.pointer_update == "rpf":  # the rule's cap holds after the anchor too
                 last = float(self.demo_length - 1) if lengths is None else (lengths.to(eta.device) - 1).to(eta.dtype)
                 eta_next = torch.minimum(eta_next, torch.as_tensor(last, dtype=eta.dtype, device=eta.device))
-        return self.logits_head(h_next), h_next, eta_next
+        return logits, h_next, eta_next
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """One step: hidden state reset where ``is_init``, then eqs. 3-4."""
