@@ -37,6 +37,10 @@ def build_parser() -> ArgumentParser:
     parser.add_argument("--noise", default=DEFAULT_NOISE, help=f"actuation noise preset (default {DEFAULT_NOISE})")
     parser.add_argument("--sparsity", type=float, help="sparsity of a random-sparsity model (default: its config's)")
     parser.add_argument("--seed", type=int, default=TEST_SEED, help="seed of the routes and noise (default %(default)s, the test seed)")
+    parser.add_argument("--conditions", default=None,
+                        help="repeat the routes in a changed world, e.g. light@0.5 or 'light@1=1,sensor@1=1' (envs.conditions; default: the teaching world)")
+    parser.add_argument("--memory-mismatch", type=float, default=None,
+                        help="the fraction of routes shown another route's frames with their own actions (default: none)")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"the JSON (default {DEFAULT_OUT})")
     return parser
 
@@ -46,6 +50,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser = build_parser()
     args = parser.parse_args(argv)
     from envs.atomic_io import atomic_write_json
+    from envs.episode_spec import EpisodeSpec
     from envs.route_styles import route_mixture_for
     from envs.scenes import SPLIT_SEED_OFFSETS
     from spf_rl.eval.pointer_trace import check_rpf_pointer, plot_traces, summarize_traces, trace_routes
@@ -63,6 +68,10 @@ def main(argv: list[str] | None = None) -> dict:
         if args.sparsity is not None and not 0.0 < args.sparsity <= 1.0:
             raise ValueError(f"--sparsity must be in (0, 1] (the fraction of the demonstration's frames kept), got {args.sparsity}.")
         lengths = tuple(args.route_lengths)
+        try:  # one spelling of the repeat's world, checked as every episode description checks it
+            conditions = EpisodeSpec(conditions=args.conditions, memory_mismatch=args.memory_mismatch).conditions
+        except ValueError as err:
+            raise ValueError(f"--{str(err).replace('memory_mismatch', 'memory-mismatch')}") from None
         policy = checkpoint_argument(args.checkpoint, "argument --checkpoint").policy
         try:
             check_rpf_pointer(policy)
@@ -85,13 +94,16 @@ def main(argv: list[str] | None = None) -> dict:
         "recipe": "recipes/pointer_trace.py",
         "setup": {"checkpoint": str(args.checkpoint), "sparsity": float(sparsity), "styles": list(styles),
                   "route_lengths": list(lengths), "episodes_per_style": args.episodes, "split": args.split,
-                  "noise": args.noise, "seed": args.seed, "window_k": int(policy.config.k)},
+                  "noise": args.noise, "seed": args.seed, "window_k": int(policy.config.k),
+                  "conditions": conditions, "memory_mismatch": args.memory_mismatch,
+                  "anchor_radius": policy.config.anchor_radius},
         "summary": {},
         "episodes": {},
     }
     for style in styles:
         traces[style] = trace_routes(policy, style=style, route_lengths=lengths, episodes=args.episodes,
-                                     split=args.split, noise=args.noise, seed=args.seed)
+                                     split=args.split, noise=args.noise, seed=args.seed,
+                                     conditions=conditions, memory_mismatch=args.memory_mismatch)
         content["summary"][style] = summarize_traces(traces[style], window=int(policy.config.k))
         content["episodes"][style] = [
             {"success": bool(t.record["success"]), "ndtw": float(t.record["ndtw"]), "demo_steps": int(t.record["demo_steps"]),

@@ -41,6 +41,23 @@ def test_traces_of_a_policy_on_driven_routes():
     assert [t.record["episode_seed"] for t in again] == [t.record["episode_seed"] for t in traces]
 
 
+def test_an_anchored_policy_traces_its_anchor_in_a_changed_world():
+    import dataclasses
+
+    from spf_rl.modules.registry import build_policy
+
+    policy = tiny_policy()
+    grown = build_policy("spf", dataclasses.replace(policy.config, anchor_radius=4)).eval()
+    grown.load_state_dict(policy.state_dict(), strict=False)
+    traces = trace_routes(grown, style="driven", route_lengths=(10, 20), episodes=2, seed=0, conditions="light@1", memory_mismatch=1.0)
+    for trace in traces:
+        assert trace.anchor.shape == trace.anchor_confidence.shape == trace.pointer.shape
+        assert (np.abs(trace.anchor - trace.pointer) <= 4 + 1e-5).all() and (np.abs(trace.anchor_confidence) <= 1 + 1e-5).all()
+    summary = summarize_traces(traces, window=2)
+    assert any("mean_abs_anchor_error" in summary[outcome] for outcome in ("success", "failure") if summary[outcome]["episodes"])
+    assert trace_routes(policy, style="driven", route_lengths=(10, 20), episodes=1, seed=0)[0].anchor is None
+
+
 def test_a_policy_without_rpfs_pointer_rule_is_refused():
     with pytest.raises(ValueError, match="pointer_update == 'rpf'"):
         trace_routes(tiny_policy("paper"), style="driven", route_lengths=(10, 20), episodes=1)
@@ -61,6 +78,8 @@ def test_failures_that_stay_on_the_path_are_counted_apart():
         (["--checkpoint", "spf_rpf_pointer-s0.8", "--route-lengths", "10", "30", "--sparsity", "0.4"], "--sparsity is for random-sparsity models"),
         (["--checkpoint", "spf_rpf_pointer-s0.8", "--route-lengths", "10", "100"], "route_lengths"),
         (["--checkpoint", "spf_rpf_pointer-s0.8", "--route-lengths", "10", "30", "--episodes", "0"], "--episodes must be a positive int"),
+        (["--checkpoint", "spf_rpf_pointer-s0.8", "--route-lengths", "10", "30", "--conditions", "fog@1"], "--conditions: unknown condition 'fog'"),
+        (["--checkpoint", "spf_rpf_pointer-s0.8", "--route-lengths", "10", "30", "--memory-mismatch", "2"], "--memory-mismatch must be a number in [0, 1]"),
     ],
 )
 def test_the_recipe_refuses_bad_options_before_any_work(tmp_path, args, message):

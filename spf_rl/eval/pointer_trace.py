@@ -10,7 +10,11 @@ This module plays routes of one style with such a policy and records, at every s
   of :meth:`envs.route_expert.RouteExpert.route_step` (a progress index that only moves
   forward, so a route over the same place twice is counted in its order);
 * ``off_path_m``: the agent's distance to the demonstrated path (the polyline through
-  its positions), metres.
+  its positions), metres;
+* ``anchor`` (a policy with an anchor, :mod:`spf_rl.modules.anchor`): the route step the frame
+  matched near the pointer, and ``anchor_confidence``, how well.
+
+The routes may be repeated in a changed world (``conditions``, ``memory_mismatch``: :mod:`envs.conditions`).
 
 :func:`summarize_traces` reduces them to what decides the next change: whether failures
 leave the path while the pointer still points at the right place (the memory was there;
@@ -56,12 +60,16 @@ class Trace:
         pointer: ``(T,)`` the pointer the policy used at each step, demonstration steps.
         route_step: ``(T,)`` the demonstration step the agent was at before each step.
         off_path_m: ``(T,)`` the agent's distance to the demonstrated path before each step, metres.
+        anchor: ``(T,)`` the anchor's route step at each step (``None``: the policy has no anchor).
+        anchor_confidence: ``(T,)`` its confidence (``None``: no anchor).
     """
 
     record: dict
     pointer: np.ndarray
     route_step: np.ndarray
     off_path_m: np.ndarray
+    anchor: np.ndarray | None = None
+    anchor_confidence: np.ndarray | None = None
 
     @property
     def left_path_at(self) -> int | None:
@@ -105,6 +113,8 @@ def trace_routes(
     split: str = "test",
     noise: str = "paper",
     seed: int = 0,
+    conditions: str | None = None,
+    memory_mismatch: float | None = None,
 ) -> list[Trace]:
     """Play ``episodes`` routes of ``style`` (one agent each, stepped together) with the greedy policy.
 
@@ -117,6 +127,8 @@ def trace_routes(
         split: house split.
         noise: actuation-noise preset.
         seed: env seed: the same seed gives the same routes and noise.
+        conditions: the repeat's world (:mod:`envs.conditions`; ``None``: the teaching world).
+        memory_mismatch: the fraction of episodes shown another route's frames (``None``: none).
 
     Returns:
         One :class:`Trace` per agent, in agent order.
@@ -125,7 +137,7 @@ def trace_routes(
     demo_length = int(policy.config.demo_length)
     spec = EpisodeSpec(
         split=split, noise=noise, demo_length=demo_length, route_style=style, route_lengths=route_lengths,
-        image_size=tuple(policy.config.image_size)[0], seed=seed,
+        image_size=tuple(policy.config.image_size)[0], seed=seed, conditions=conditions, memory_mismatch=memory_mismatch,
     )
     env = make_env(spec, episodes, primer=policy.make_tensordict_primer(), seeded=True)
     base = env.base_env
@@ -142,6 +154,10 @@ def trace_routes(
         env.close()
     done = rollout.get(("next", "done")).reshape(episodes, -1)
     pointer = rollout.get("eta_used").reshape(episodes, -1).numpy()
+    anchors = "anchor" in rollout.keys()
+    if anchors:
+        anchor = rollout.get("anchor").reshape(episodes, -1).numpy()
+        confidence = rollout.get("anchor_confidence").reshape(episodes, -1).numpy()
     poses = rollout.get("pose").reshape(episodes, -1, 3).numpy().astype(np.float64)
     traces = []
     for agent in range(episodes):
@@ -156,6 +172,8 @@ def trace_routes(
                 pointer=pointer[agent, : last + 1].astype(np.float64),
                 route_step=np.array([expert.route_step(pose) for pose in agent_poses]),
                 off_path_m=np.array([distance_to_path(pose[:2], path_xy) for pose in agent_poses]),
+                anchor=anchor[agent, : last + 1].astype(np.float64) if anchors else None,
+                anchor_confidence=confidence[agent, : last + 1].astype(np.float64) if anchors else None,
             )
         )
     return traces
@@ -176,7 +194,8 @@ def summarize_traces(traces: list[Trace], window: int) -> dict:
         for failures also ``left_path`` (the fraction that went farther than
         :data:`OFF_PATH_M` from the path), and of those ``pointer_error_at_leaving`` (mean
         absolute steps), ``pointer_outside_window_at_leaving`` (the fraction off by more than
-        ``window``) and ``route_fraction_at_leaving`` (mean route step over route length).
+        ``window``) and ``route_fraction_at_leaving`` (mean route step over route length); for a
+        policy with an anchor, ``mean_abs_anchor_error`` (steps) and ``mean_anchor_confidence``.
 
     Examples:
         >>> on = Trace({"success": True, "demo_steps": 10}, np.arange(5.0), np.arange(5), np.zeros(5))
@@ -194,6 +213,10 @@ def summarize_traces(traces: list[Trace], window: int) -> dict:
         errors = [float(e) for t in group for e in np.abs(t.pointer - t.route_step)]
         leads = [float(e) for t in group for e in t.pointer - t.route_step]
         summary = {"episodes": len(group), "mean_abs_pointer_error": _mean(errors), "mean_pointer_lead": _mean(leads)}
+        anchored = [t for t in group if t.anchor is not None]
+        if anchored:  # how far the frame's match is from the agent's place, and how sure it was
+            summary["mean_abs_anchor_error"] = _mean([float(e) for t in anchored for e in np.abs(t.anchor - t.route_step)])
+            summary["mean_anchor_confidence"] = _mean([float(c) for t in anchored for c in t.anchor_confidence])
         if not wanted:
             left = [t for t in group if t.left_path_at is not None]
             at = [abs(t.pointer[t.left_path_at] - t.route_step[t.left_path_at]) for t in left]
