@@ -61,6 +61,9 @@ STEP_KEYS = ("pixels", "action", "expert_action")
 #: The step key that episodes of a route style add: the demonstration step the agent has come
 #: to (:meth:`~envs.route_expert.RouteExpert.route_step`), the label of the pointer loss.
 ROUTE_STEP_KEY = "route_step"
+#: The key a training episode carries once its demonstration is attached (:func:`attach_demonstrations`):
+#: whether it was shown another route's frames (its ``memory_id`` is not its ``demo_id``), bool ``[*batch]``.
+MEMORY_MISMATCHED_KEY = "memory_mismatched"
 
 
 def episode_keys(episodes: EpisodeSpec) -> tuple[str, ...]:
@@ -194,6 +197,7 @@ def empty_training_episodes(config: DatasetConfig) -> TensorDict:
     }
     if config.episodes.route_style is not None:  # demonstrations of several lengths
         demonstrations["demo_steps"] = torch.zeros(e, 1, dtype=torch.int64)
+    demonstrations[MEMORY_MISMATCHED_KEY] = torch.zeros(e, dtype=torch.bool)
     return _empty_episodes(config).exclude("demo_id", "memory_id").update(demonstrations)
 
 
@@ -211,9 +215,14 @@ def format_tag() -> str:
 def attach_demonstrations(episodes: TensorDictBase, demos: DemoStore) -> TensorDictBase:
     """``episodes`` (in place) with ``demo_frames`` and ``demo_actions`` looked up by their ``demo_id`` in ``demos``,
     and ``demo_steps`` where the store holds demonstrations of several lengths (a route style); the frames
-    are those of ``memory_id`` where the episodes have one (a mismatched memory, :mod:`envs.conditions`)."""
+    are those of ``memory_id`` where the episodes have one (a mismatched memory, :mod:`envs.conditions`),
+    which then gives way to :data:`MEMORY_MISMATCHED_KEY` (set for every episode, so that episodes of
+    sources with and without mismatched memories have one layout and batch together)."""
     ids = episodes.get("demo_id").reshape(-1)
     shown = episodes.get("memory_id").reshape(-1) if "memory_id" in episodes.keys() else ids
+    episodes.set(MEMORY_MISMATCHED_KEY, (shown != ids).reshape(episodes.batch_size))
+    if "memory_id" in episodes.keys():
+        del episodes["memory_id"]
     episodes.set("demo_frames", demos.frames[shown].reshape(*episodes.batch_size, *demos.frames.shape[1:]))
     episodes.set("demo_actions", demos.actions[ids].reshape(*episodes.batch_size, -1))
     if demos.config.episodes.route_style is not None:
@@ -397,4 +406,4 @@ class EpisodeDataset(TensorStore):
         }
 
 
-__all__ = ["DatasetConfig", "DatasetError", "EpisodeDataset", "attach_demonstrations", "demos_root", "empty_training_episodes", "episode_keys", "format_tag", "generate_chunk", "step_keys"]
+__all__ = ["MEMORY_MISMATCHED_KEY", "DatasetConfig", "DatasetError", "EpisodeDataset", "attach_demonstrations", "demos_root", "empty_training_episodes", "episode_keys", "format_tag", "generate_chunk", "step_keys"]

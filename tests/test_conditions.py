@@ -294,6 +294,13 @@ def test_a_dataset_keeps_the_frames_a_mismatched_episode_was_shown_and_its_own_a
     demos = dataset.demos
     assert torch.equal(batch["demo_frames"], demos.frames[episodes["memory_id"]])
     assert torch.equal(batch["demo_actions"], demos.actions[episodes["demo_id"]])
+    # training rows say which episodes were mismatched, in the layout of rows of sources without any
+    assert torch.equal(batch["memory_mismatched"], mismatched) and "memory_id" not in batch.keys()
+    plain = EpisodeDataset.build(tmp_path / "plain", DatasetConfig(episodes=spec.replace(conditions=None, memory_mismatch=None),
+                                                                    num_episodes=4, chunk_size=4, num_agents=4), num_workers=1, progress=False)
+    rows = plain[[0, 1]]
+    assert not rows["memory_mismatched"].any() and set(rows.keys()) == set(batch.keys())
+    assert torch.cat([rows, batch[:2]], 0).batch_size == (4,)
 
 
 def test_a_store_with_one_demonstration_cannot_show_another_route(tmp_path):

@@ -445,7 +445,9 @@ def test_random_sparsity_rounds_do_not_depend_on_the_global_rng(tmp_path):
 
 def test_a_run_grows_an_anchor_and_trains_it_on_changed_worlds_and_mismatched_memories(tmp_path):
     """DAgger from a checkpoint without an anchor, ``anchor_radius`` set: rounds of a route style (the
-    pointer and anchor labels) repeated under a condition with mismatched memories; the kept weights anchor."""
+    pointer and anchor labels) repeated under a condition with mismatched memories, retrained beside BC data
+    of the teaching world (batches mix the two layouts); the kept weights anchor."""
+    from spf_rl.data import DatasetConfig
     from spf_rl.train.run import OptimConfig
 
     torch.manual_seed(0)
@@ -454,8 +456,10 @@ def test_a_run_grows_an_anchor_and_trains_it_on_changed_worlds_and_mismatched_me
     save_checkpoint(tmp_path / "start.pt", "spf_random", config, {"model": start.state_dict()})
     episodes = EpisodeSpec(num_houses=1, demo_length=12, max_steps=None, image_size=32, route_style="driven", route_lengths=(10, 12),
                            conditions="light@0.5=1,none=1", memory_mismatch=0.5)
+    bc_data = DatasetConfig(episodes=episodes.replace(conditions=None, memory_mismatch=None), num_episodes=4, chunk_size=4, num_agents=4)
     run = tiny_config(tmp_path, tmp_path / "start.pt", rounds=1, anchor_radius=3, env=CollectionEnvConfig(episodes=episodes),
-                      optim=OptimConfig(lr=3e-4, cosine_schedule=False, pointer_coef=0.1))
+                      optim=OptimConfig(lr=3e-4, cosine_schedule=False, pointer_coef=0.1, batch_size=8),
+                      aggregate_bc_data=True, bc_data=bc_data, bc_data_dir=str(tmp_path / "bc"), num_workers=1)
     results = train_dagger(run)
     kept = load_checkpoint(tmp_path / "dagger" / "best.pt")
     last = load_checkpoint(tmp_path / "dagger" / "last.pt")

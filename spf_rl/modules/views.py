@@ -12,7 +12,7 @@ import torch
 from tensordict import TensorDict
 
 from envs.house_grid import check_demo_length
-from spf_rl.data import ROUTE_STEP_KEY
+from spf_rl.data import MEMORY_MISMATCHED_KEY, ROUTE_STEP_KEY
 from spf_rl.device import to_device
 from spf_rl.modules.memory import memory_bytes
 from spf_rl.modules.policy import SPFPolicy
@@ -62,17 +62,13 @@ def policy_for_length(policy: SPFPolicy, demo_length: int) -> SPFPolicy:
     return view.to(device).train(policy.training)
 
 
-#: The sequence key of episodes shown another route's frames (their ``memory_id`` is not their ``demo_id``).
-MEMORY_MISMATCHED_KEY = "memory_mismatched"
-
-
 def episodes_to_sequence(batch: TensorDict, device: torch.device | str | None = None) -> TensorDict:
     """Turn a batch of stored episodes ``[B]`` into the policy's sequence input ``[B, T]`` on ``device``.
 
     Demonstration frames and actions come once per episode (looked up by ``demo_id`` at
     sampling); they move to ``device`` once and are broadcast over time as views (no
     copy). ``T`` is cut to the longest episode (read on the batch's device, before the move).
-    Episodes that store a ``memory_id`` also get :data:`MEMORY_MISMATCHED_KEY` (bool ``[B, T]``).
+    Their :data:`~spf_rl.data.MEMORY_MISMATCHED_KEY` (where the batch has it) is broadcast too (bool ``[B, T]``).
 
     Args:
         batch: stored episodes (:mod:`spf_rl.data` layout).
@@ -98,8 +94,8 @@ def episodes_to_sequence(batch: TensorDict, device: torch.device | str | None = 
     demonstration = {"demo_frames": demo_frames, "demo_actions": demo_actions}
     if "demo_steps" in batch.keys():  # demonstrations of several lengths, padded
         demonstration["demo_steps"] = batch.get("demo_steps")
-    if "memory_id" in batch.keys() and "demo_id" in batch.keys():  # another route's frames shown (conditions)
-        demonstration[MEMORY_MISMATCHED_KEY] = batch.get("memory_id").reshape(-1) != batch.get("demo_id").reshape(-1)
+    if MEMORY_MISMATCHED_KEY in batch.keys():  # another route's frames shown (conditions)
+        demonstration[MEMORY_MISMATCHED_KEY] = batch.get(MEMORY_MISMATCHED_KEY).reshape(-1)
     sequence = {
         key: (value if device is None else value.to(device)).unsqueeze(1).expand(b, t, *value.shape[1:])
         for key, value in demonstration.items()

@@ -33,13 +33,13 @@ from torchrl.record.loggers import get_logger
 from envs.atomic_io import atomic_write_json
 from envs.checks import check_positive_ints
 from envs.episode_spec import EpisodeSpec, check_sizes_match
-from spf_rl.data import ROUTE_STEP_KEY, DatasetConfig, EpisodeDataset
+from spf_rl.data import MEMORY_MISMATCHED_KEY, ROUTE_STEP_KEY, DatasetConfig, EpisodeDataset
 from spf_rl.device import DEFAULT_DEVICE, autocast, check_device, module_device
 from spf_rl.evaluation import TEST_SEED, VAL_SEED, EvalConfig, episode_store_root, evaluate_policy
 from spf_rl.modules.policy import SPFPolicy
 from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
 from spf_rl.modules.td_utils import ANCHOR_KEY
-from spf_rl.modules.views import MEMORY_MISMATCHED_KEY, episodes_to_sequence, model_memory_bytes
+from spf_rl.modules.views import episodes_to_sequence, model_memory_bytes
 from spf_rl.records_cache import TEST_EPISODES_FILE, records_key, write_records
 from spf_rl.train.distributed import ShardedSampler, barrier, init_distributed
 from spf_rl.train.pointer_guard import RESTARTS_KEY, PointerGuard, restart_run
@@ -230,7 +230,7 @@ def anchor_loss(sequence: TensorDict, eta: torch.Tensor, target: torch.Tensor, r
     """For a policy that re-anchors its pointer (:mod:`spf_rl.modules.anchor`): the Huber loss between
     its anchor and the agent's place (``target``, as :func:`pointer_loss` reads it) on the valid steps
     where that place lies within ``radius`` of the pointer (``eta``: the anchor's search band) and the memory
-    holds the route's own frames (not :data:`~spf_rl.modules.views.MEMORY_MISMATCHED_KEY`); 0 where no
+    holds the route's own frames (not :data:`~spf_rl.data.MEMORY_MISMATCHED_KEY`); 0 where no
     step qualifies. It teaches the frame-to-slot match directly, before the gate opens.
 
     Examples:
