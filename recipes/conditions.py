@@ -24,12 +24,14 @@ import argparse
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from envs.atomic_io import atomic_write_json
 from envs.conditions import CONDITIONS
 from envs.nav_env import PathFollowEnv
 from spf_rl.cli import ArgumentParser
 from spf_rl.evaluation import TEST_SEED
+from spf_rl.modules.encoder import normalize_frames
 from spf_rl.viz import plot_conditions, plot_layout_change
 
 #: The strengths drawn.
@@ -44,20 +46,35 @@ def _first_frames(condition: str, seed: int, image_size: int, demo_length: int) 
     return td["demo_frames"][0].numpy(), td["pixels"].numpy(), env
 
 
+def first_frame_match(pixels: torch.Tensor, demo_frames: torch.Tensor, normalize: bool) -> list[bool]:
+    """Per episode: is the demonstration frame nearest to ``pixels`` (``[B, H, W, 3]`` uint8; mean squared
+    difference over ``demo_frames`` ``[B, n, H, W, 3]``) the first one?"""
+    def prepared(frames: torch.Tensor) -> torch.Tensor:
+        x = frames.float().div(255).movedim(-1, -3)
+        return normalize_frames(x) if normalize else x
+
+    distance = (prepared(pixels)[:, None] - prepared(demo_frames)).pow(2).mean((-3, -2, -1))
+    return (distance.argmin(1) == 0).tolist()
+
+
 def change_stats(world: str, episodes: int, seed: int) -> dict:
     """How much ``world`` changes the first ``episodes`` episodes of the test houses (see the module)."""
     batch = 16
     env = PathFollowEnv("test", demo_length=30, conditions=world, num_agents=batch)
     env.set_seed(seed)
-    pixel_change, on_path, distance_changed = [], [], []
+    pixel_change, on_path, distance_changed, match_raw, match_normalized = [], [], [], [], []
     for _ in range(-(-episodes // batch)):
         td = env.reset()
         pixel_change += (td["pixels"].float() - td["demo_frames"][:, 0].float()).abs().mean((1, 2, 3)).tolist()
+        match_raw += first_frame_match(td["pixels"], td["demo_frames"], normalize=False)
+        match_normalized += first_frame_match(td["pixels"], td["demo_frames"], normalize=True)
         for house, taught, demo in zip(env.houses, env.taught_houses, env.demonstrations):
             on_path.append(any(not house.occupancy.is_free(xy) for xy in demo.poses[:, :2]))
             distance_changed.append(abs(demo.shortest_length_m - taught.graph.distance_field(demo.end_xy).at(demo.start_pose[:2])) > 1e-6)
     env.close()
-    out = {"first_frame_pixel_change": float(np.mean(pixel_change[:episodes]))}
+    out = {"first_frame_pixel_change": float(np.mean(pixel_change[:episodes])),
+           "first_frame_match_raw": float(np.mean(match_raw[:episodes])),
+           "first_frame_match_normalized": float(np.mean(match_normalized[:episodes]))}
     if world.startswith("furniture"):
         out["piece_on_path"] = float(np.mean(on_path[:episodes]))
         out["route_length_changed"] = float(np.mean(distance_changed[:episodes]))

@@ -33,6 +33,9 @@ CASES = {
     "rpf_original": ("rpf_original", {}),
     "action_only": ("action_only", {}),
     "spf_random-anchor": ("spf_random", {"sparsity_range": (0.2, 1.0), "pointer_update": "rpf", "anchor_radius": 2}),
+    "spf_random-anchor-normalized": (
+        "spf_random", {"sparsity_range": (0.2, 1.0), "pointer_update": "rpf", "anchor_radius": 2, "normalize_frames": True}
+    ),
 }
 
 

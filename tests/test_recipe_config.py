@@ -278,3 +278,16 @@ def test_the_anchor_preset_differs_from_the_robust_one_in_the_anchor_alone():
     anchor = load_config(DAggerConfig, "dagger", ["seed=1"], preset="dagger_routes_robust_anchor")
     assert anchor.anchor_radius == 8 and robust.anchor_radius is None
     assert dataclasses.replace(anchor, anchor_radius=None, output_dir=robust.output_dir) == robust
+
+
+def test_the_normalized_preset_differs_from_the_anchor_one_in_the_frames_alone():
+    from spf_rl.train.dagger import DAggerConfig
+
+    anchor = load_config(DAggerConfig, "dagger", ["seed=1"], preset="dagger_routes_robust_anchor")
+    normalized = load_config(DAggerConfig, "dagger", ["seed=1"], preset="dagger_routes_robust_normalized")
+    assert normalized.normalize_frames is True and anchor.normalize_frames is None and normalized.anchor_radius == 8
+    assert dataclasses.replace(normalized, normalize_frames=None, output_dir=anchor.output_dir) == anchor
+    with pytest.raises(ValueError, match="normalize_frames"):
+        load_config(DAggerConfig, "dagger", ["normalize_frames=maybe"], preset="dagger_routes_robust_normalized")
+    with pytest.raises(ValueError, match="normalize_frames must be true, false or None"):
+        DAggerConfig(normalize_frames=2)

@@ -429,6 +429,22 @@ class BenchModel:
         return policy_sha256(self.at_length(demo_length))
 
 
+def shown_path(path: str | Path) -> str:
+    """``path`` as the results show it: relative to the working directory when it lies under it (so a
+    shipped checkpoint resolved from its name reads ``checkpoints/...`` on every machine), else as given.
+
+    Examples:
+        >>> shown_path(Path.cwd() / "checkpoints" / "x.pt")
+        'checkpoints/x.pt'
+        >>> shown_path("/elsewhere/x.pt")
+        '/elsewhere/x.pt'
+    """
+    try:
+        return Path(path).resolve().relative_to(Path.cwd().resolve()).as_posix()
+    except ValueError:
+        return str(path)
+
+
 def load_models(options: BenchOptions) -> list[BenchModel]:
     """Open-loop replay, then every model of ``options`` loaded on its device.
 
@@ -452,7 +468,7 @@ def load_models(options: BenchOptions) -> list[BenchModel]:
         random = getattr(config, "sparsity_range", None) is not None
         own = float(policy.sparsity) if is_export(name) else float(config.sparsity)  # an export keeps its own
         sparsity = (float(options.random_sparsity) if options.random_sparsity is not None else own) if random else None
-        info = {"checkpoint": str(path), "model_type": payload["model_type"], "demo_length": config.demo_length,
+        info = {"checkpoint": shown_path(path), "model_type": payload["model_type"], "demo_length": config.demo_length,
                 "sparsity": float(config.sparsity), "sparsity_range": list(config.sparsity_range) if random else None,
                 "played_at_sparsity": sparsity}
         models.append(BenchModel(label_of(name), policy, sparsity, info))

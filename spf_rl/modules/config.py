@@ -1,7 +1,7 @@
 """Configuration of the SPF policy and its baselines: :class:`SPFConfig` and the model's named constants."""
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from typing import Literal
 
 import torch
@@ -27,8 +27,8 @@ POINTER_UPDATES = ("paper", "rpf")
 MEMORY_MODES = ("sparse", "full", "none")
 #: Memory networks: SPF's (psi over attended features + action window) or the RPF lab code's.
 ARCHITECTURES = ("spf", "rpf_original")
-#: Fields of :class:`SPFConfig` added after models were shipped: kept in its dict only when set.
-OPTIONAL_FIELDS = ("anchor_radius",)
+#: Fields of :class:`SPFConfig` added after models were shipped: kept in its dict only when not at their default.
+OPTIONAL_FIELDS = ("anchor_radius", "normalize_frames")
 #: Sparsity used by the full-memory (RPF) baseline.
 FULL_MEMORY_SPARSITY = 1.0
 
@@ -85,6 +85,10 @@ class SPFConfig:
             frame matches within this many route steps of it (:mod:`spf_rl.modules.anchor`:
             the pointer may then go back); ``None`` (default): no anchor, as the paper. Needs
             visual memory and SPF's architecture. Not in the SPF paper.
+        normalize_frames (bool): standardise every frame per channel before the encoder
+            (:func:`~spf_rl.modules.encoder.normalize_frames`), the current one and the memory's:
+            a change of exposure or light colour then does not reach the features. ``False``
+            (default): raw frames, as the paper. Not in the SPF paper.
 
     Examples:
         >>> cfg = SPFConfig(sparsity=0.4)
@@ -111,6 +115,7 @@ class SPFConfig:
     sparsity_range: tuple[float, float] | None = None
     architecture: Literal["spf", "rpf_original"] = "spf"
     anchor_radius: int | None = None
+    normalize_frames: bool = False
 
     def __post_init__(self) -> None:
         if self.architecture not in ARCHITECTURES:
@@ -169,6 +174,8 @@ class SPFConfig:
                 f"anchor_radius needs visual memory and architecture='spf' (got memory_mode={self.memory_mode!r}, "
                 f"architecture={self.architecture!r}); set anchor_radius=None."
             )
+        if not isinstance(self.normalize_frames, bool):
+            raise ValueError(f"normalize_frames must be True or False, got {self.normalize_frames!r}.")
         self.image_size = tuple(self.image_size)  # type: ignore[assignment]
         if len(self.image_size) != 2 or any(
             not isinstance(s, int) or s < 1 for s in self.image_size
@@ -179,15 +186,17 @@ class SPFConfig:
 
     def to_dict(self) -> dict:
         """The fields as a dict, as checkpoints, exports and the result cache keep them: the fields of
-        :data:`OPTIONAL_FIELDS` only when set, so a model without them keeps the identity it had
-        before they existed.
+        :data:`OPTIONAL_FIELDS` only when not at their default, so a model without them keeps the
+        identity it had before they existed.
 
         Examples:
             >>> "anchor_radius" in SPFConfig().to_dict(), SPFConfig(anchor_radius=8).to_dict()["anchor_radius"]
             (False, 8)
+            >>> "normalize_frames" in SPFConfig().to_dict(), SPFConfig(normalize_frames=True).to_dict()["normalize_frames"]
+            (False, True)
         """
-        out = asdict(self)
-        return {key: value for key, value in out.items() if not (key in OPTIONAL_FIELDS and value is None)}
+        defaults = {f.name: f.default for f in fields(self)}
+        return {key: value for key, value in asdict(self).items() if not (key in OPTIONAL_FIELDS and value == defaults[key])}
 
     @property
     def use_soft_action_memory(self) -> bool:

@@ -190,7 +190,7 @@ class SPFPolicy(TensorDictModuleBase):
             pixels_key, pixel_features_key = encoder.in_keys[0], encoder.out_keys[0]
             phi = encoder.module
         else:
-            phi = ImageEncoder(config.feature_dim, config.image_size) if encoder is None else encoder
+            phi = ImageEncoder(config.feature_dim, config.image_size, normalize=config.normalize_frames) if encoder is None else encoder
             pixel_features_key = "pixel_features"
             encoder = TensorDictModule(phi, in_keys=[pixels_key], out_keys=[pixel_features_key])
         self.feature_dim = int(getattr(phi, "feature_dim", config.feature_dim))

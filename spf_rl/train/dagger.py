@@ -168,6 +168,9 @@ class DAggerConfig:
         anchor_radius: grow an anchor of this radius (:mod:`spf_rl.modules.anchor`) onto a starting
             checkpoint that has none: its layers drawn from ``seed``, its gate nearly shut, every other
             weight loaded as it was. ``None`` (default): the checkpoint's own network.
+        normalize_frames: set the starting network's ``normalize_frames`` (``SPFConfig``: every frame
+            standardised per channel before the encoder; no new weights) to this. ``None`` (default):
+            the checkpoint's own.
         episodes_per_round: learner episodes collected per round.
         beta0: expert probability in round 1.
         beta_decay: ``beta`` is multiplied by this each round.
@@ -202,6 +205,7 @@ class DAggerConfig:
     rounds: int = 10
     round_seed_offset: int = 0
     anchor_radius: int | None = None
+    normalize_frames: bool | None = None
     episodes_per_round: int = 256
     beta0: float = 0.0
     beta_decay: float = 0.5
@@ -231,6 +235,8 @@ class DAggerConfig:
             value = getattr(self, name)
             if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
                 raise ValueError(f"{name} must be a positive int or None, got {value!r}.")
+        if self.normalize_frames is not None and not isinstance(self.normalize_frames, bool):
+            raise ValueError(f"normalize_frames must be true, false or None (the checkpoint's own), got {self.normalize_frames!r}.")
         for name in ("beta0", "beta_decay"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)!r}.")
@@ -274,10 +280,16 @@ def episode_seed_of_round(config: DAggerConfig, round_index: int) -> int:
 
 
 def start_policy(
-    model_type: str, policy_config: SPFConfig, weights: dict, anchor_radius: int | None, seed: int
+    model_type: str,
+    policy_config: SPFConfig,
+    weights: dict,
+    anchor_radius: int | None,
+    seed: int,
+    normalize_frames: bool | None = None,
 ) -> tuple[SPFConfig, SPFPolicy]:
     """The policy DAgger starts from: ``weights`` in the checkpoint's network, or, with ``anchor_radius``
-    and a network without an anchor, that network grown an anchor (its layers drawn from ``seed``).
+    and a network without an anchor, that network grown an anchor (its layers drawn from ``seed``);
+    with ``normalize_frames`` (not ``None``), its encoder set to standardise frames or not.
 
     Raises:
         ValueError: the checkpoint has an anchor of another radius, or its weights do not fit.
@@ -289,7 +301,13 @@ def start_policy(
         >>> grown_config, grown = start_policy("spf", config, build_policy("spf", config).state_dict(), 4, seed=0)
         >>> grown_config.anchor_radius, grown.anchors
         (4, True)
+        >>> normalized_config, normalized = start_policy("spf", config, build_policy("spf", config).state_dict(), None, 0, True)
+        >>> normalized_config.normalize_frames, normalized.encoder.module.normalize
+        (True, True)
     """
+    if normalize_frames is not None and normalize_frames != policy_config.normalize_frames:
+        policy_config = replace(policy_config, normalize_frames=normalize_frames)
+        logger.info("the starting policy's encoder %s frames", "standardises" if normalize_frames else "no longer standardises")
     if anchor_radius is None or policy_config.anchor_radius == anchor_radius:
         policy = build_policy(model_type, policy_config)
         policy.load_state_dict(weights)
@@ -339,7 +357,9 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
             f"env.demo_length / env.image_size ({env.episodes.demo_length}, {env.episodes.image_size}) must match the checkpoint's "
             f"({policy_config.demo_length}, {policy_config.image_size})."
         )
-    policy_config, policy = start_policy(model_type, policy_config, payload["model"], config.anchor_radius, config.seed)
+    policy_config, policy = start_policy(
+        model_type, policy_config, payload["model"], config.anchor_radius, config.seed, config.normalize_frames
+    )
     policy = policy.to(device)
     logger.info("DAgger on %s%s", device, " with bf16 autocast for retraining" if config.optim.amp else "")
     run = TrainingRun(output, model_type, policy_config, policy, config.optim, loss_fn=bc_loss, ranks=ranks, unit="round")
