@@ -16,6 +16,7 @@ Usage::
     python recipes/route_bench.py                              # everything -> results/route_bench.json
     python recipes/route_bench.py --models spf-s0.8,lengths-spf-s0.8 --styles driven --buckets 61-100 --out results/rb.json
     python recipes/route_bench.py --models spf-s0.8 --buckets 10-30 --conditions none light@0.5 furniture@1 mismatch --out results/rb_worlds.json
+    python recipes/route_bench.py --models spf-s0.8,rpf_original-s1 --reference spf-s0.8 --out results/rb.json   # paired with spf-s0.8
 """
 from __future__ import annotations
 
@@ -79,6 +80,8 @@ def build_parser() -> ArgumentParser:
                         help="worlds the routes are repeated in, a cell each (default: the teaching world alone): none, "
                              "repeat conditions name@strength (envs.conditions: light, paint, furniture, camera, sensor; a "
                              "mixture 'light@0.5=1,paint@1=1'), or mismatch (another route's frames with the route's own actions)")
+    parser.add_argument("--reference", help="a model of --models (as given or by label, or a seed group's label) that "
+                        "every other is paired with per world: success minus the reference's, with its interval")
     parser.add_argument("--progress", action="store_true", help="progress bars")
     return parser
 
@@ -96,7 +99,7 @@ def main(argv: list[str] | None = None) -> dict:
             sets=None if args.sets is None else parse_list(args.sets, None, "--sets"),
             episodes=args.episodes, seed=args.seed, noise=args.noise, random_sparsity=args.random_sparsity,
             num_resamples=args.num_resamples, device=args.device, num_collectors=args.num_collectors, out=args.out, quick=args.quick, progress=args.progress,
-            conditions=(None,) if args.conditions is None else tuple(args.conditions),
+            conditions=(None,) if args.conditions is None else tuple(args.conditions), reference=args.reference,
         )
     except ValueError as err:
         parser.error(str(err))
@@ -107,6 +110,8 @@ def main(argv: list[str] | None = None) -> dict:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     content = run_bench(options, models)
     print(content.get("table_by_world") or content["table"])
+    if content.get("table_vs_reference"):
+        print(content["table_vs_reference"])
     print(f"-> {options.out}" + (f", {content['figure']}" if content["figure"] else ""))
     return content
 

@@ -38,6 +38,8 @@ def test_buckets_are_parsed_sorted_and_checked():
         ({"num_resamples": 0}, "--num-resamples"),
         ({"random_sparsity": 1.5}, "--random-sparsity"),
         ({"num_collectors": 0}, "--num-collectors"),
+        ({"reference": "spf-s0.6"}, "--reference"),
+        ({"reference": "open_loop"}, "--reference"),
     ],
 )
 def test_bad_options_are_refused_naming_the_option(kwargs, option):
@@ -54,7 +56,8 @@ def test_defaults_leave_out_homing_and_ppo_and_quick_is_small():
     assert route_bench.BenchOptions(models=("ppo-spf-s0.8",)).models == ("ppo-spf-s0.8",)  # named: allowed
 
 
-@pytest.mark.parametrize("argv", [["--episodes", "0"], ["--models", "nope"], ["--buckets", "10-5"], ["--styles", "walk"]])
+@pytest.mark.parametrize("argv", [["--episodes", "0"], ["--models", "nope"], ["--buckets", "10-5"], ["--styles", "walk"],
+                                  ["--models", "spf-s0.8", "--reference", "rpf_original-s1"]])
 def test_the_recipe_refuses_bad_arguments_before_any_work(argv, capsys, monkeypatch):
     monkeypatch.setattr(route_bench, "run_bench", lambda *args: pytest.fail("ran"))
     with pytest.raises(SystemExit) as info:
@@ -180,3 +183,33 @@ def test_training_seeds_of_one_recipe_are_pooled_into_one_column():
     assert header.endswith("| r/b-seed0 | r/a (3 seeds) |")
     assert row.split(" | ")[-1].startswith(f"{pooled['success']['mean']:.2f}")
     assert "pooled over seeds" in table
+
+
+def test_every_model_is_paired_with_the_reference_per_world():
+    rng = __import__("numpy").random.default_rng(1)
+    houses = [h for h in range(4) for _ in range(8)]
+
+    def columns(p):
+        return {"success": (rng.random(32) < p).astype(float).tolist(), "ndtw": rng.random(32).tolist()}
+
+    cells = {}
+    for world in (None, "light@1.0=1.0"):
+        models = {"open_loop": columns(0.5), "old": columns(0.4), "new": columns(0.8)}
+        cells[f"test/tour/10-30/{world}"] = {"set": "test", "world": world, "stats": {}, "episodes": {"house_seed": houses},
+                                             "models": {label: {"columns": c} for label, c in models.items()}}
+    setup = {"models": {"open_loop": {}, "old": {}, "new": {}}, "reference": "old"}
+    worlds = route_bench.by_world({"setup": setup, "cells": cells}, num_resamples=300)["test"]
+    assert set(worlds) == {"none", "light@1.0"}
+    for world, cell in zip(("none", "light@1.0"), cells.values()):
+        new, old = (cell["models"][m]["columns"]["success"] for m in ("new", "old"))
+        paired = worlds[world]["new"]["vs_reference"]["success"]
+        assert paired["difference"] == pytest.approx(sum(new) / 32 - sum(old) / 32)
+        assert paired["ci"][0] <= paired["difference"] <= paired["ci"][1]
+        assert "vs_reference" not in worlds[world]["old"] and "vs_reference" not in worlds[world]["open_loop"]
+    table = route_bench.format_vs_reference({"test": worlds}, ["open_loop", "old", "new"], "old").splitlines()
+    assert table[0] == "**test**: success minus old's" and table[2] == "| world | new |"
+    difference = worlds["light@1.0"]["new"]["vs_reference"]["success"]["difference"]
+    assert table[5].startswith(f"| light@1.0 | {difference:+.2f} [")
+    # without a reference the rows are as before
+    plain = route_bench.by_world({"setup": {"models": setup["models"]}, "cells": cells}, num_resamples=300)["test"]
+    assert not any("vs_reference" in row for rows in plain.values() for row in rows.values())

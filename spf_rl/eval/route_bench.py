@@ -88,7 +88,8 @@ STATISTICS = (
     "mean(open_loop) on the same episodes, the same resamples for both (spf_rl.stats.paired_bootstrap); "
     "p_greater: fraction of resamples with a difference <= 0; p_two_sided: twice the smaller tail. "
     "A seed group ('<base> (<n> seeds)': models whose labels differ only in -seed<N>) is pooled: means over seeds "
-    "and episodes, each episode's scores averaged over the seeds before resampling (spf_rl.eval.route_bench.pooled_stats)."
+    "and episodes, each episode's scores averaged over the seeds before resampling (spf_rl.eval.route_bench.pooled_stats). "
+    "vs_reference (with --reference): per world, the same paired bootstrap of mean(model) - mean(reference)."
 )
 
 
@@ -279,6 +280,8 @@ class BenchOptions:
         conditions: the worlds the routes are repeated in (:func:`parse_world`): ``None`` the teaching
             world (the default, alone), repeat conditions, or :data:`MISMATCH`; a cell per world x set x
             style x bucket, on the same routes.
+        reference: a model every other is paired with per world (:func:`by_world`'s ``vs_reference``): one
+            of ``models`` as given or by its label, or a seed group's label (:func:`seed_groups`); ``None``: none.
 
     Raises:
         ValueError: a bad option, naming it (``argument --episodes: ...``).
@@ -291,6 +294,12 @@ class BenchOptions:
         Traceback (most recent call last):
         ...
         ValueError: argument --episodes: must be a positive int, got 0
+        >>> BenchOptions(models=("spf-s0.8", "rpf_original-s1"), reference="spf-s0.8").reference
+        'spf-s0.8'
+        >>> BenchOptions(models=("spf-s0.8",), reference="spf-s0.6")
+        Traceback (most recent call last):
+        ...
+        ValueError: argument --reference: 'spf-s0.6' is not a model of this run; allowed: spf-s0.8
     """
 
     models: tuple[str, ...] | None = None
@@ -312,6 +321,7 @@ class BenchOptions:
     store_root: str | None = None
     progress: bool = False
     conditions: tuple[str | None, ...] = (None,)
+    reference: str | None = None
     set_houses: dict = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -353,6 +363,8 @@ class BenchOptions:
         if not worlds:
             raise ValueError("argument --conditions: no worlds")
         put("conditions", worlds)
+        if self.reference is not None:
+            put("reference", check_reference(str(self.reference), self.models))
         houses = {**SETS, "test": self.test_houses}
         put("set_houses", {name: houses[name] for name in self.sets})
 
@@ -719,11 +731,34 @@ def format_by_model(content: dict) -> str:
     return "\n".join(lines)
 
 
+def check_reference(reference: str, models: Sequence[str]) -> str:
+    """The label of ``--reference``: one of ``models`` (as given or by label) or a seed group of them.
+
+    Raises:
+        ValueError: anything else, naming ``--reference`` and the allowed labels.
+
+    Examples:
+        >>> check_reference("runs/a/best.pt", ["runs/a/best.pt", "spf-s0.8"])
+        'a/best'
+        >>> check_reference("r/a (2 seeds)", ["r/a-seed0", "r/a-seed1"])
+        'r/a (2 seeds)'
+    """
+    labels = {model: label_of(model) for model in models}
+    if reference in labels:
+        return labels[reference]
+    allowed = list(labels.values()) + list(seed_groups(list(labels.values())))
+    if reference not in allowed:
+        raise ValueError(f"argument --reference: {reference!r} is not a model of this run; allowed: {', '.join(allowed)}")
+    return reference
+
+
 def by_world(content: dict, num_resamples: int) -> dict:
     """Each model's (and seed group's) success and nDTW per world of the condition axis, pooled over
     the world's complete cells (styles x buckets) of a set, with house-level intervals and the paired
     difference from open-loop replay on the same episodes (a seed group: each episode's scores averaged
     over its seeds first): ``{set: {world: {label: {"success", "ndtw", "episodes", "vs_open_loop"}}}}``.
+    With a ``reference`` in the set-up (``--reference``), every other model's row also has
+    ``vs_reference``: the same paired difference from the reference.
 
     Examples:
         >>> cells = {"a": {"set": "test", "world": "light@1.0=1.0", "stats": {}, "episodes": {"house_seed": [0, 0, 1, 1]},
@@ -734,6 +769,7 @@ def by_world(content: dict, num_resamples: int) -> dict:
         (0.75, 4, 0.5)
     """
     setup = content["setup"]
+    reference = setup.get("reference")
     groups = {label: [label] for label in setup["models"]}
     groups.update(setup.get("seed_groups", {}))
     pooled: dict = {}
@@ -754,6 +790,9 @@ def by_world(content: dict, num_resamples: int) -> dict:
         for world, data in worlds.items():
             houses = np.asarray(data["houses"])
             floor = data["columns"].get(OPEN_LOOP)
+            against = data["columns"].get(reference) if reference is not None else None
+            if against is not None and len(against["success"]) != houses.size:
+                against = None
             for label, columns in data["columns"].items():
                 if len(columns["success"]) != houses.size:
                     continue  # a model missing from some of the world's cells
@@ -764,6 +803,8 @@ def by_world(content: dict, num_resamples: int) -> dict:
                                    "ci": list(hierarchical_bootstrap_ci(values, houses, DEFAULT_CONFIDENCE, num_resamples))}
                 if label != OPEN_LOOP and floor is not None:
                     row["vs_open_loop"] = paired_against(columns, floor, houses, num_resamples)
+                if against is not None and label not in (OPEN_LOOP, reference):
+                    row["vs_reference"] = paired_against(columns, against, houses, num_resamples)
                 out.setdefault(set_name, {}).setdefault(world, {})[label] = row
     return out
 
@@ -798,6 +839,37 @@ def format_by_world(worlds: dict, labels: Sequence[str]) -> str:
         lines.append("")
     lines.append("success, pooled over the world's cells (styles x lengths), 95% house-level bootstrap interval; * above "
                  "open-loop replay, v below it (paired on the same episodes, two-sided p < 0.05).")
+    return "\n".join(lines)
+
+
+def format_vs_reference(worlds: dict, labels: Sequence[str], reference: str) -> str:
+    """Markdown of :func:`by_world`'s ``vs_reference``: per set, a row per world, a column per model (but the
+    reference and open-loop replay): the paired difference in success from ``reference`` with its 95%
+    interval, ``*`` where two-sided p < 0.05.
+
+    Examples:
+        >>> row = {"vs_reference": {"success": {"difference": 0.21, "ci": [0.12, 0.3], "p_two_sided": 0.001}}}
+        >>> print(format_vs_reference({"test": {"light@1.0": {"m": row}}}, ["open_loop", "ref", "m"], "ref").splitlines()[4])
+        | light@1.0 | +0.21 [+0.12, +0.30]* |
+    """
+    shown = [label for label in labels if label not in (OPEN_LOOP, reference)]
+    lines: list[str] = []
+    for set_name, rows in worlds.items():
+        lines += [f"**{set_name}**: success minus {reference}'s", "", "| world | " + " | ".join(shown) + " |",
+                  "|---" * (1 + len(shown)) + "|"]
+        for world, models in rows.items():
+            entries = []
+            for label in shown:
+                paired = (models.get(label) or {}).get("vs_reference", {}).get("success")
+                if paired is None:
+                    entries.append("-")
+                    continue
+                low, high = paired["ci"]
+                mark = "*" if paired["p_two_sided"] < ALPHA else ""
+                entries.append(f"{paired['difference']:+.2f} [{low:+.2f}, {high:+.2f}]{mark}")
+            lines.append(f"| {world} | " + " | ".join(entries) + " |")
+        lines.append("")
+    lines.append("paired on the same episodes (house-level bootstrap), 95% interval; * two-sided p < 0.05.")
     return "\n".join(lines)
 
 
@@ -876,6 +948,7 @@ def setup_of(options: BenchOptions, models: list[BenchModel]) -> dict:
         "random_sparsity": options.random_sparsity, "env_version": ENV_VERSION, "conditions": list(options.conditions),
         "models": {m.label: dict(m.info) for m in models},
         "seed_groups": seed_groups([m.label for m in models]),
+        "reference": options.reference,
     }
 
 
@@ -954,9 +1027,12 @@ def run_bench(options: BenchOptions, models: list[BenchModel] | None = None) -> 
     content["table"] = format_table(content)
     content["table_by_model"] = format_by_model(content)
     content["by_style"] = by_style(content)
-    if options.conditions != (None,):
+    if options.conditions != (None,) or options.reference is not None:
         content["by_world"] = by_world(content, options.num_resamples)
         content["table_by_world"] = format_by_world(content["by_world"], report_labels(content["setup"]))
+    if options.reference is not None:
+        content["table_vs_reference"] = format_vs_reference(content["by_world"], report_labels(content["setup"]),
+                                                            options.reference)
     from spf_rl.viz import plot_if_available
 
     plot = plot_worlds if "by_world" in content else plot_bench
@@ -965,6 +1041,6 @@ def run_bench(options: BenchOptions, models: list[BenchModel] | None = None) -> 
     atomic_write_json(out, content, indent=1)
     from envs.atomic_io import atomic_write_text
 
-    tables = [content.get("table_by_world"), content["table"], content["table_by_model"]]
+    tables = [content.get("table_by_world"), content.get("table_vs_reference"), content["table"], content["table_by_model"]]
     atomic_write_text(out.with_suffix(".md"), "\n\n".join(t for t in tables if t) + "\n")
     return content
