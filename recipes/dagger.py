@@ -20,6 +20,7 @@ Usage::
     python recipes/dagger.py --preset dagger_routes_robust seed=S  # from routes-spf seed S, repeating in changed worlds (#62)
     python recipes/dagger.py --preset dagger_routes_robust_anchor seed=S  # the same with the pointer's anchor
     python recipes/dagger.py --preset dagger_routes_robust_normalized seed=S  # and frames standardised per channel
+    python recipes/dagger.py --preset dagger_routes_robust_share seed=S  # and half of every batch from the rounds
     python recipes/dagger.py checkpoint=runs/bc/spf-s0.8-seed0/best.pt rounds=6
     python recipes/dagger.py collector.backend=ray collector.num_collectors=2 device=cpu   # pip install '.[distributed]'
     python recipes/dagger.py device=cuda:1                    # the learner on the second GPU (default device=auto)
@@ -39,7 +40,7 @@ from spf_rl.config import config_or_exit, load_config
 PRESETS = (
     "dagger_quick", "dagger_control", "dagger_long", "dagger_rpf", "dagger_rpf_original", "dagger_spf_rpf_pointer",
     "dagger_pointer_long", "dagger_table1", "dagger_routes", "dagger_routes_pointer", "dagger_routes_pointer_more",
-    "dagger_routes_robust", "dagger_routes_robust_anchor", "dagger_routes_robust_normalized",
+    "dagger_routes_robust", "dagger_routes_robust_anchor", "dagger_routes_robust_normalized", "dagger_routes_robust_share",
 )
 
 
@@ -68,7 +69,8 @@ def main(argv: list[str] | None = None) -> dict:
         "dagger_routes_pointer_more (10 more such rounds from dagger_routes_pointer's kept weights, on fresh routes) "
         "dagger_routes_robust (from routes-spf's weights, every round repeated in a changed world: issue #62) "
         "dagger_routes_robust_anchor (the same, the pointer's anchor grown onto the network) "
-        "or dagger_routes_robust_normalized (the same with every frame standardised per channel)",
+        "dagger_routes_robust_normalized (the same with every frame standardised per channel) "
+        "or dagger_routes_robust_share (the same with half of every retraining batch from the rounds, rounds_share 0.5)",
     )
     parser.add_argument("overrides", nargs="*", help="key=value config overrides")
     args = parser.parse_args(argv)

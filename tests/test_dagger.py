@@ -73,11 +73,44 @@ def test_mixture_refuses_bad_beta():
         ({"episodes_per_round": 0}, "episodes_per_round"),
         ({"steps_per_round": 0}, "steps_per_round"),
         ({"window_rounds": 0}, "window_rounds"),
+        ({"rounds_share": 0.0}, "rounds_share"),
+        ({"rounds_share": 1.0}, "rounds_share"),
+        ({"rounds_share": True}, "rounds_share"),
+        ({"rounds_share": "half"}, "rounds_share"),
+        ({"rounds_share": 0.5, "aggregate_bc_data": False}, "rounds_share needs aggregate_bc_data"),
     ],
 )
 def test_config_errors_name_the_parameter(kwargs, name):
     with pytest.raises(ValueError, match=name):
         DAggerConfig(**kwargs)
+
+
+def test_retraining_batches_are_drawn_as_before_without_a_rounds_share():
+    from spf_rl.train.dagger import retraining_order
+
+    sizes, steps, batch = torch.tensor([37, 9, 11]), 13, 8
+    order = retraining_order(sizes, steps, batch, torch.Generator().manual_seed(5))
+    generator = torch.Generator().manual_seed(5)  # the draw every earlier run made: passes over all rows
+    total = int(sizes.sum())
+    passes = -(-steps * batch // total)
+    before = torch.cat([torch.randperm(total, generator=generator) for _ in range(passes)])
+    assert torch.equal(order, torch.stack([before[step * batch : (step + 1) * batch] for step in range(steps)]))
+
+
+@pytest.mark.parametrize("share, from_rounds", [(0.5, 4), (0.25, 2), (0.01, 1), (0.99, 7)])
+def test_a_rounds_share_fixes_each_batchs_part_of_round_episodes(share, from_rounds):
+    from spf_rl.train.dagger import retraining_order
+
+    sizes, steps, batch = torch.tensor([40, 6, 6]), 15, 8
+    order = retraining_order(sizes, steps, batch, torch.Generator().manual_seed(1), rounds_share=share)
+    assert order.shape == (steps, batch) and int(order.min()) >= 0 and int(order.max()) < 52
+    assert (order >= 40).sum(1).tolist() == [from_rounds] * steps  # every batch: its share of the rounds
+    # each part: passes without replacement over its rows (the batches that lie within a first pass repeat none)
+    for rows, count, per_batch in ((order[order < 40], 40, batch - from_rounds), (order[order >= 40], 12, from_rounds)):
+        first_pass = rows[: count // per_batch * per_batch].tolist()
+        assert len(set(first_pass)) == len(first_pass) > 0
+    again = retraining_order(sizes, steps, batch, torch.Generator().manual_seed(1), rounds_share=share)
+    assert torch.equal(order, again)
 
 
 def tiny_config(tmp_path, checkpoint, **overrides) -> DAggerConfig:
@@ -446,7 +479,8 @@ def test_random_sparsity_rounds_do_not_depend_on_the_global_rng(tmp_path):
 def test_a_run_grows_an_anchor_and_trains_it_on_changed_worlds_and_mismatched_memories(tmp_path):
     """DAgger from a checkpoint without an anchor, ``anchor_radius`` set: rounds of a route style (the
     pointer and anchor labels) repeated under a condition with mismatched memories, retrained beside BC data
-    of the teaching world (batches mix the two layouts); the kept weights anchor."""
+    of the teaching world (every batch half of each, ``rounds_share``: it mixes the two layouts); the kept
+    weights anchor."""
     from spf_rl.data import DatasetConfig
     from spf_rl.train.run import OptimConfig
 
@@ -459,8 +493,10 @@ def test_a_run_grows_an_anchor_and_trains_it_on_changed_worlds_and_mismatched_me
     bc_data = DatasetConfig(episodes=episodes.replace(conditions=None, memory_mismatch=None), num_episodes=4, chunk_size=4, num_agents=4)
     run = tiny_config(tmp_path, tmp_path / "start.pt", rounds=1, anchor_radius=3, env=CollectionEnvConfig(episodes=episodes),
                       optim=OptimConfig(lr=3e-4, cosine_schedule=False, pointer_coef=0.1, batch_size=8),
-                      aggregate_bc_data=True, bc_data=bc_data, bc_data_dir=str(tmp_path / "bc"), num_workers=1)
+                      aggregate_bc_data=True, bc_data=bc_data, bc_data_dir=str(tmp_path / "bc"), num_workers=1,
+                      rounds_share=0.5)
     results = train_dagger(run)
+    assert json.loads((tmp_path / "dagger" / "config.json").read_text())["rounds_share"] == 0.5
     kept = load_checkpoint(tmp_path / "dagger" / "best.pt")
     last = load_checkpoint(tmp_path / "dagger" / "last.pt")
     assert kept["model_config"].anchor_radius == 3 and last["model_config"].anchor_radius == 3

@@ -291,3 +291,15 @@ def test_the_normalized_preset_differs_from_the_anchor_one_in_the_frames_alone()
         load_config(DAggerConfig, "dagger", ["normalize_frames=maybe"], preset="dagger_routes_robust_normalized")
     with pytest.raises(ValueError, match="normalize_frames must be true, false or None"):
         DAggerConfig(normalize_frames=2)
+
+
+def test_the_share_preset_differs_from_the_normalized_one_in_the_rounds_share_alone():
+    from spf_rl.train.dagger import DAggerConfig
+
+    normalized = load_config(DAggerConfig, "dagger", ["seed=2"], preset="dagger_routes_robust_normalized")
+    share = load_config(DAggerConfig, "dagger", ["seed=2"], preset="dagger_routes_robust_share")
+    assert share.rounds_share == 0.5 and normalized.rounds_share is None
+    assert share.output_dir == "runs/dagger_routes_robust_share/spf_random-seed2"
+    assert dataclasses.replace(share, rounds_share=None, output_dir=normalized.output_dir) == normalized
+    with pytest.raises(ValueError, match="rounds_share"):
+        load_config(DAggerConfig, "dagger", ["rounds_share=2"], preset="dagger_routes_robust_share")

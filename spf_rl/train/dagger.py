@@ -184,6 +184,11 @@ class DAggerConfig:
             passes over the training episodes). 500 by default.
         window_rounds: train on the episodes of the latest this many rounds (plus the BC
             data); ``None``: every round so far. 4 by default (about 1,000 learner episodes).
+        rounds_share: the share of every retraining batch drawn from the window of rounds, the rest
+            from the BC data (each part without replacement, pass after pass; needs
+            ``aggregate_bc_data``), so that the learner's own episodes weigh as much as the run asks
+            whatever the BC data's size. ``None`` (default): every episode of the pool equally likely
+            (the window is then about a fifth of a batch beside 4,000 BC episodes).
         test_every_round: also score every round on the test split (else only
             the start and the final best model).
         num_workers: processes building the BC dataset, if it is missing.
@@ -215,6 +220,7 @@ class DAggerConfig:
     epochs_per_round: int = 1
     steps_per_round: int | None = 500
     window_rounds: int | None = 4
+    rounds_share: float | None = None
     test_every_round: bool = True
     num_workers: int = 2
     logger: str = "csv"
@@ -237,6 +243,11 @@ class DAggerConfig:
                 raise ValueError(f"{name} must be a positive int or None, got {value!r}.")
         if self.normalize_frames is not None and not isinstance(self.normalize_frames, bool):
             raise ValueError(f"normalize_frames must be true, false or None (the checkpoint's own), got {self.normalize_frames!r}.")
+        if self.rounds_share is not None:
+            if isinstance(self.rounds_share, bool) or not isinstance(self.rounds_share, (int, float)) or not 0.0 < self.rounds_share < 1.0:
+                raise ValueError(f"rounds_share must be in (0, 1) or None (every episode equally likely), got {self.rounds_share!r}.")
+            if not self.aggregate_bc_data:
+                raise ValueError("rounds_share needs aggregate_bc_data: true (it shares each batch between the BC data and the rounds).")
         for name in ("beta0", "beta_decay"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)!r}.")
@@ -585,6 +596,43 @@ def _play_round(
         policy.train()
 
 
+def retraining_order(sizes: torch.Tensor, steps: int, batch_size: int, generator: torch.Generator,
+                     rounds_share: float | None = None) -> torch.Tensor:
+    """The rows of each retraining batch, ``[steps, batch_size]``, over the training sources laid end to end
+    (``sizes``: their episode counts, the BC data's first).
+
+    ``rounds_share`` ``None``: every row equally likely, drawn without replacement, pass after pass over
+    all of them. Otherwise ``round(rounds_share * batch_size)`` rows of every batch (at least one, and at
+    least one of the BC data) come from the sources after the first, the rest from the first, each part
+    without replacement pass after pass over its own rows, in an order shuffled within the batch.
+
+    Examples:
+        >>> order = retraining_order(torch.tensor([90, 10]), steps=20, batch_size=10, generator=torch.Generator().manual_seed(0))
+        >>> order.shape, round(float((order >= 90).float().mean()), 2)  # the rounds: a tenth of the rows
+        (torch.Size([20, 10]), 0.1)
+        >>> shared = retraining_order(torch.tensor([90, 10]), 20, 10, torch.Generator().manual_seed(0), rounds_share=0.5)
+        >>> (shared >= 90).sum(1).tolist() == [5] * 20  # half of every batch
+        True
+    """
+    total = int(sizes.sum())
+    if rounds_share is None:
+        passes = -(-steps * batch_size // total)
+        order = torch.cat([torch.randperm(total, generator=generator) for _ in range(passes)])
+        return order[: steps * batch_size].reshape(steps, batch_size)
+    first = int(sizes[0])
+    from_rounds = min(max(round(rounds_share * batch_size), 1), batch_size - 1)
+
+    def passes_over(count: int, per_batch: int) -> torch.Tensor:
+        needed = -(-steps * per_batch // count)
+        return torch.cat([torch.randperm(count, generator=generator) for _ in range(needed)])[: steps * per_batch]
+
+    bc = passes_over(first, batch_size - from_rounds).reshape(steps, -1)
+    rounds = (passes_over(total - first, from_rounds) + first).reshape(steps, -1)
+    rows = torch.cat([bc, rounds], 1)
+    shuffle = torch.stack([torch.randperm(batch_size, generator=generator) for _ in range(steps)])
+    return torch.gather(rows, 1, shuffle)
+
+
 def _train_round(
     run: TrainingRun,
     sources: list[EpisodeDataset | RoundStore],
@@ -607,12 +655,12 @@ def _train_round(
     total, batch_size = int(offsets[-1]), config.optim.batch_size
     steps = config.steps_per_round or config.epochs_per_round * -(-total // batch_size)
     generator = torch.Generator().manual_seed(config.seed * 100_003 + round_index * 101)
-    passes = -(-steps * batch_size // total)
-    order = torch.cat([torch.randperm(total, generator=generator) for _ in range(passes)])
+    rounds_share = config.rounds_share if config.aggregate_bc_data and len(sources) > 1 else None
+    order = retraining_order(sizes, steps, batch_size, generator, rounds_share)
 
     def batches():
         for step in range(steps):
-            rows = shard_indices(order[step * batch_size : (step + 1) * batch_size], ranks)
+            rows = shard_indices(order[step], ranks)
             source_of_row = torch.searchsorted(offsets, rows, right=True)
             yield torch.cat([
                 source_rows(sources[k], rows[source_of_row == k] - (offsets[k] - sizes[k]))
