@@ -19,6 +19,7 @@ from spf_rl.records_cache import from_columns, records_key, write_records
 from spf_rl.train.collection import CollectionEnvConfig, CollectorConfig
 from spf_rl.train.dagger import DAggerConfig, ExpertMixturePolicy, train_dagger
 from spf_rl.train.dagger_rounds import RoundConfig, RoundError, RoundStore
+from spf_rl.train.run import OptimConfig
 
 
 def constant_learner(action: int) -> TensorDictModule:
@@ -78,6 +79,7 @@ def test_mixture_refuses_bad_beta():
         ({"rounds_share": True}, "rounds_share"),
         ({"rounds_share": "half"}, "rounds_share"),
         ({"rounds_share": 0.5, "aggregate_bc_data": False}, "rounds_share needs aggregate_bc_data"),
+        ({"rounds_share": 0.5, "optim": OptimConfig(batch_size=1)}, "rounds_share needs optim.batch_size >= 2"),
     ],
 )
 def test_config_errors_name_the_parameter(kwargs, name):
@@ -476,13 +478,12 @@ def test_random_sparsity_rounds_do_not_depend_on_the_global_rng(tmp_path):
     assert all(torch.equal(a[k], b[k]) for k in a)
 
 
-def test_a_run_grows_an_anchor_and_trains_it_on_changed_worlds_and_mismatched_memories(tmp_path):
+def test_a_run_grows_an_anchor_and_trains_it_on_changed_worlds_and_mismatched_memories(tmp_path, monkeypatch):
     """DAgger from a checkpoint without an anchor, ``anchor_radius`` set: rounds of a route style (the
     pointer and anchor labels) repeated under a condition with mismatched memories, retrained beside BC data
     of the teaching world (every batch half of each, ``rounds_share``: it mixes the two layouts); the kept
     weights anchor."""
     from spf_rl.data import DatasetConfig
-    from spf_rl.train.run import OptimConfig
 
     torch.manual_seed(0)
     config = SPFConfig(demo_length=12, feature_dim=8, hidden_size=8, image_size=(32, 32), pointer_update="rpf", sparsity_range=(0.2, 1.0))
@@ -495,8 +496,22 @@ def test_a_run_grows_an_anchor_and_trains_it_on_changed_worlds_and_mismatched_me
                       optim=OptimConfig(lr=3e-4, cosine_schedule=False, pointer_coef=0.1, batch_size=8),
                       aggregate_bc_data=True, bc_data=bc_data, bc_data_dir=str(tmp_path / "bc"), num_workers=1,
                       rounds_share=0.5)
+    from spf_rl.train import dagger as dagger_module
+
+    orders = []
+
+    def recorded(sizes, steps, batch_size, generator, rounds_share=None):
+        order = real_order(sizes, steps, batch_size, generator, rounds_share)
+        orders.append((sizes.tolist(), rounds_share, order))
+        return order
+
+    real_order = dagger_module.retraining_order
+    monkeypatch.setattr(dagger_module, "retraining_order", recorded)
     results = train_dagger(run)
     assert json.loads((tmp_path / "dagger" / "config.json").read_text())["rounds_share"] == 0.5
+    (sizes, share, order), = orders  # one round: its batches drew half from the round's episodes
+    assert sizes[0] == 4 and len(sizes) == 2 and share == 0.5
+    assert (order >= 4).sum(1).tolist() == [4] * len(order)
     kept = load_checkpoint(tmp_path / "dagger" / "best.pt")
     last = load_checkpoint(tmp_path / "dagger" / "last.pt")
     assert kept["model_config"].anchor_radius == 3 and last["model_config"].anchor_radius == 3

@@ -210,6 +210,17 @@ def test_every_model_is_paired_with_the_reference_per_world():
     assert table[0] == "**test**: success minus old's" and table[2] == "| world | new |"
     difference = worlds["light@1.0"]["new"]["vs_reference"]["success"]["difference"]
     assert table[5].startswith(f"| light@1.0 | {difference:+.2f} [")
+    # a seed group is never paired with one of its own seeds, nor a seed with its group
+    grouped = {key: {**cell, "models": {"open_loop": cell["models"]["open_loop"], "r/m-seed0": cell["models"]["old"],
+                                        "r/m-seed1": cell["models"]["new"], "other": cell["models"]["new"]}}
+               for key, cell in cells.items()}
+    labels = {"open_loop": {}, "r/m-seed0": {}, "r/m-seed1": {}, "other": {}}
+    for reference, paired, unpaired in (("r/m-seed0", {"r/m-seed1", "other"}, {"r/m (2 seeds)"}),
+                                        ("r/m (2 seeds)", {"other"}, {"r/m-seed0", "r/m-seed1"})):
+        setup_g = {"models": labels, "seed_groups": {"r/m (2 seeds)": ["r/m-seed0", "r/m-seed1"]}, "reference": reference}
+        rows = route_bench.by_world({"setup": setup_g, "cells": grouped}, num_resamples=100)["test"]["none"]
+        assert {label for label, row in rows.items() if "vs_reference" in row} == paired
+        assert not unpaired & {label for label, row in rows.items() if "vs_reference" in row}
     # without a reference the rows are as before
     plain = route_bench.by_world({"setup": {"models": setup["models"]}, "cells": cells}, num_resamples=300)["test"]
     assert not any("vs_reference" in row for rows in plain.values() for row in rows.values())

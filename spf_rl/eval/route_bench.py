@@ -742,10 +742,14 @@ def check_reference(reference: str, models: Sequence[str]) -> str:
         'a/best'
         >>> check_reference("r/a (2 seeds)", ["r/a-seed0", "r/a-seed1"])
         'r/a (2 seeds)'
+        >>> check_reference("./runs/a/best.pt", ["runs/a/best.pt"])  # the same file, spelt otherwise
+        'a/best'
     """
     labels = {model: label_of(model) for model in models}
     if reference in labels:
         return labels[reference]
+    if label_of(reference) in labels.values():  # the same file, spelt otherwise
+        return label_of(reference)
     allowed = list(labels.values()) + list(seed_groups(list(labels.values())))
     if reference not in allowed:
         raise ValueError(f"argument --reference: {reference!r} is not a model of this run; allowed: {', '.join(allowed)}")
@@ -758,7 +762,8 @@ def by_world(content: dict, num_resamples: int) -> dict:
     difference from open-loop replay on the same episodes (a seed group: each episode's scores averaged
     over its seeds first): ``{set: {world: {label: {"success", "ndtw", "episodes", "vs_open_loop"}}}}``.
     With a ``reference`` in the set-up (``--reference``), every other model's row also has
-    ``vs_reference``: the same paired difference from the reference.
+    ``vs_reference``: the same paired difference from the reference (but a row that shares a seed with
+    it: the reference's own seed group, or a member of the reference group).
 
     Examples:
         >>> cells = {"a": {"set": "test", "world": "light@1.0=1.0", "stats": {}, "episodes": {"house_seed": [0, 0, 1, 1]},
@@ -770,6 +775,10 @@ def by_world(content: dict, num_resamples: int) -> dict:
     """
     setup = content["setup"]
     reference = setup.get("reference")
+    groups_of = {label: set(members) for label, members in {**{label: [label] for label in setup["models"]},
+                                                            **setup.get("seed_groups", {})}.items()}
+    # a model is never paired with a reference that shares its seeds (a group with one of its own members)
+    overlaps = groups_of.get(reference, {reference})
     groups = {label: [label] for label in setup["models"]}
     groups.update(setup.get("seed_groups", {}))
     pooled: dict = {}
@@ -803,7 +812,7 @@ def by_world(content: dict, num_resamples: int) -> dict:
                                    "ci": list(hierarchical_bootstrap_ci(values, houses, DEFAULT_CONFIDENCE, num_resamples))}
                 if label != OPEN_LOOP and floor is not None:
                     row["vs_open_loop"] = paired_against(columns, floor, houses, num_resamples)
-                if against is not None and label not in (OPEN_LOOP, reference):
+                if against is not None and label != OPEN_LOOP and not groups_of.get(label, {label}) & overlaps:
                     row["vs_reference"] = paired_against(columns, against, houses, num_resamples)
                 out.setdefault(set_name, {}).setdefault(world, {})[label] = row
     return out
@@ -1027,15 +1036,17 @@ def run_bench(options: BenchOptions, models: list[BenchModel] | None = None) -> 
     content["table"] = format_table(content)
     content["table_by_model"] = format_by_model(content)
     content["by_style"] = by_style(content)
-    if options.conditions != (None,) or options.reference is not None:
+    worlds = options.conditions != (None,)
+    if worlds or options.reference is not None:
         content["by_world"] = by_world(content, options.num_resamples)
+    if worlds:
         content["table_by_world"] = format_by_world(content["by_world"], report_labels(content["setup"]))
     if options.reference is not None:
         content["table_vs_reference"] = format_vs_reference(content["by_world"], report_labels(content["setup"]),
                                                             options.reference)
     from spf_rl.viz import plot_if_available
 
-    plot = plot_worlds if "by_world" in content else plot_bench
+    plot = plot_worlds if worlds else plot_bench
     figure = plot_if_available(plot, content, out.with_suffix(".png"))
     content["figure"] = None if figure is None else str(figure)
     atomic_write_json(out, content, indent=1)

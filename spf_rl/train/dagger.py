@@ -248,6 +248,8 @@ class DAggerConfig:
                 raise ValueError(f"rounds_share must be in (0, 1) or None (every episode equally likely), got {self.rounds_share!r}.")
             if not self.aggregate_bc_data:
                 raise ValueError("rounds_share needs aggregate_bc_data: true (it shares each batch between the BC data and the rounds).")
+            if self.optim.batch_size < 2:
+                raise ValueError(f"rounds_share needs optim.batch_size >= 2 (a row of each part), got {self.optim.batch_size}.")
         for name in ("beta0", "beta_decay"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)!r}.")
@@ -657,6 +659,9 @@ def _train_round(
     generator = torch.Generator().manual_seed(config.seed * 100_003 + round_index * 101)
     rounds_share = config.rounds_share if config.aggregate_bc_data and len(sources) > 1 else None
     order = retraining_order(sizes, steps, batch_size, generator, rounds_share)
+    if rounds_share is not None:
+        logger.info("round %d retraining: %d of every batch of %d from the rounds (rounds_share %g)", round_index,
+                    int((order[0] >= int(sizes[0])).sum()), batch_size, rounds_share)
 
     def batches():
         for step in range(steps):
