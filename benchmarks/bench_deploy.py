@@ -19,7 +19,10 @@ Exports ``--model`` (default ``spf-s0.8``) in float32 and int8 weights (:mod:`sp
   route bench's test cells (every style x length bucket), per cell and pooled, at each sparsity of
   :data:`ROUTE_SPARSITIES` (``{"sparsity_0.8": ..., "sparsity_0.4": ...}``), and the float32 export's
   per-episode success against the eager checkpoint's (the route bench's records of it)
-  (``--only-routes``: this alone, merged into the earlier output).
+  (``--only-routes``: this alone, merged into the earlier output);
+* ``budget_curve``: Table 1's test success of SPF at sparsity 0.4-1 against the bytes kept per metre of
+  route (``--only-budget``: this alone, from the earlier output's ``memory`` and the current
+  ``results/table1.json``, merged into it: after Table 1 is rescored).
 
 Writes ``benchmarks/results/deploy.json``. ARM boards (a Jetson, a Raspberry Pi) are not measured here.
 
@@ -28,6 +31,7 @@ Usage::
     python benchmarks/bench_deploy.py                         # everything (minutes; success on 1,000 episodes)
     python benchmarks/bench_deploy.py --episodes 0 --route-episodes 0 --steps 500   # bytes and latency only
     python benchmarks/bench_deploy.py --only-routes             # routes-spf's route-bench cells at each precision
+    python benchmarks/bench_deploy.py --only-budget             # the budget curve again, after Table 1 changed
 """
 from __future__ import annotations
 
@@ -346,7 +350,9 @@ def shipped_seed(model: str) -> int | None:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    from spf_rl.cli import ArgumentParser  # a refused argument: its message alone, exit status 2
+
+    parser = ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--model", default="spf-s0.8", help="a shipped name (default: %(default)s)")
     parser.add_argument("--exports", type=Path, default=Path("exports"), help="where the exports go (default: %(default)s)")
     parser.add_argument("--steps", type=int, default=2000, help="timed steps per latency figure (default: %(default)s)")
@@ -355,8 +361,20 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--route-model", default="routes-spf", help="the route model whose route-bench cells are played at each precision (default: %(default)s)")
     parser.add_argument("--route-episodes", type=int, default=128, help="episodes per route-bench cell for --route-model (0: none; default: %(default)s)")
     parser.add_argument("--only-routes", action="store_true", help="only the route model's success at each precision, merged into --output")
+    parser.add_argument("--only-budget", action="store_true",
+                        help="only the budget curve, from --output's memory rows and results/table1.json, merged into --output")
     parser.add_argument("--output", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
+    if args.only_budget:  # no export, no episode: the earlier output's bytes against the current Table 1
+        earlier = json.loads(args.output.read_text()) if args.output.is_file() else {}
+        if not earlier.get("memory"):
+            parser.error(f"--only-budget needs an earlier --output with its memory rows; {args.output} has none")
+        curve = budget_curve(earlier["memory"], args.output.with_suffix(".png"))
+        if curve is None:
+            parser.error("--only-budget needs results/table1.json and " + str(ROUTE_METRES_SOURCE))
+        earlier["budget_curve"] = curve
+        atomic_write_json(args.output, earlier, default=str)
+        return earlier
     if args.steps < 1 or args.warmup < 0 or args.episodes < 0 or args.route_episodes < 0:
         parser.error("--steps must be >= 1, --warmup, --episodes and --route-episodes >= 0")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")

@@ -48,3 +48,25 @@ def test_the_route_models_cells_at_each_precision_merge_into_the_output(tmp_path
     assert list(routes["pooled_by_length"]) == ["10-30", "31-60", "61-100"]
     assert all(row["episodes"] == 3 for bucket in routes["pooled_by_length"].values() for row in bucket.values())
     assert "vs_fp32" in pooled["fp32-weights-int8-memory"] and "vs_fp32" not in pooled["fp32-weights-float32-memory"]
+
+
+def test_the_budget_curve_alone_is_redrawn_from_the_earlier_memory_rows(tmp_path, capsys):
+    import bench_deploy
+
+    out = tmp_path / "deploy.json"
+    with pytest.raises(SystemExit) as info:  # nothing earlier to draw from
+        bench_deploy.main(["--only-budget", "--output", str(out)])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and ": error: --only-budget needs an earlier --output" in err
+    assert "usage" not in err  # the message alone
+    memory = [{"route_steps": 30, "sparsity": s, "raw_frames_bytes": 1000 * s, "float32_bytes": 100 * s, "int8_bytes": 25 * s}
+              for s in (0.4, 0.6, 0.8, 1.0)]
+    out.write_text(json.dumps({"model": "spf-s0.8", "memory": memory, "latency": [1]}))
+    result = bench_deploy.main(["--only-budget", "--output", str(out)])
+    table = {row["name"]: row for row in json.loads(open("results/table1.json").read())["rows"]}
+    saved = json.loads(out.read_text())
+    assert saved["latency"] == [1] and saved["budget_curve"] == result["budget_curve"]  # the rest kept
+    points = {p["line"]: p for p in saved["budget_curve"]["points"]}
+    assert points["spf-s0.4"]["test_success"] == table["spf-s0.4"]["sets"]["test"]["success"]["mean"]
+    metres = saved["budget_curve"]["route_metres_mean"]
+    assert points["rpf-s1"]["int8_bytes_per_metre"] == pytest.approx(25 / metres)
