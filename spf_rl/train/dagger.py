@@ -616,18 +616,16 @@ def retraining_order(sizes: torch.Tensor, steps: int, batch_size: int, generator
         >>> (shared >= 90).sum(1).tolist() == [5] * 20  # half of every batch
         True
     """
-    total = int(sizes.sum())
-    if rounds_share is None:
-        passes = -(-steps * batch_size // total)
-        order = torch.cat([torch.randperm(total, generator=generator) for _ in range(passes)])
-        return order[: steps * batch_size].reshape(steps, batch_size)
-    first = int(sizes[0])
-    from_rounds = min(max(round(rounds_share * batch_size), 1), batch_size - 1)
-
     def passes_over(count: int, per_batch: int) -> torch.Tensor:
+        """``steps * per_batch`` of ``count`` rows: passes without replacement, one after another."""
         needed = -(-steps * per_batch // count)
         return torch.cat([torch.randperm(count, generator=generator) for _ in range(needed)])[: steps * per_batch]
 
+    total = int(sizes.sum())
+    if rounds_share is None:
+        return passes_over(total, batch_size).reshape(steps, batch_size)
+    first = int(sizes[0])
+    from_rounds = min(max(round(rounds_share * batch_size), 1), batch_size - 1)
     bc = passes_over(first, batch_size - from_rounds).reshape(steps, -1)
     rounds = (passes_over(total - first, from_rounds) + first).reshape(steps, -1)
     rows = torch.cat([bc, rounds], 1)
@@ -657,7 +655,7 @@ def _train_round(
     total, batch_size = int(offsets[-1]), config.optim.batch_size
     steps = config.steps_per_round or config.epochs_per_round * -(-total // batch_size)
     generator = torch.Generator().manual_seed(config.seed * 100_003 + round_index * 101)
-    rounds_share = config.rounds_share if config.aggregate_bc_data and len(sources) > 1 else None
+    rounds_share = config.rounds_share if len(sources) > 1 else None  # the BC data and at least one round
     order = retraining_order(sizes, steps, batch_size, generator, rounds_share)
     if rounds_share is not None:
         logger.info("round %d retraining: %d of every batch of %d from the rounds (rounds_share %g)", round_index,
