@@ -35,6 +35,7 @@ from envs.atomic_io import atomic_write_json
 from spf_rl.checkpoint import file_sha256
 from spf_rl.modules.anchor import reanchor
 from spf_rl.modules.policy import SPFPolicy
+from spf_rl.modules.replay_gate import fall_back
 
 logger = logging.getLogger(__name__)
 
@@ -106,6 +107,7 @@ class StepGraph(nn.Module):
         self.paper_rule = policy.cell.pointer_update == "paper"
         self.gru, self.logits_head, self.pointer_head = policy.cell.gru, policy.cell.logits_head, policy.cell.pointer_head
         self.anchor, self.anchor_gate, self.anchor_radius = policy.attention.anchor, policy.cell.anchor_gate, policy.cell.anchor_radius
+        self.replay_gate = policy.cell.replay_gate
 
     def forward(self, frame, memory, slot_indices, demo_actions, route_length, eta, hidden):
         num_actions = self.num_actions
@@ -131,20 +133,22 @@ class StepGraph(nn.Module):
             positions = centre + offsets
             valid = (positions >= 0) & (positions <= last)
             picked = actions.gather(-1, torch.minimum(positions.clamp(min=0), last))
-            window = (_one_hot(picked, num_actions, eta.dtype) * valid.unsqueeze(-1).to(eta.dtype)).flatten(-2)
-            parts.append(window)
+            window = _one_hot(picked, num_actions, eta.dtype) * valid.unsqueeze(-1).to(eta.dtype)
+            parts.append(window.flatten(-2))
             if self.soft:  # action-only: the soft action memory over the whole route
                 steps = torch.arange(actions.shape[-1], device=eta.device).unsqueeze(0)
                 on_route = steps <= last
                 soft = torch.exp(-(eta - steps.to(eta.dtype)).abs()).masked_fill(~on_route, 0.0)
                 parts.append((soft.unsqueeze(-1) * _one_hot(actions.masked_fill(~on_route, 0), num_actions, eta.dtype)).sum(-2))
             mu = self.psi(torch.cat(parts, -1))
-        hidden_next = self.gru(torch.cat([mu, phi] + ([] if window is None else [window]), -1), hidden.to(phi.dtype))
+        hidden_next = self.gru(torch.cat([mu, phi] + ([] if window is None else [window.flatten(-2)]), -1), hidden.to(phi.dtype))
         logits = self.logits_head(hidden_next)
         increment = torch.tanh(self.pointer_head(hidden_next))
         eta_next = eta + increment if self.paper_rule else torch.minimum(eta + 1.0 + increment, last.to(eta.dtype))
         if anchor:
             eta_next = reanchor(eta_next, eta, *anchor, hidden_next, self.anchor_gate, self.anchor_radius)
+            if self.replay_gate is not None:  # toward blind replay where the memory disagrees (spf_rl.modules.replay_gate)
+                logits, eta_next = fall_back(logits, eta_next, eta, window, anchor[1], hidden_next, self.replay_gate)
             if not self.paper_rule:
                 eta_next = torch.minimum(eta_next, last.to(eta.dtype))
         return logits, eta_next.reshape(-1), hidden_next

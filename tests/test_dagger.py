@@ -478,11 +478,11 @@ def test_random_sparsity_rounds_do_not_depend_on_the_global_rng(tmp_path):
     assert all(torch.equal(a[k], b[k]) for k in a)
 
 
-def test_a_run_grows_an_anchor_and_trains_it_on_changed_worlds_and_mismatched_memories(tmp_path, monkeypatch):
-    """DAgger from a checkpoint without an anchor, ``anchor_radius`` set: rounds of a route style (the
-    pointer and anchor labels) repeated under a condition with mismatched memories, retrained beside BC data
-    of the teaching world (every batch half of each, ``rounds_share``: it mixes the two layouts); the kept
-    weights anchor."""
+def test_a_run_grows_an_anchor_and_a_replay_gate_and_trains_them_on_changed_worlds_and_mismatched_memories(tmp_path, monkeypatch):
+    """DAgger from a checkpoint without an anchor, ``anchor_radius`` and ``replay_gate`` set: rounds of a route
+    style (the pointer and anchor labels) repeated under a condition with mismatched memories, retrained beside
+    BC data of the teaching world (every batch half of each, ``rounds_share``: it mixes the two layouts); the
+    kept weights anchor and gate, and the gate trained."""
     from spf_rl.data import DatasetConfig
 
     torch.manual_seed(0)
@@ -495,7 +495,7 @@ def test_a_run_grows_an_anchor_and_trains_it_on_changed_worlds_and_mismatched_me
     run = tiny_config(tmp_path, tmp_path / "start.pt", rounds=1, anchor_radius=3, env=CollectionEnvConfig(episodes=episodes),
                       optim=OptimConfig(lr=3e-4, cosine_schedule=False, pointer_coef=0.1, batch_size=8),
                       aggregate_bc_data=True, bc_data=bc_data, bc_data_dir=str(tmp_path / "bc"), num_workers=1,
-                      rounds_share=0.5)
+                      rounds_share=0.5, replay_gate=True)
     from spf_rl.train import dagger as dagger_module
 
     orders = []
@@ -515,7 +515,9 @@ def test_a_run_grows_an_anchor_and_trains_it_on_changed_worlds_and_mismatched_me
     kept = load_checkpoint(tmp_path / "dagger" / "best.pt")
     last = load_checkpoint(tmp_path / "dagger" / "last.pt")
     assert kept["model_config"].anchor_radius == 3 and last["model_config"].anchor_radius == 3
+    assert kept["model_config"].replay_gate and last["model_config"].replay_gate
     assert any(key.startswith("cell.anchor_gate") for key in last["model"])
+    assert not torch.equal(last["model"]["cell.replay_gate.weight"], torch.zeros_like(last["model"]["cell.replay_gate.weight"]))
     assert results["history"][-1]["train_pointer_loss"] > 0
-    shipped = {key: value for key, value in last["model"].items() if "anchor" not in key}
+    shipped = {key: value for key, value in last["model"].items() if "anchor" not in key and "replay_gate" not in key}
     assert any(not torch.equal(value, start.state_dict()[key]) for key, value in shipped.items())  # trained on

@@ -36,6 +36,9 @@ CASES = {
     "spf_random-anchor-normalized": (
         "spf_random", {"sparsity_range": (0.2, 1.0), "pointer_update": "rpf", "anchor_radius": 2, "normalize_frames": True}
     ),
+    "spf_random-anchor-replay-gate": (
+        "spf_random", {"sparsity_range": (0.2, 1.0), "pointer_update": "rpf", "anchor_radius": 2, "replay_gate": True}
+    ),
 }
 
 

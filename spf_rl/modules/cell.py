@@ -26,6 +26,7 @@ from torchrl.envs import TensorDictPrimer
 
 from spf_rl.modules.anchor import anchor_gate, reanchor
 from spf_rl.modules.config import POINTER_UPDATES
+from spf_rl.modules.replay_gate import fall_back, replay_gate_layer
 from spf_rl.modules.td_utils import (
     ANCHOR_CONFIDENCE_KEY,
     ANCHOR_KEY,
@@ -61,6 +62,9 @@ class SPFCell(TensorDictModuleBase):
         anchor_radius (float, optional): re-anchor the next pointer on the anchor the attention
             found (:func:`~spf_rl.modules.anchor.reanchor`, a learned gate), reading ``anchor``
             and ``anchor_confidence``; ``None`` (default): the rule alone.
+        replay_gate (bool): move the action distribution and the pointer toward blind replay of the
+            demonstrated actions by a learned gate on the anchor's confidence
+            (:mod:`spf_rl.modules.replay_gate`; needs ``anchor_radius``). ``False`` (default): no gate.
 
     Keyword Args:
         mu_key, pixel_features_key, action_window_key, eta_used_key, is_init_key (NestedKey): inputs.
@@ -96,6 +100,7 @@ class SPFCell(TensorDictModuleBase):
         initial_pointer_step: float = 0.0,
         head_hidden: int | None = None,
         anchor_radius: float | None = None,
+        replay_gate: bool = False,
         *,
         mu_key: NestedKey = "mu",
         pixel_features_key: NestedKey = "pixel_features",
@@ -114,6 +119,8 @@ class SPFCell(TensorDictModuleBase):
         if pointer_update not in POINTER_UPDATES:
             raise ValueError(f"pointer_update must be one of {POINTER_UPDATES}, got {pointer_update!r}.")
         self.hidden_size, self.num_actions, self.demo_length = hidden_size, num_actions, demo_length
+        if replay_gate and anchor_radius is None:
+            raise ValueError("replay_gate needs anchor_radius: the gate reads the anchor's confidence.")
         self.pointer_update = pointer_update
         self.gru = nn.GRUCell(sum(input_dims), hidden_size)
         self.logits_head = _head(hidden_size, num_actions, head_hidden)
@@ -129,6 +136,7 @@ class SPFCell(TensorDictModuleBase):
         self.demo_steps_key = demo_steps_key
         self.anchor_radius = None if anchor_radius is None else float(anchor_radius)
         self.anchor_gate = None if anchor_radius is None else anchor_gate(hidden_size)
+        self.replay_gate = replay_gate_layer(hidden_size) if replay_gate else None
         self.anchor_key, self.anchor_confidence_key = anchor_key, anchor_confidence_key
         self.in_keys = [mu_key, pixel_features_key, action_window_key, eta_used_key, is_init_key, hidden_key] + (
             [demo_steps_key] if demo_steps_key is not None else []
@@ -170,6 +178,8 @@ class SPFCell(TensorDictModuleBase):
             if place is None or confidence is None:
                 raise ValueError("this cell re-anchors its pointer: step() needs the anchor's place and confidence.")
             eta_next = reanchor(eta_next, eta, place, confidence, h_next, self.anchor_gate, self.anchor_radius)
+            if self.replay_gate is not None:
+                logits, eta_next = fall_back(logits, eta_next, eta, window, confidence, h_next, self.replay_gate)
             if self.pointer_update == "rpf":  # the rule's cap holds after the anchor too
                 last = float(self.demo_length - 1) if lengths is None else (lengths.to(eta.device) - 1).to(eta.dtype)
                 eta_next = torch.minimum(eta_next, torch.as_tensor(last, dtype=eta.dtype, device=eta.device))

@@ -28,7 +28,7 @@ MEMORY_MODES = ("sparse", "full", "none")
 #: Memory networks: SPF's (psi over attended features + action window) or the RPF lab code's.
 ARCHITECTURES = ("spf", "rpf_original")
 #: Fields of :class:`SPFConfig` added after models were shipped: kept in its dict only when not at their default.
-OPTIONAL_FIELDS = ("anchor_radius", "normalize_frames")
+OPTIONAL_FIELDS = ("anchor_radius", "normalize_frames", "replay_gate")
 #: Sparsity used by the full-memory (RPF) baseline.
 FULL_MEMORY_SPARSITY = 1.0
 
@@ -89,6 +89,10 @@ class SPFConfig:
             (:func:`~spf_rl.modules.encoder.normalize_frames`), the current one and the memory's:
             a change of exposure or light colour then does not reach the features. ``False``
             (default): raw frames, as the paper. Not in the SPF paper.
+        replay_gate (bool): a learned gate on the anchor's confidence moves the action distribution
+            and the pointer toward blind replay of the demonstrated actions
+            (:mod:`spf_rl.modules.replay_gate`), where the memory disagrees with the view. Needs
+            ``anchor_radius``. ``False`` (default): no gate. Not in the SPF paper.
 
     Examples:
         >>> cfg = SPFConfig(sparsity=0.4)
@@ -116,6 +120,7 @@ class SPFConfig:
     architecture: Literal["spf", "rpf_original"] = "spf"
     anchor_radius: int | None = None
     normalize_frames: bool = False
+    replay_gate: bool = False
 
     def __post_init__(self) -> None:
         if self.architecture not in ARCHITECTURES:
@@ -176,6 +181,10 @@ class SPFConfig:
             )
         if not isinstance(self.normalize_frames, bool):
             raise ValueError(f"normalize_frames must be True or False, got {self.normalize_frames!r}.")
+        if not isinstance(self.replay_gate, bool):
+            raise ValueError(f"replay_gate must be True or False, got {self.replay_gate!r}.")
+        if self.replay_gate and self.anchor_radius is None:
+            raise ValueError("replay_gate needs anchor_radius (the gate reads the anchor's confidence); set anchor_radius or replay_gate=False.")
         self.image_size = tuple(self.image_size)  # type: ignore[assignment]
         if len(self.image_size) != 2 or any(
             not isinstance(s, int) or s < 1 for s in self.image_size

@@ -251,6 +251,7 @@ class SPFPolicy(TensorDictModuleBase):
             config.initial_pointer_step,
             RPF_HEAD_HIDDEN if lab_rpf else None,
             config.anchor_radius,
+            config.replay_gate,
             pixel_features_key=pixel_features_key,
             eta_used_key=eta_used_key,
             is_init_key=is_init_key,

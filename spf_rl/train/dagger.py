@@ -171,6 +171,10 @@ class DAggerConfig:
         normalize_frames: set the starting network's ``normalize_frames`` (``SPFConfig``: every frame
             standardised per channel before the encoder; no new weights) to this. ``None`` (default):
             the checkpoint's own.
+        replay_gate: grow a replay gate (:mod:`spf_rl.modules.replay_gate`: the actions and the
+            pointer moved toward blind replay where the memory disagrees with the view) onto a starting
+            checkpoint that has none: its layer nearly shut. Needs an anchor (the checkpoint's or
+            ``anchor_radius``). ``None`` or false (default): the checkpoint's own network.
         episodes_per_round: learner episodes collected per round.
         beta0: expert probability in round 1.
         beta_decay: ``beta`` is multiplied by this each round.
@@ -211,6 +215,7 @@ class DAggerConfig:
     round_seed_offset: int = 0
     anchor_radius: int | None = None
     normalize_frames: bool | None = None
+    replay_gate: bool | None = None
     episodes_per_round: int = 256
     beta0: float = 0.0
     beta_decay: float = 0.5
@@ -243,6 +248,8 @@ class DAggerConfig:
                 raise ValueError(f"{name} must be a positive int or None, got {value!r}.")
         if self.normalize_frames is not None and not isinstance(self.normalize_frames, bool):
             raise ValueError(f"normalize_frames must be true, false or None (the checkpoint's own), got {self.normalize_frames!r}.")
+        if self.replay_gate is not None and not isinstance(self.replay_gate, bool):
+            raise ValueError(f"replay_gate must be true, false or None (the checkpoint's own), got {self.replay_gate!r}.")
         if self.rounds_share is not None:
             if isinstance(self.rounds_share, bool) or not isinstance(self.rounds_share, (int, float)) or not 0.0 < self.rounds_share < 1.0:
                 raise ValueError(f"rounds_share must be in (0, 1) or None (every episode equally likely), got {self.rounds_share!r}.")
@@ -299,13 +306,16 @@ def start_policy(
     anchor_radius: int | None,
     seed: int,
     normalize_frames: bool | None = None,
+    replay_gate: bool | None = None,
 ) -> tuple[SPFConfig, SPFPolicy]:
-    """The policy DAgger starts from: ``weights`` in the checkpoint's network, or, with ``anchor_radius``
-    and a network without an anchor, that network grown an anchor (its layers drawn from ``seed``);
-    with ``normalize_frames`` (not ``None``), its encoder set to standardise frames or not.
+    """The policy DAgger starts from: ``weights`` in the checkpoint's network, or that network grown
+    what it lacks: with ``anchor_radius``, an anchor; with ``replay_gate`` true, a replay gate (their
+    layers drawn from ``seed``, every other weight loaded as it was); with ``normalize_frames`` (not
+    ``None``), its encoder set to standardise frames or not.
 
     Raises:
-        ValueError: the checkpoint has an anchor of another radius, or its weights do not fit.
+        ValueError: the checkpoint has an anchor of another radius, or a replay gate that
+            ``replay_gate`` false would drop, or its weights do not fit.
 
     Examples:
         >>> from spf_rl.modules import SPFConfig
@@ -317,25 +327,41 @@ def start_policy(
         >>> normalized_config, normalized = start_policy("spf", config, build_policy("spf", config).state_dict(), None, 0, True)
         >>> normalized_config.normalize_frames, normalized.encoder.module.normalize
         (True, True)
+        >>> gated_config, gated = start_policy("spf", grown_config, grown.state_dict(), None, 0, replay_gate=True)
+        >>> gated_config.replay_gate, gated.cell.replay_gate is not None
+        (True, True)
     """
     if normalize_frames is not None and normalize_frames != policy_config.normalize_frames:
         policy_config = replace(policy_config, normalize_frames=normalize_frames)
         logger.info("the starting policy's encoder %s frames", "standardises" if normalize_frames else "no longer standardises")
-    if anchor_radius is None or policy_config.anchor_radius == anchor_radius:
+    if replay_gate is False and policy_config.replay_gate:
+        raise ValueError("replay_gate=false but the checkpoint's policy has a replay gate; leave replay_gate unset (null).")
+    grow_anchor = anchor_radius is not None and policy_config.anchor_radius != anchor_radius
+    grow_gate = bool(replay_gate) and not policy_config.replay_gate
+    if grow_anchor and policy_config.anchor_radius is not None:
+        raise ValueError(f"anchor_radius={anchor_radius} but the checkpoint's policy already anchors with radius {policy_config.anchor_radius}.")
+    if not (grow_anchor or grow_gate):
         policy = build_policy(model_type, policy_config)
         policy.load_state_dict(weights)
         return policy_config, policy
-    if policy_config.anchor_radius is not None:
-        raise ValueError(f"anchor_radius={anchor_radius} but the checkpoint's policy already anchors with radius {policy_config.anchor_radius}.")
-    grown_config = replace(policy_config, anchor_radius=anchor_radius)
+    grown_config = replace(
+        policy_config,
+        anchor_radius=anchor_radius if grow_anchor else policy_config.anchor_radius,
+        replay_gate=policy_config.replay_gate or grow_gate,
+    )
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         policy = build_policy(model_type, grown_config)
     missing, unexpected = policy.load_state_dict(weights, strict=False)
-    foreign = [key for key in missing if "anchor" not in key]
+    new_parts = (("anchor",) if grow_anchor else ()) + (("replay_gate",) if grow_gate else ())
+    foreign = [key for key in missing if not any(part in key for part in new_parts)]
     if unexpected or foreign:
-        raise ValueError(f"the checkpoint's weights do not fit its network grown an anchor (missing {foreign}, unexpected {unexpected}).")
-    logger.info("grew an anchor of radius %d onto the starting policy (%d new tensors)", anchor_radius, len(missing))
+        raise ValueError(f"the checkpoint's weights do not fit its network grown {' and '.join(new_parts)} (missing {foreign}, unexpected {unexpected}).")
+    if grow_anchor:
+        logger.info("grew an anchor of radius %d onto the starting policy", anchor_radius)
+    if grow_gate:
+        logger.info("grew a replay gate onto the starting policy")
+    logger.info("%d new tensors", len(missing))
     return grown_config, policy
 
 
@@ -371,7 +397,7 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
             f"({policy_config.demo_length}, {policy_config.image_size})."
         )
     policy_config, policy = start_policy(
-        model_type, policy_config, payload["model"], config.anchor_radius, config.seed, config.normalize_frames
+        model_type, policy_config, payload["model"], config.anchor_radius, config.seed, config.normalize_frames, config.replay_gate
     )
     policy = policy.to(device)
     logger.info("DAgger on %s%s", device, " with bf16 autocast for retraining" if config.optim.amp else "")
