@@ -6,8 +6,9 @@ of the same actions succeeds 0.54 (``docs/results.md``). Blind replay is a polic
 already holds: the action window's centre is the demonstrated action at ``floor(eta)``, and a
 pointer that moves one step per step plays the demonstration as it was shown.
 
-The **replay gate** ``r = sigmoid(w . [h, confidence] + c)`` (``h`` the cell's new hidden state,
-``confidence`` the anchor's, :mod:`spf_rl.modules.anchor`) moves the policy toward that replay:
+The **replay gate** ``r = sigmoid(w . [h, s * confidence] + c)`` (``h`` the cell's new hidden state,
+``confidence`` the anchor's expected cosine, :mod:`spf_rl.modules.anchor`, scaled by ``s =``
+:data:`CONFIDENCE_SCALE`) moves the policy toward that replay:
 
 * the action distribution becomes ``(1 - r) softmax(logits) + r onehot(a_floor(eta))`` (returned
   as its logarithm, so the cross-entropy, the argmax and a sampler read it as logits);
@@ -16,8 +17,10 @@ The **replay gate** ``r = sigmoid(w . [h, confidence] + c)`` (``h`` the cell's n
 Shut (``r = 0``) it is the network as it was; open (``r = 1``) it is blind replay. Trained by the
 same imitation loss, it opens where the demonstrated action is the expert's more often than the
 network's own (a mismatched memory) and stays shut where the network is right. It starts nearly
-shut (``c = -6``: ``r = 0.0025``, its weights 0), so a policy grown from weights without it starts
-where they were.
+shut (``c = -4``: ``r = 0.018``, its weights 0), so a policy grown from weights without it starts
+nearly where they were. The scale: Adam moves a weight by about the learning rate per step, and the
+confidence differs by about 0.2 between the teaching world and another route's frames (0.47-0.52
+against 0.29-0.44, ``docs/results.md``); scaled by 10, a weight of 1 on it parts them by 2 logits.
 
 Examples:
     >>> import torch
@@ -36,20 +39,22 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["replay_gate_layer", "fall_back", "GATE_INITIAL_BIAS"]
+__all__ = ["replay_gate_layer", "fall_back", "GATE_INITIAL_BIAS", "CONFIDENCE_SCALE"]
 
-#: The gate's bias at the start: ``sigmoid(-6) = 0.0025``, nearly shut.
-GATE_INITIAL_BIAS = -6.0
+#: The gate's bias at the start: ``sigmoid(-4) = 0.018``, nearly shut.
+GATE_INITIAL_BIAS = -4.0
+#: The anchor's confidence (a cosine) is multiplied by this before the gate (see the module).
+CONFIDENCE_SCALE = 10.0
 #: The log-probability of an action the demonstration did not take (finite: an exported graph has no inf).
 _NOT_SHOWN = -1.0e4
 
 
 def replay_gate_layer(hidden_size: int) -> nn.Linear:
-    """The gate's layer over ``[h, confidence]``: weights 0, bias :data:`GATE_INITIAL_BIAS`.
+    """The gate's layer over ``[h, s * confidence]``: weights 0, bias :data:`GATE_INITIAL_BIAS`.
 
     Examples:
         >>> replay_gate_layer(4).weight.abs().sum().item(), replay_gate_layer(4).bias.item()
-        (0.0, -6.0)
+        (0.0, -4.0)
     """
     gate = nn.Linear(hidden_size + 1, 1)
     nn.init.zeros_(gate.weight)
@@ -81,7 +86,7 @@ def fall_back(
     Returns:
         The log-probabilities ``[R, C]`` of the mixture and the next pointer ``[R, 1]``.
     """
-    score = gate(torch.cat([hidden, confidence], -1))
+    score = gate(torch.cat([hidden, confidence * CONFIDENCE_SCALE], -1))
     shown = window[:, (window.shape[1] - 1) // 2]  # the demonstrated action at floor(eta)
     own = F.log_softmax(logits, -1) + F.logsigmoid(-score)
     replay = torch.where(shown > 0, torch.zeros_like(shown), torch.full_like(shown, _NOT_SHOWN)) + F.logsigmoid(score)
