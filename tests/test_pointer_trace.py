@@ -56,6 +56,28 @@ def test_an_anchored_policy_traces_its_anchor_in_a_changed_world():
     summary = summarize_traces(traces, window=2)
     assert any("mean_abs_anchor_error" in summary[outcome] for outcome in ("success", "failure") if summary[outcome]["episodes"])
     assert trace_routes(policy, style="driven", route_lengths=(10, 20), episodes=1, seed=0)[0].anchor is None
+    assert traces[0].replay_opening is None and "mean_replay_opening" not in summary["failure"]
+
+
+def test_a_gated_policy_traces_the_gates_opening_and_an_open_gate_replays():
+    """The replay gate's opening is traced; wide open, the pointer moves one route step per step, as blind replay."""
+    import dataclasses
+
+    import torch
+
+    from spf_rl.modules.registry import build_policy
+
+    policy = tiny_policy()
+    gated = build_policy("spf", dataclasses.replace(policy.config, anchor_radius=4, replay_gate=True)).eval()
+    gated.load_state_dict(policy.state_dict(), strict=False)
+    shut = trace_routes(gated, style="driven", route_lengths=(10, 20), episodes=2, seed=0, memory_mismatch=1.0)
+    assert all(np.allclose(t.replay_opening, 1 / (1 + np.exp(4.0)), atol=1e-6) for t in shut)  # weights 0: its first opening
+    assert summarize_traces(shut, window=2)[("success" if shut[0].record["success"] else "failure")]["mean_replay_opening"] > 0
+    with torch.no_grad():
+        gated.cell.replay_gate.bias.fill_(50.0)
+    for trace in trace_routes(gated, style="driven", route_lengths=(10, 20), episodes=2, seed=0, memory_mismatch=1.0):
+        n = trace.record["demo_steps"]
+        assert np.allclose(trace.replay_opening, 1.0) and np.array_equal(trace.pointer, np.minimum(np.arange(len(trace.pointer)), n - 1))
 
 
 def test_a_policy_without_rpfs_pointer_rule_is_refused():

@@ -43,6 +43,7 @@ from envs.factory import make_env
 from envs.follow import SUCCESS_RADIUS_M, default_max_steps
 from envs.route_expert import RouteExpert
 from spf_rl.evaluation import greedy_on_device
+from spf_rl.modules.replay_gate import replay_score
 
 logger = logging.getLogger(__name__)
 
@@ -62,6 +63,8 @@ class Trace:
         off_path_m: ``(T,)`` the agent's distance to the demonstrated path before each step, metres.
         anchor: ``(T,)`` the anchor's route step at each step (``None``: the policy has no anchor).
         anchor_confidence: ``(T,)`` its confidence (``None``: no anchor).
+        replay_opening: ``(T,)`` the replay gate's opening at each step, 0 (the network) to 1 (blind
+            replay; :mod:`spf_rl.modules.replay_gate`; ``None``: no gate).
     """
 
     record: dict
@@ -70,6 +73,7 @@ class Trace:
     off_path_m: np.ndarray
     anchor: np.ndarray | None = None
     anchor_confidence: np.ndarray | None = None
+    replay_opening: np.ndarray | None = None
 
     @property
     def left_path_at(self) -> int | None:
@@ -158,6 +162,12 @@ def trace_routes(
     if anchors:
         anchor = rollout.get("anchor").reshape(episodes, -1).numpy()
         confidence = rollout.get("anchor_confidence").reshape(episodes, -1).numpy()
+    gate = getattr(getattr(policy, "cell", None), "replay_gate", None)
+    if gate is not None:  # the gate's opening, from the step's new hidden state and the anchor's confidence
+        with torch.no_grad():
+            score = replay_score(rollout.get("features").reshape(-1, policy.config.hidden_size).to(next(gate.parameters()).device),
+                                 rollout.get("anchor_confidence").reshape(-1, 1).to(next(gate.parameters()).device), gate)
+        opening = torch.sigmoid(score).reshape(episodes, -1).cpu().numpy()
     poses = rollout.get("pose").reshape(episodes, -1, 3).numpy().astype(np.float64)
     traces = []
     for agent in range(episodes):
@@ -174,6 +184,7 @@ def trace_routes(
                 off_path_m=np.array([distance_to_path(pose[:2], path_xy) for pose in agent_poses]),
                 anchor=anchor[agent, : last + 1].astype(np.float64) if anchors else None,
                 anchor_confidence=confidence[agent, : last + 1].astype(np.float64) if anchors else None,
+                replay_opening=opening[agent, : last + 1].astype(np.float64) if gate is not None else None,
             )
         )
     return traces
@@ -195,7 +206,8 @@ def summarize_traces(traces: list[Trace], window: int) -> dict:
         :data:`OFF_PATH_M` from the path), and of those ``pointer_error_at_leaving`` (mean
         absolute steps), ``pointer_outside_window_at_leaving`` (the fraction off by more than
         ``window``) and ``route_fraction_at_leaving`` (mean route step over route length); for a
-        policy with an anchor, ``mean_abs_anchor_error`` (steps) and ``mean_anchor_confidence``.
+        policy with an anchor, ``mean_abs_anchor_error`` (steps) and ``mean_anchor_confidence``; with a
+        replay gate, ``mean_replay_opening``.
 
     Examples:
         >>> on = Trace({"success": True, "demo_steps": 10}, np.arange(5.0), np.arange(5), np.zeros(5))
@@ -217,6 +229,9 @@ def summarize_traces(traces: list[Trace], window: int) -> dict:
         if anchored:  # how far the frame's match is from the agent's place, and how sure it was
             summary["mean_abs_anchor_error"] = _mean([float(e) for t in anchored for e in np.abs(t.anchor - t.route_step)])
             summary["mean_anchor_confidence"] = _mean([float(c) for t in anchored for c in t.anchor_confidence])
+        gated = [t for t in group if t.replay_opening is not None]
+        if gated:  # how far the policy leaned on blind replay
+            summary["mean_replay_opening"] = _mean([float(r) for t in gated for r in t.replay_opening])
         if not wanted:
             left = [t for t in group if t.left_path_at is not None]
             at = [abs(t.pointer[t.left_path_at] - t.route_step[t.left_path_at]) for t in left]

@@ -39,7 +39,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["replay_gate_layer", "fall_back", "GATE_INITIAL_BIAS", "CONFIDENCE_SCALE"]
+__all__ = ["replay_gate_layer", "replay_score", "fall_back", "GATE_INITIAL_BIAS", "CONFIDENCE_SCALE"]
 
 #: The gate's bias at the start: ``sigmoid(-4) = 0.018``, nearly shut.
 GATE_INITIAL_BIAS = -4.0
@@ -60,6 +60,17 @@ def replay_gate_layer(hidden_size: int) -> nn.Linear:
     nn.init.zeros_(gate.weight)
     nn.init.constant_(gate.bias, GATE_INITIAL_BIAS)
     return gate
+
+
+def replay_score(hidden: torch.Tensor, confidence: torch.Tensor, gate: nn.Linear) -> torch.Tensor:
+    """The gate's logit ``w . [h, s * confidence] + c`` ``[R, 1]`` (its opening is the sigmoid of it).
+
+    Examples:
+        >>> import torch
+        >>> torch.sigmoid(replay_score(torch.zeros(1, 3), torch.tensor([[0.5]]), replay_gate_layer(3))).item() < 0.02
+        True
+    """
+    return gate(torch.cat([hidden, confidence * CONFIDENCE_SCALE], -1))
 
 
 def fall_back(
@@ -86,7 +97,7 @@ def fall_back(
     Returns:
         The log-probabilities ``[R, C]`` of the mixture and the next pointer ``[R, 1]``.
     """
-    score = gate(torch.cat([hidden, confidence * CONFIDENCE_SCALE], -1))
+    score = replay_score(hidden, confidence, gate)
     shown = window[:, (window.shape[1] - 1) // 2]  # the demonstrated action at floor(eta)
     own = F.log_softmax(logits, -1) + F.logsigmoid(-score)
     replay = torch.where(shown > 0, torch.zeros_like(shown), torch.full_like(shown, _NOT_SHOWN)) + F.logsigmoid(score)
