@@ -96,7 +96,7 @@ def main(argv: list[str] | None = None) -> dict:
                   "route_lengths": list(lengths), "episodes_per_style": args.episodes, "split": args.split,
                   "noise": args.noise, "seed": args.seed, "window_k": int(policy.config.k),
                   "conditions": conditions, "memory_mismatch": args.memory_mismatch,
-                  "anchor_radius": policy.config.anchor_radius},
+                  "anchor_radius": policy.config.anchor_radius, "replay_gate": policy.config.replay_gate},
         "summary": {},
         "episodes": {},
     }

@@ -95,7 +95,8 @@ def fall_back(
         gate: :func:`replay_gate_layer`'s layer.
 
     Returns:
-        The log-probabilities ``[R, C]`` of the mixture and the next pointer ``[R, 1]``.
+        The log-probabilities ``[R, C]`` of the mixture (where the window's centre is empty, the
+        network's log-probabilities plus ``log(1 - r)``: the same distribution) and the next pointer ``[R, 1]``.
     """
     score = replay_score(hidden, confidence, gate)
     shown = window[:, (window.shape[1] - 1) // 2]  # the demonstrated action at floor(eta)
