@@ -21,7 +21,7 @@ Usage::
     python recipes/dagger.py --preset dagger_routes_robust_anchor seed=S  # the same with the pointer's anchor
     python recipes/dagger.py --preset dagger_routes_robust_normalized seed=S  # and frames standardised per channel
     python recipes/dagger.py --preset dagger_routes_robust_share seed=S  # and half of every batch from the rounds
-    python recipes/dagger.py --preset dagger_routes_robust_gate seed=S  # and a replay gate grown on
+    python recipes/dagger.py --preset dagger_routes_robust_gate seed=S  # normalized, and a replay gate grown on
     python recipes/dagger.py checkpoint=runs/bc/spf-s0.8-seed0/best.pt rounds=6
     python recipes/dagger.py collector.backend=ray collector.num_collectors=2 device=cpu   # pip install '.[distributed]'
     python recipes/dagger.py device=cuda:1                    # the learner on the second GPU (default device=auto)
@@ -73,7 +73,8 @@ def main(argv: list[str] | None = None) -> dict:
         "dagger_routes_robust_anchor (the same, the pointer's anchor grown onto the network) "
         "dagger_routes_robust_normalized (the same with every frame standardised per channel) "
         "dagger_routes_robust_share (the same with half of every retraining batch from the rounds, rounds_share 0.5) "
-        "or dagger_routes_robust_gate (the same with a replay gate grown on: blind replay where the memory disagrees)",
+        "or dagger_routes_robust_gate (dagger_routes_robust_normalized with a replay gate grown on, taught to fall back "
+        "on blind replay where the memory shows another route)",
     )
     parser.add_argument("overrides", nargs="*", help="key=value config overrides")
     args = parser.parse_args(argv)

@@ -493,7 +493,7 @@ def test_a_run_grows_an_anchor_and_a_replay_gate_and_trains_them_on_changed_worl
                            conditions="light@0.5=1,none=1", memory_mismatch=0.5)
     bc_data = DatasetConfig(episodes=episodes.replace(conditions=None, memory_mismatch=None), num_episodes=4, chunk_size=4, num_agents=4)
     run = tiny_config(tmp_path, tmp_path / "start.pt", rounds=1, anchor_radius=3, env=CollectionEnvConfig(episodes=episodes),
-                      optim=OptimConfig(lr=3e-4, cosine_schedule=False, pointer_coef=0.1, batch_size=8),
+                      optim=OptimConfig(lr=3e-4, cosine_schedule=False, pointer_coef=0.1, batch_size=8, replay_gate_coef=0.5),
                       aggregate_bc_data=True, bc_data=bc_data, bc_data_dir=str(tmp_path / "bc"), num_workers=1,
                       rounds_share=0.5, replay_gate=True)
     from spf_rl.train import dagger as dagger_module
@@ -518,6 +518,6 @@ def test_a_run_grows_an_anchor_and_a_replay_gate_and_trains_them_on_changed_worl
     assert kept["model_config"].replay_gate and last["model_config"].replay_gate
     assert any(key.startswith("cell.anchor_gate") for key in last["model"])
     assert not torch.equal(last["model"]["cell.replay_gate.weight"], torch.zeros_like(last["model"]["cell.replay_gate.weight"]))
-    assert results["history"][-1]["train_pointer_loss"] > 0
+    assert results["history"][-1]["train_pointer_loss"] > 0 and results["history"][-1]["train_replay_gate_loss"] > 0
     shipped = {key: value for key, value in last["model"].items() if "anchor" not in key and "replay_gate" not in key}
     assert any(not torch.equal(value, start.state_dict()[key]) for key, value in shipped.items())  # trained on

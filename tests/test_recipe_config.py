@@ -305,15 +305,21 @@ def test_the_share_preset_differs_from_the_normalized_one_in_the_rounds_share_al
         load_config(DAggerConfig, "dagger", ["rounds_share=2"], preset="dagger_routes_robust_share")
 
 
-def test_the_gate_preset_differs_from_the_share_one_in_the_replay_gate_alone():
+def test_the_gate_preset_differs_from_the_normalized_one_in_the_replay_gate_alone():
     from spf_rl.train.dagger import DAggerConfig
 
-    share = load_config(DAggerConfig, "dagger", ["seed=1"], preset="dagger_routes_robust_share")
+    normalized = load_config(DAggerConfig, "dagger", ["seed=1"], preset="dagger_routes_robust_normalized")
     gate = load_config(DAggerConfig, "dagger", ["seed=1"], preset="dagger_routes_robust_gate")
-    assert gate.replay_gate is True and share.replay_gate is None
+    assert gate.replay_gate is True and normalized.replay_gate is None
+    assert gate.optim.replay_gate_coef == 0.5 and normalized.optim.replay_gate_coef == 0.0
     assert gate.output_dir == "runs/dagger_routes_robust_gate/spf_random-seed1"
-    assert dataclasses.replace(gate, replay_gate=None, output_dir=share.output_dir) == share
+    assert dataclasses.replace(gate, replay_gate=None, output_dir=normalized.output_dir,
+                               optim=dataclasses.replace(gate.optim, replay_gate_coef=0.0)) == normalized
     with pytest.raises(ValueError, match="replay_gate"):
         load_config(DAggerConfig, "dagger", ["replay_gate=maybe"], preset="dagger_routes_robust_gate")
     with pytest.raises(ValueError, match="replay_gate must be true, false or None"):
         DAggerConfig(replay_gate=2)
+    with pytest.raises(ValueError, match="optim.replay_gate_coef must be a finite number >= 0"):
+        load_config(DAggerConfig, "dagger", ["optim.replay_gate_coef=-1"], preset="dagger_routes_robust_gate")
+    with pytest.raises(ValueError, match="needs the replay gate: set replay_gate=true"):
+        load_config(DAggerConfig, "dagger", ["replay_gate=false"], preset="dagger_routes_robust_gate")

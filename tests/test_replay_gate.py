@@ -141,3 +141,40 @@ def test_bad_replay_gate_settings_are_refused_naming_them(config, message):
 def test_a_model_without_a_gate_keeps_its_identity():
     """Checkpoints and the result cache of models from before the gate existed keep their config dict."""
     assert "replay_gate" not in BASE.to_dict() and SPFConfig(anchor_radius=2, replay_gate=True).to_dict()["replay_gate"] is True
+
+
+def training_batch(mismatched: bool) -> TensorDict:
+    """Stored episodes (spf_rl.data layout) of the tiny policy's size, every step labelled."""
+    sequence = episodes(batch=2, steps=5)
+    steps = TensorDict({
+        "pixels": sequence["pixels"], "expert_action": torch.randint(0, 3, (2, 5)), "mask": torch.ones(2, 5, dtype=torch.bool),
+        "is_init": sequence["is_init"],
+    }, [2, 5])
+    return TensorDict({
+        "steps": steps, "demo_frames": sequence["demo_frames"][:, 0], "demo_actions": sequence["demo_actions"][:, 0],
+        "demo_steps": torch.tensor([[8], [5]]), "memory_mismatched": torch.full((2,), mismatched),
+    }, [2])
+
+
+@pytest.mark.parametrize("mismatched", [True, False])
+def test_the_gate_loss_opens_the_gate_on_another_routes_frames_and_shuts_it_on_the_routes_own(mismatched):
+    from spf_rl.train.bc import bc_loss
+
+    policy = build_policy("spf_random", dataclasses.replace(BASE, replay_gate=True)).train()
+    parts: dict = {}
+    loss, _ = bc_loss(policy, training_batch(mismatched), replay_gate_coef=1.0, parts=parts)
+    loss.backward()
+    gradient = policy.cell.replay_gate.bias.grad.item()
+    assert (gradient < 0) == mismatched  # a step downhill raises the bias (opens) only where the memory is another route's
+    expected = -F.logsigmoid(torch.tensor(-4.0 if mismatched else 4.0)).item()  # the gate starts at sigmoid(-4), weights 0
+    assert parts["replay_gate"] == pytest.approx(expected, rel=1e-5) and loss.item() > parts["cross_entropy"]
+
+
+def test_a_gate_loss_without_a_gate_is_refused_naming_the_key():
+    from spf_rl.train.bc import BCConfig, bc_loss
+    from spf_rl.train.run import OptimConfig
+
+    with pytest.raises(ValueError, match="optim.replay_gate_coef > 0 needs a policy with a replay gate"):
+        bc_loss(build_policy("spf_random", BASE), training_batch(True), replay_gate_coef=0.5)
+    with pytest.raises(ValueError, match="optim.replay_gate_coef > 0 needs a network with a replay gate"):
+        BCConfig(optim=OptimConfig(replay_gate_coef=0.5))

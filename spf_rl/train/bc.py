@@ -38,7 +38,8 @@ from spf_rl.device import DEFAULT_DEVICE, autocast, check_device, module_device
 from spf_rl.evaluation import TEST_SEED, VAL_SEED, EvalConfig, episode_store_root, evaluate_policy
 from spf_rl.modules.policy import SPFPolicy
 from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
-from spf_rl.modules.td_utils import ANCHOR_KEY
+from spf_rl.modules.replay_gate import replay_score
+from spf_rl.modules.td_utils import ANCHOR_CONFIDENCE_KEY, ANCHOR_KEY
 from spf_rl.modules.views import episodes_to_sequence, model_memory_bytes
 from spf_rl.records_cache import TEST_EPISODES_FILE, records_key, write_records
 from spf_rl.train.distributed import ShardedSampler, barrier, init_distributed
@@ -112,6 +113,7 @@ class BCConfig:
         check_device(self.device)
         check_positive_ints(self, ("val_every",))
         check_pointer_labels(self.optim, self.data.episodes.route_style, "data.route_style")
+        check_no_replay_gate_loss(self.optim)
         check_sizes_match(self.data.episodes, "data", val=self.val.episodes, test=self.test.episodes)
 
     def validates_after(self, epoch: int) -> bool:
@@ -121,6 +123,23 @@ class BCConfig:
     def resolved_data_dir(self) -> Path:
         """``data_dir``, or the dataset's default directory (:meth:`~spf_rl.data.DatasetConfig.default_dir`)."""
         return Path(self.data_dir) if self.data_dir else self.data.default_dir()
+
+
+def check_no_replay_gate_loss(optim: OptimConfig) -> None:
+    """Raise ``ValueError`` if ``optim.replay_gate_coef`` > 0 for a run whose network (built from a
+    :class:`~spf_rl.modules.registry.ModelConfig`) has no replay gate: only DAgger grows one.
+
+    Examples:
+        >>> check_no_replay_gate_loss(OptimConfig(replay_gate_coef=0.5))
+        Traceback (most recent call last):
+        ...
+        ValueError: optim.replay_gate_coef > 0 needs a network with a replay gate, which only DAgger grows (recipes/dagger.py replay_gate=true); set optim.replay_gate_coef=0.
+    """
+    if optim.replay_gate_coef > 0:
+        raise ValueError(
+            "optim.replay_gate_coef > 0 needs a network with a replay gate, which only DAgger grows "
+            "(recipes/dagger.py replay_gate=true); set optim.replay_gate_coef=0."
+        )
 
 
 def check_pointer_labels(optim: OptimConfig, route_style: str | None, name: str) -> None:
@@ -146,9 +165,11 @@ def bc_loss(
     amp: bool = False,
     pointer_coef: float = 0.0,
     parts: dict[str, float] | None = None,
+    replay_gate_coef: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Cross-entropy between the policy's logits and the expert's actions on valid steps,
-    plus ``pointer_coef`` times the :func:`pointer_loss`.
+    plus ``pointer_coef`` times the :func:`pointer_loss` and ``replay_gate_coef`` times the
+    :func:`replay_gate_loss`.
 
     The batch moves to the device of the policy's weights first.
 
@@ -159,8 +180,10 @@ def bc_loss(
         amp: run the forward pass under bf16 autocast (the cross-entropy is float32).
         pointer_coef: weight of the pointer loss (0: the cross-entropy alone).
         parts: if given, receives the loss's parts as numbers: ``"cross_entropy"`` and, with
-            ``pointer_coef`` > 0, ``"pointer"`` (the pointer loss before its weight), so that a
-            training loop can log them apart.
+            ``pointer_coef`` > 0, ``"pointer"`` (the pointer loss before its weight), with
+            ``replay_gate_coef`` > 0 ``"replay_gate"``, so that a training loop can log them apart.
+        replay_gate_coef: weight of the replay gate's loss (0: none; > 0 needs a policy with a
+            replay gate).
 
     Returns:
         (loss, accuracy of the arg-max action).
@@ -170,6 +193,9 @@ def bc_loss(
             f"pointer_coef > 0 needs {ROUTE_STEP_KEY!r} in the episodes' steps (datasets and DAgger rounds of a "
             "route style store it); these episodes have none."
         )
+    gate = replay_gate_of(policy)
+    if replay_gate_coef > 0 and gate is None:
+        raise ValueError("optim.replay_gate_coef > 0 needs a policy with a replay gate (SPFConfig.replay_gate); set it to 0.")
     device = module_device(policy)
     sequence = episodes_to_sequence(batch, device)
     with set_recurrent_mode(True), autocast(device, amp):
@@ -187,7 +213,48 @@ def bc_loss(
         loss = loss + pointer_coef * pointer
         if parts is not None:
             parts["pointer"] = pointer.item()
+    if replay_gate_coef > 0:
+        gate_loss = replay_gate_loss(sequence, gate)
+        loss = loss + replay_gate_coef * gate_loss
+        if parts is not None:
+            parts["replay_gate"] = gate_loss.item()
     return loss, accuracy
+
+
+def replay_gate_of(policy) -> torch.nn.Linear | None:
+    """The policy's replay gate layer (:mod:`spf_rl.modules.replay_gate`; the wrapped policy's under
+    data-parallel training), ``None`` where it has none."""
+    if isinstance(policy, torch.nn.parallel.DistributedDataParallel):
+        policy = policy.module
+    return getattr(getattr(policy, "cell", None), "replay_gate", None)
+
+
+def replay_gate_loss(sequence: TensorDict, gate: torch.nn.Linear) -> torch.Tensor:
+    """Binary cross-entropy of the replay gate's opening on the valid steps against whether the episode's
+    memory shows another route (:data:`~spf_rl.data.MEMORY_MISMATCHED_KEY`; episodes without the key
+    show their own): the gate learns to fall back on blind replay where the frames it carries are not
+    the route's, and to stay shut where they are. The imitation loss alone moves it slowly: shut, its
+    gradient is small and of either sign from step to step.
+
+    Args:
+        sequence: the policy's output on a ``[B, T]`` sequence with ``mask``, ``features`` (the cell's
+            new hidden state) and ``anchor_confidence``.
+        gate: the policy's gate layer (:func:`replay_gate_of`).
+
+    Examples:
+        >>> from spf_rl.modules.replay_gate import replay_gate_layer
+        >>> sequence = TensorDict({"features": torch.zeros(1, 2, 3), "anchor_confidence": torch.zeros(1, 2, 1),
+        ...     "mask": torch.tensor([[True, True]]), "memory_mismatched": torch.tensor([[True, True]])}, [1, 2])
+        >>> round(replay_gate_loss(sequence, replay_gate_layer(3)).item(), 3)  # shut where it should open: -log(sigmoid(-4))
+        4.018
+    """
+    mask = sequence.get("mask")
+    score = replay_score(sequence.get("features")[mask].float(), sequence.get(ANCHOR_CONFIDENCE_KEY)[mask].float().reshape(-1, 1), gate)
+    if MEMORY_MISMATCHED_KEY in sequence.keys():
+        target = sequence.get(MEMORY_MISMATCHED_KEY)[mask].reshape(-1, 1).to(score.dtype)
+    else:
+        target = torch.zeros_like(score)
+    return F.binary_cross_entropy_with_logits(score, target)
 
 
 def pointer_loss(sequence: TensorDict, anchor_radius: float | None = None) -> torch.Tensor:

@@ -250,6 +250,8 @@ class DAggerConfig:
             raise ValueError(f"normalize_frames must be true, false or None (the checkpoint's own), got {self.normalize_frames!r}.")
         if self.replay_gate is not None and not isinstance(self.replay_gate, bool):
             raise ValueError(f"replay_gate must be true, false or None (the checkpoint's own), got {self.replay_gate!r}.")
+        if self.optim.replay_gate_coef > 0 and self.replay_gate is False:
+            raise ValueError("optim.replay_gate_coef > 0 needs the replay gate: set replay_gate=true (or leave it unset for a gated checkpoint).")
         if self.rounds_share is not None:
             if isinstance(self.rounds_share, bool) or not isinstance(self.rounds_share, (int, float)) or not 0.0 < self.rounds_share < 1.0:
                 raise ValueError(f"rounds_share must be in (0, 1) or None (every episode equally likely), got {self.rounds_share!r}.")
@@ -399,6 +401,8 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
     policy_config, policy = start_policy(
         model_type, policy_config, payload["model"], config.anchor_radius, config.seed, config.normalize_frames, config.replay_gate
     )
+    if config.optim.replay_gate_coef > 0 and not policy_config.replay_gate:
+        raise ValueError("optim.replay_gate_coef > 0 needs a policy with a replay gate: set replay_gate=true, or optim.replay_gate_coef=0.")
     policy = policy.to(device)
     logger.info("DAgger on %s%s", device, " with bf16 autocast for retraining" if config.optim.amp else "")
     run = TrainingRun(output, model_type, policy_config, policy, config.optim, loss_fn=bc_loss, ranks=ranks, unit="round")
@@ -674,7 +678,8 @@ def _train_round(
 
     Returns:
         ``train_loss`` (the mean over whole batches), ``gradient_steps`` and, with
-        ``optim.pointer_coef`` > 0, ``train_pointer_loss`` (the pointer loss's mean, before its weight).
+        ``optim.pointer_coef`` > 0, ``train_pointer_loss`` (the pointer loss's mean, before its weight), and
+        with ``optim.replay_gate_coef`` > 0 ``train_replay_gate_loss`` (:meth:`~spf_rl.train.run.TrainingRun.loss_part_means`).
     """
     sizes = torch.tensor([len(source) for source in sources])
     offsets = torch.cumsum(sizes, 0)
@@ -700,10 +705,7 @@ def _train_round(
         batches(), steps, f"round {round_index} retraining", config.progress,
         seed_of_step=lambda step: retraining_seed(config, round_index, step),
     )
-    trained = {"train_loss": float(sum(losses) / len(losses)), "gradient_steps": steps}
-    if run.pointer_losses:
-        trained["train_pointer_loss"] = float(sum(run.pointer_losses) / len(run.pointer_losses))
-    return trained
+    return {"train_loss": float(sum(losses) / len(losses)), "gradient_steps": steps, **run.loss_part_means()}
 
 
 def plot_rounds(history: list[dict], path: Path, title: str = "DAgger") -> None:

@@ -38,7 +38,7 @@ from spf_rl.modules.policy import SPFPolicy
 from spf_rl.modules.registry import ModelConfig, build_policy, spf_config
 from spf_rl.modules.views import model_memory_bytes, policy_for_length
 from spf_rl.records_cache import length_test_episodes_file, records_key, write_records
-from spf_rl.train.bc import bc_loss, check_pointer_labels, default_test_config, default_val_config
+from spf_rl.train.bc import bc_loss, check_no_replay_gate_loss, check_pointer_labels, default_test_config, default_val_config
 from spf_rl.train.pointer_guard import RESTARTS_KEY, PointerGuard, restart_run
 from spf_rl.train.run import OptimConfig, TrainingRun, run_on_device, run_results, start_run
 
@@ -106,6 +106,7 @@ class MixedLengthConfig:
         for count in self.episodes:
             check_positive_int("episodes[i]", count)
         check_pointer_labels(self.optim, self.data.episodes.route_style, "data.route_style")
+        check_no_replay_gate_loss(self.optim)
 
     def dataset_config(self, index: int) -> DatasetConfig:
         """The dataset of ``lengths[index]``."""

@@ -49,6 +49,9 @@ class OptimConfig:
         pointer_coef: weight of the pointer loss beside the cross-entropy
             (:func:`~spf_rl.train.bc.bc_loss`): holds the pointer (RPF's rule, in demonstration
             steps) to the agent's place on the route, the episodes' ``route_step``. 0: off.
+        replay_gate_coef: weight of the replay gate's loss beside the cross-entropy
+            (:func:`~spf_rl.train.bc.replay_gate_loss`, for a policy with a replay gate): the gate
+            is taught to open on the episodes whose memory shows another route. 0: off.
     """
 
     lr: float = 1e-3
@@ -59,10 +62,13 @@ class OptimConfig:
     cosine_schedule: bool = True
     amp: bool = False
     pointer_coef: float = 0.0
+    replay_gate_coef: float = 0.0
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.pointer_coef) and self.pointer_coef >= 0.0):
-            raise ValueError(f"optim.pointer_coef must be a finite number >= 0, got {self.pointer_coef!r}.")
+        for name in ("pointer_coef", "replay_gate_coef"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"optim.{name} must be a finite number >= 0, got {value!r}.")
 
 
 class TrainingRun:
@@ -88,11 +94,12 @@ class TrainingRun:
         total_steps: gradient steps of the whole run: the length of the cosine schedule (with
             ``optim.cosine_schedule``); ``None``: a constant learning rate.
         keep_epochs: also write every period's weights to ``epochs/epoch-NNN.pt``.
-        loss_fn: ``loss_fn(policy, batch, amp=..., pointer_coef=..., parts=...) -> (loss, accuracy)``
+        loss_fn: ``loss_fn(policy, batch, amp=..., pointer_coef=..., parts=..., replay_gate_coef=...) -> (loss, accuracy)``
             of a batch, filling the dict ``parts`` with the loss's parts
             (:func:`spf_rl.train.bc.bc_loss` for behaviour cloning), for :meth:`train_epoch`; with
             ``optim.pointer_coef`` > 0, its ``"pointer"`` part is logged as ``train/pointer_loss`` and the
-            epoch's mean is ``train_pointer_loss`` in the epoch's record.
+            epoch's mean is ``train_pointer_loss`` in the epoch's record (likewise ``"replay_gate"``,
+            ``train_replay_gate_loss``, with ``optim.replay_gate_coef`` > 0).
         ranks: this process's place in a data-parallel run (:mod:`spf_rl.train.distributed`):
             with more than one rank the policy is wrapped in DistributedDataParallel, each
             batch is this rank's shard, the logged loss and accuracy are the whole batch's,
@@ -157,6 +164,7 @@ class TrainingRun:
         self.state: dict[str, Any] = {}
         self.step = 0
         self.pointer_losses: list[float] = []  # the pointer loss of each step of the current epoch
+        self.replay_gate_losses: list[float] = []  # and the replay gate's
 
     # ------------------------------------------------------------------ resuming
     def resume(self, check: Callable[[dict], None] | None = None, state_keys: Collection[str] = ()) -> int:
@@ -231,7 +239,7 @@ class TrainingRun:
             raise ValueError("policy_of (a view of the policy per batch) does not run data-parallel; start one process.")
         self.module.train()
         losses, accuracies, start = [], [], time.time()
-        self.pointer_losses = []
+        self.pointer_losses, self.replay_gate_losses = [], []
         bar = tqdm(batches, total=num_batches, desc=desc, disable=not progress)
         device = next(self.policy.parameters()).device
         for index, batch in enumerate(bar):
@@ -241,11 +249,14 @@ class TrainingRun:
                 if seed_of_step is not None:
                     torch.manual_seed(seed_of_step(index))
                 loss, accuracy = self.loss_fn(
-                    policy, batch, amp=self.optim.amp, pointer_coef=self.optim.pointer_coef, parts=parts
+                    policy, batch, amp=self.optim.amp, pointer_coef=self.optim.pointer_coef, parts=parts,
+                    replay_gate_coef=self.optim.replay_gate_coef,
                 )
             loss_value, accuracy_value = self.gradient_step(loss, accuracy, batch)
             if "pointer" in parts:
                 self.pointer_losses.append(batch_mean(parts["pointer"], batch, self.ranks, device))
+            if "replay_gate" in parts:
+                self.replay_gate_losses.append(batch_mean(parts["replay_gate"], batch, self.ranks, device))
             losses.append(loss_value)
             accuracies.append(accuracy_value)
             bar.set_postfix(loss=f"{losses[-1]:.3f}", acc=f"{accuracies[-1]:.2f}")
@@ -254,6 +265,12 @@ class TrainingRun:
                 if "pointer" in parts:
                     run_logger.log_scalar("train/pointer_loss", self.pointer_losses[-1], step=self.step)
         return losses, accuracies, time.time() - start
+
+    def loss_part_means(self) -> dict[str, float]:
+        """The means over the last :meth:`train_epoch` of the loss's parts it logged apart:
+        ``train_pointer_loss`` and ``train_replay_gate_loss``, each where the loss had it."""
+        parts = {"train_pointer_loss": self.pointer_losses, "train_replay_gate_loss": self.replay_gate_losses}
+        return {name: float(sum(values) / len(values)) for name, values in parts.items() if values}
 
     # ------------------------------------------------------------------ periods and checkpoints
     def end_epoch(
@@ -275,12 +292,11 @@ class TrainingRun:
             "val_spl": None if val is None else val["spl"],
             "train_seconds": train_seconds,
         }
-        if self.pointer_losses:
-            record["train_pointer_loss"] = sum(self.pointer_losses) / len(self.pointer_losses)
+        record.update(self.loss_part_means())
         if pointer_pace is not None:
             record["pointer_pace"] = pointer_pace
         if run_logger is not None:
-            for key in ("train_accuracy", "train_pointer_loss", "pointer_pace", "val_success", "val_spl"):
+            for key in ("train_accuracy", "train_pointer_loss", "train_replay_gate_loss", "pointer_pace", "val_success", "val_spl"):
                 if record.get(key) is not None:
                     run_logger.log_scalar(f"epoch/{key}", record[key], step=self.step)
         self.end_period(epoch + 1, record, val)
