@@ -6,12 +6,14 @@ route length and number of memory slots).
   demonstrated actions; read by the original RPF's slot network only) -> ``memory`` ``[N, D]``.
 - step: ``frame`` uint8 ``[B, H, W, 3]``, ``memory`` ``[B, l, D]``, ``slot_indices`` ``[B, l]`` (the kept
   frames' route steps ``M*``), ``demo_actions`` ``[B, n]``, ``route_length`` ``[B]``, ``eta`` ``[B]`` (the
-  pointer) and ``hidden`` ``[B, Hs]`` -> ``logits`` ``[B, A]``, ``eta_next`` ``[B]``, ``hidden_next``.
+  pointer) and ``hidden`` ``[B, Hs]`` -> ``logits`` ``[B, A]``, ``eta_next`` ``[B]``, ``hidden_next``; a model
+  with a start check (``SPFConfig.start_check``) also carries ``start_match`` ``[B]`` -> ``start_match_next``
+  (:mod:`spf_rl.modules.replay_gate`; it starts at the manifest's ``step.initial_state``, "unmeasured").
 
 The graphs compute what the eager policy computes in step mode (:class:`~spf_rl.modules.policy.SPFPolicy`):
 the same submodules, with the route's length as a tensor (the eager policy's ``demo_steps`` form) and the
-episode start left to the caller (teach the route, then ``eta = 0`` and ``hidden = 0``, which is what
-``is_init`` does). Which frames a route keeps is the caller's too (:func:`~spf_rl.modules.memory.memory_indices`
+episode start left to the caller (teach the route, then set the state to the manifest's ``step.initial_state``:
+``eta = 0``, ``hidden = 0`` and ``start_match`` unmeasured, which is what ``is_init`` does). Which frames a route keeps is the caller's too (:func:`~spf_rl.modules.memory.memory_indices`
 at the policy's sparsity), so that one step graph serves every route length and, for the random-sparsity
 model, every sparsity.
 
@@ -35,12 +37,13 @@ from envs.atomic_io import atomic_write_json
 from spf_rl.checkpoint import file_sha256
 from spf_rl.modules.anchor import reanchor
 from spf_rl.modules.policy import SPFPolicy
-from spf_rl.modules.replay_gate import fall_back
+from spf_rl.modules.replay_gate import UNMEASURED, carry_start, fall_back, replay_opening, start_cosine
 
 logger = logging.getLogger(__name__)
 
-#: Version of an export directory's layout (the manifest and the graphs' inputs and outputs).
-EXPORT_FORMAT_VERSION = 1
+#: Version of an export directory's layout (the manifest and the graphs' inputs and outputs). 2: the step
+#: graph may carry a start match, and the manifest gives the step state's initial values.
+EXPORT_FORMAT_VERSION = 2
 MANIFEST_NAME = "manifest.json"
 TEACH_FILE, STEP_FILE = "teach.onnx", "step.onnx"
 OPSET = 18
@@ -49,6 +52,8 @@ WEIGHT_PRECISIONS = ("fp32", "int8")
 TEACH_INPUTS, TEACH_OUTPUTS = ("frames", "actions"), ("memory",)
 STEP_INPUTS = ("frame", "memory", "slot_indices", "demo_actions", "route_length", "eta", "hidden")
 STEP_OUTPUTS = ("logits", "eta_next", "hidden_next")
+#: The step graph's extra state with a start check (an input, and its next value an output).
+START_INPUT, START_OUTPUT = "start_match", "start_match_next"
 
 
 def _one_hot(actions: torch.Tensor, num_classes: int, dtype: torch.dtype) -> torch.Tensor:
@@ -108,8 +113,9 @@ class StepGraph(nn.Module):
         self.gru, self.logits_head, self.pointer_head = policy.cell.gru, policy.cell.logits_head, policy.cell.pointer_head
         self.anchor, self.anchor_gate, self.anchor_radius = policy.attention.anchor, policy.cell.anchor_gate, policy.cell.anchor_radius
         self.replay_gate = policy.cell.replay_gate
+        self.start_check = policy.cell.start_check
 
-    def forward(self, frame, memory, slot_indices, demo_actions, route_length, eta, hidden):
+    def forward(self, frame, memory, slot_indices, demo_actions, route_length, eta, hidden, start_match=None):
         num_actions = self.num_actions
         phi = self.phi(frame)  # [B, D]
         eta = eta.reshape(-1, 1).to(phi.dtype)
@@ -117,6 +123,7 @@ class StepGraph(nn.Module):
         actions = demo_actions.long()
         parts = []
         anchor = ()
+        start = None
         if self.use_memory:  # w_j = exp(-|eta - M*_j|) over the used slots, then the weighted sum
             slots = slot_indices.long()
             used = (slots >= 0) & (slots <= last)
@@ -124,6 +131,8 @@ class StepGraph(nn.Module):
             parts.append((weights.unsqueeze(-1) * memory.to(eta.dtype)).sum(-2))
             if self.anchor is not None:  # where the frame says the agent is (spf_rl.modules.anchor)
                 anchor = self.anchor.locate(phi, memory.to(eta.dtype), slots.clamp(min=0), used, eta)
+            if self.start_check is not None:  # the first step's cosine with the route's first frame, then carried
+                start = carry_start(start_match.reshape(-1, 1).to(eta.dtype), start_cosine(phi, memory.to(eta.dtype), slots, used))
         window = None
         if self.lab_rpf:  # the original RPF: mu is the attended memory, no action window
             mu = parts[0]
@@ -147,10 +156,13 @@ class StepGraph(nn.Module):
         eta_next = eta + increment if self.paper_rule else torch.minimum(eta + 1.0 + increment, last.to(eta.dtype))
         if anchor:
             eta_next = reanchor(eta_next, eta, *anchor, hidden_next, self.anchor_gate, self.anchor_radius)
-            if self.replay_gate is not None:  # toward blind replay where the memory disagrees (spf_rl.modules.replay_gate)
-                logits, eta_next = fall_back(logits, eta_next, eta, window, anchor[1], hidden_next, self.replay_gate)
-            if not self.paper_rule:
-                eta_next = torch.minimum(eta_next, last.to(eta.dtype))
+        if self.replay_gate is not None or start is not None:  # toward blind replay (spf_rl.modules.replay_gate)
+            opening = replay_opening(hidden_next, anchor[1] if anchor else None, self.replay_gate, start, self.start_check)
+            logits, eta_next = fall_back(logits, eta_next, eta, window, opening)
+        if (anchor or start is not None) and not self.paper_rule:
+            eta_next = torch.minimum(eta_next, last.to(eta.dtype))
+        if start is not None:
+            return logits, eta_next.reshape(-1), hidden_next, start.reshape(-1)
         return logits, eta_next.reshape(-1), hidden_next
 
 
@@ -188,7 +200,21 @@ def _example_step_inputs(policy: SPFPolicy) -> tuple[torch.Tensor, ...]:
         torch.full((batch,), n, dtype=torch.long),
         torch.zeros(batch),
         torch.zeros(batch, config.hidden_size),
-    )
+    ) + ((torch.full((batch,), UNMEASURED),) if config.start_check is not None else ())
+
+
+def step_state(policy: SPFPolicy) -> tuple[tuple[str, ...], tuple[str, ...], dict[str, float]]:
+    """The step graph's input names, output names and the initial value of each recurrent state input.
+
+    Examples:
+        >>> from spf_rl.modules import SPFConfig
+        >>> step_state(SPFPolicy(SPFConfig(feature_dim=8, hidden_size=8, start_check=0.5)))[2]
+        {'eta': 0.0, 'hidden': 0.0, 'start_match': 2.0}
+    """
+    initial = {"eta": 0.0, "hidden": 0.0}
+    if policy.config.start_check is None:
+        return STEP_INPUTS, STEP_OUTPUTS, initial
+    return STEP_INPUTS + (START_INPUT,), STEP_OUTPUTS + (START_OUTPUT,), {**initial, START_INPUT: UNMEASURED}
 
 
 def _export_onnx(module: nn.Module, args: tuple, dynamic_shapes: tuple, names: tuple, outputs: tuple, path: Path) -> None:
@@ -243,9 +269,10 @@ def export_policy(policy: SPFPolicy, out: str | os.PathLike, model_type: str, we
             teach_args = (torch.zeros(3, *policy.config.image_size, 3, dtype=torch.uint8), torch.zeros(3, dtype=torch.long))
             _export_onnx(TeachGraph(policy).eval(), teach_args, ({0: kept}, {0: kept}), TEACH_INPUTS, TEACH_OUTPUTS, out / TEACH_FILE)
             files[TEACH_FILE] = out / TEACH_FILE
+        step_inputs, step_outputs, initial_state = step_state(policy)
         step_shapes = ({0: batch}, {0: batch, 1: slots}, {0: batch, 1: slots}, {0: batch, 1: route}, {0: batch},
-                       {0: batch}, {0: batch})
-        _export_onnx(StepGraph(policy).eval(), _example_step_inputs(policy), step_shapes, STEP_INPUTS, STEP_OUTPUTS,
+                       {0: batch}, {0: batch}) + (({0: batch},) if len(step_inputs) > len(STEP_INPUTS) else ())
+        _export_onnx(StepGraph(policy).eval(), _example_step_inputs(policy), step_shapes, step_inputs, step_outputs,
                      out / STEP_FILE)
         files[STEP_FILE] = out / STEP_FILE
     if weights == "int8":
@@ -264,7 +291,7 @@ def export_policy(policy: SPFPolicy, out: str | os.PathLike, model_type: str, we
         "memory_width": memory_width(policy),
         "opset": OPSET,
         "teach": {"inputs": list(TEACH_INPUTS), "outputs": list(TEACH_OUTPUTS)} if policy.use_memory else None,
-        "step": {"inputs": list(STEP_INPUTS), "outputs": list(STEP_OUTPUTS)},
+        "step": {"inputs": list(step_inputs), "outputs": list(step_outputs), "initial_state": initial_state},
         "files": {name: file_sha256(path) for name, path in files.items()},
         "source": {**(source or {}), "policy_sha256": policy_sha256(policy)},
         "versions": _versions(),
@@ -287,5 +314,5 @@ def export_checkpoint(name_or_path: str | os.PathLike, out: str | os.PathLike, w
     return export_policy(policy, out, payload["model_type"], weights, source={"checkpoint": str(name_or_path)})
 
 
-__all__ = ["EXPORT_FORMAT_VERSION", "STEP_INPUTS", "StepGraph", "TEACH_INPUTS", "TeachGraph", "WEIGHT_PRECISIONS",
+__all__ = ["EXPORT_FORMAT_VERSION", "STEP_INPUTS", "StepGraph", "step_state", "TEACH_INPUTS", "TeachGraph", "WEIGHT_PRECISIONS",
            "export_checkpoint", "export_policy"]

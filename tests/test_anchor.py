@@ -138,6 +138,6 @@ def test_a_model_without_an_anchor_keeps_its_identity():
     from spf_rl.records_cache import policy_sha256
 
     policy = build_policy("spf_random", BASE)
-    before = {key: value for key, value in dataclasses.asdict(policy.config).items() if key not in ("anchor_radius", "normalize_frames", "replay_gate")}
+    before = {key: value for key, value in dataclasses.asdict(policy.config).items() if key not in ("anchor_radius", "normalize_frames", "replay_gate", "start_check")}
     assert policy.config.to_dict() == before and "anchor_radius" in anchored().config.to_dict()
     assert policy_sha256(policy) == content_sha256({"weights": dict(policy.state_dict()), "config": before, "sparsity": policy.sparsity})

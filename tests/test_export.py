@@ -39,6 +39,11 @@ CASES = {
     "spf_random-anchor-replay-gate": (
         "spf_random", {"sparsity_range": (0.2, 1.0), "pointer_update": "rpf", "anchor_radius": 2, "replay_gate": True}
     ),
+    "spf_random-anchor-replay-gate-start-check": (
+        "spf_random",
+        {"sparsity_range": (0.2, 1.0), "pointer_update": "rpf", "anchor_radius": 2, "replay_gate": True, "start_check": 0.5},
+    ),
+    "spf-start-check": ("spf", {"start_check": 0.5}),
 }
 
 
@@ -98,7 +103,8 @@ def test_the_manifest_names_what_was_exported_and_a_changed_file_is_refused(expo
 
     policy, manifest, directory = exports["spf"]
     saved = json.loads((directory / "manifest.json").read_text())
-    assert saved["format_version"] == 1 and saved["weights"] == "fp32" and saved["opset"] >= 18
+    assert saved["format_version"] == 2 and saved["weights"] == "fp32" and saved["opset"] >= 18
+    assert saved["step"]["initial_state"] == {"eta": 0.0, "hidden": 0.0} and "start_match" not in saved["step"]["inputs"]
     assert saved["source"]["policy_sha256"] == policy_sha256(policy) and saved["versions"]["torch"]
     assert set(saved["files"]) == {"teach.onnx", "step.onnx"} and saved["model_config"]["demo_length"] == 6
     copy = tmp_path / "copy"
@@ -110,6 +116,25 @@ def test_the_manifest_names_what_was_exported_and_a_changed_file_is_refused(expo
     (copy / "step.onnx").write_bytes(bytes(data))
     with pytest.raises(ValueError, match=r"step\.onnx is missing or differs from manifest\.json"):
         Follower(copy)
+
+
+def test_a_start_checks_export_carries_the_match_from_unmeasured_and_refuses_a_step_without_it(exports):
+    policy, manifest, directory = exports["spf-start-check"]
+    assert manifest["step"]["inputs"][-1] == "start_match" and manifest["step"]["outputs"][-1] == "start_match_next"
+    assert manifest["step"]["initial_state"] == {"eta": 0.0, "hidden": 0.0, "start_match": 2.0}
+    export = spf_rl_runtime.Export(directory)
+    frames, demo_frames, demo_actions = route()
+    follower = Follower(directory)
+    memory = follower.teach(demo_frames.numpy(), demo_actions.numpy())
+    state = {"memory": memory.dequantized()[None], "slot_indices": memory.slot_indices[None].astype(np.int64),
+             "demo_actions": demo_actions.numpy()[None], "route_length": np.array([6]), "eta": np.zeros(1, np.float32),
+             "hidden": np.zeros((1, 8), np.float32)}
+    with pytest.raises(ValueError, match=r"also carries \['start_match'\]"):
+        export.step(frames[0].numpy()[None], **state)
+    logits, _, _, match = export.step(frames[0].numpy()[None], **state, start_match=np.full(1, 2.0, np.float32))
+    follower.start(memory)
+    assert np.allclose(follower.step_logits(frames[0].numpy()), logits[0], atol=1e-6)
+    assert -1.0 <= float(match[0]) <= 1.0 and float(follower._state["start_match"][0]) == float(match[0])
 
 
 def test_any_route_length_and_sparsity_through_one_export(exports):
@@ -338,7 +363,7 @@ def test_the_route_bench_and_teach_run_an_export(tmp_path):
     assert content["checkpoint"] == str(tmp_path / "spf-s0.8") and len(content["repeats"]) == 1
 
 
-@pytest.mark.parametrize("name", ["spf", "spf_random", "rpf_original", "action_only"])
+@pytest.mark.parametrize("name", ["spf", "spf_random", "rpf_original", "action_only", "spf_random-anchor-replay-gate-start-check"])
 def test_the_exported_policy_steps_a_batch_of_padded_routes_as_eager(exports, name):
     """Three agents on routes of 4, 6 and 5 steps padded to 6, one of them starting again mid-way: the
     exported module's logits are the eager policy's, row by row."""

@@ -92,6 +92,8 @@ CASES = [
     case("route_bench-missing-checkpoint", "route_bench.py", f"--models {MISSING} --out {{out}}/bench.json", "argument --models", "missing.pt"),
     case("teach-missing-checkpoint", "teach.py", f"--actions FFFFFFFFFF --checkpoint {MISSING} --out {{out}}", "--checkpoint", "missing.pt does not exist"),
     case("export-missing-checkpoint", "export.py", f"{MISSING} --out {{out}}/export", "argument checkpoint", "missing.pt does not exist"),
+    case("start_check-missing-checkpoint", "start_check.py", f"{MISSING} --out {{out}}/checked.pt --results {{out}}/checked.json",
+         "argument checkpoint", "missing.pt does not exist"),
     case("picking_study-missing-run", "picking_study.py", "{tmp}/missing_run --out {out}", "missing_run has no config.json and last.pt"),
     # the recipes that take neither a config nor a checkpoint
     case("paired-missing-json", "paired.py", "{tmp}/a.json {tmp}/b.json --out {out}/paired.json", "no evaluation JSON", "a.json"),

@@ -13,7 +13,7 @@ from torchrl.modules import set_recurrent_mode
 
 from spf_rl.modules import SPFConfig, SPFPolicy
 from spf_rl.modules.registry import build_policy
-from spf_rl.modules.replay_gate import fall_back, replay_gate_layer
+from spf_rl.modules.replay_gate import fall_back, replay_gate_layer, replay_opening
 from spf_rl.train.dagger import start_policy
 
 BASE = SPFConfig(demo_length=8, feature_dim=8, hidden_size=8, image_size=(16, 16), pointer_update="rpf", sparsity_range=(0.2, 1.0),
@@ -97,7 +97,7 @@ def test_the_imitation_loss_opens_the_gate_only_where_the_demonstration_is_right
     gate = replay_gate_layer(2)
     window = F.one_hot(torch.tensor([[1, 2, 1]]), 3).float()
     logits, _ = fall_back(torch.tensor([[3.0, 0.0, 0.0]]), torch.tensor([[5.0]]), torch.tensor([[4.0]]), window,
-                          torch.tensor([[0.2]]), torch.zeros(1, 2), gate)
+                          replay_opening(torch.zeros(1, 2), torch.tensor([[0.2]]), gate))
     F.cross_entropy(logits, torch.tensor([label])).backward()
     assert (gate.bias.grad.item() < 0) == opens and gate.bias.grad.item() != 0
 
@@ -107,8 +107,8 @@ def test_a_window_without_a_demonstrated_action_keeps_the_network_distribution()
     with torch.no_grad():
         gate.bias.fill_(2.0)
     logits = torch.tensor([[1.0, -1.0, 0.5]])
-    mixed, _ = fall_back(logits, torch.tensor([[5.0]]), torch.tensor([[4.0]]), torch.zeros(1, 5, 3), torch.tensor([[0.2]]),
-                         torch.zeros(1, 2), gate)
+    mixed, _ = fall_back(logits, torch.tensor([[5.0]]), torch.tensor([[4.0]]), torch.zeros(1, 5, 3),
+                         replay_opening(torch.zeros(1, 2), torch.tensor([[0.2]]), gate))
     assert torch.allclose(F.log_softmax(mixed, -1), F.log_softmax(logits, -1), atol=1e-5) and torch.isfinite(mixed).all()
 
 

@@ -11,8 +11,10 @@ import onnxruntime as ort
 
 from spf_rl_runtime.route_memory import MEMORY_DTYPES, RouteMemory, memory_indices
 
-#: The export layout this runtime reads (spf-rl's ``spf_rl.export.EXPORT_FORMAT_VERSION``).
-EXPORT_FORMAT_VERSION = 1
+#: The export layout this runtime writes for (spf-rl's ``spf_rl.export.EXPORT_FORMAT_VERSION``); it reads
+#: :data:`READABLE_FORMATS` (1: the pointer and hidden state alone; 2: a step state that may carry more).
+EXPORT_FORMAT_VERSION = 2
+READABLE_FORMATS = (1, 2)
 MANIFEST_NAME = "manifest.json"
 TEACH_FILE, STEP_FILE = "teach.onnx", "step.onnx"
 #: The actions a step returns.
@@ -46,9 +48,9 @@ class Export:
         if not manifest_path.is_file():
             raise ValueError(f"{directory} holds no export ({MANIFEST_NAME} is missing)")
         self.manifest = json.loads(manifest_path.read_text())
-        if self.manifest.get("format_version") != EXPORT_FORMAT_VERSION:
+        if self.manifest.get("format_version") not in READABLE_FORMATS:
             raise ValueError(f"{manifest_path}: export format {self.manifest.get('format_version')!r}, this runtime "
-                             f"reads {EXPORT_FORMAT_VERSION}")
+                             f"reads {READABLE_FORMATS}")
         for name, digest in self.manifest["files"].items():
             if not (directory / name).is_file() or _sha256(directory / name) != digest:
                 raise ValueError(f"{directory / name} is missing or differs from {MANIFEST_NAME} (SHA-256): re-export it")
@@ -69,6 +71,13 @@ class Export:
         #: The identity a route memory taught by this export carries: its step graph's SHA-256.
         self.export_id = self.manifest["files"][STEP_FILE]
         self._step_inputs = {node.name for node in self.step_session.get_inputs()}
+        #: The step graph's recurrent state: each state input's value at a route's start (format 1: the pointer
+        #: and hidden state, zero), and the output that carries it on.
+        self.initial_state = dict(self.manifest["step"].get("initial_state", {"eta": 0.0, "hidden": 0.0}))
+        outputs = [node.name for node in self.step_session.get_outputs()]
+        self.state_outputs = {"eta": "eta_next", "hidden": "hidden_next",
+                              **{name: f"{name}_next" for name in self.initial_state if name not in ("eta", "hidden")}}
+        self._output_index = {name: index for index, name in enumerate(outputs)}
         self._teach_inputs = set() if self.teach_session is None else {node.name for node in self.teach_session.get_inputs()}
 
     def teach_features(self, frames: np.ndarray, actions: np.ndarray) -> np.ndarray:
@@ -76,11 +85,17 @@ class Export:
         feed = {"frames": frames, "actions": np.asarray(actions, dtype=np.int64)}
         return self.teach_session.run(None, {k: v for k, v in feed.items() if k in self._teach_inputs})[0]
 
-    def step(self, frame, memory, slot_indices, demo_actions, route_length, eta, hidden):
-        """One batched step: ``(logits [B, A], eta_next [B], hidden_next [B, Hs])``."""
+    def step(self, frame, memory, slot_indices, demo_actions, route_length, eta, hidden, **state):
+        """One batched step: ``(logits [B, A], eta_next [B], hidden_next [B, Hs])``, then the next value of each
+        further state input given in ``state`` (``start_match`` ``[B]`` where :attr:`initial_state` has it)."""
+        missing = sorted(set(self.initial_state) - {"eta", "hidden"} - set(state))
+        if missing:
+            raise ValueError(f"this export's step also carries {missing}: pass them (start from initial_state)")
         feed = {"frame": frame, "memory": memory, "slot_indices": slot_indices, "demo_actions": demo_actions,
-                "route_length": route_length, "eta": eta, "hidden": hidden}
-        return self.step_session.run(None, {k: v for k, v in feed.items() if k in self._step_inputs})
+                "route_length": route_length, "eta": eta, "hidden": hidden, **state}
+        outputs = self.step_session.run(None, {k: v for k, v in feed.items() if k in self._step_inputs})
+        return [outputs[self._output_index[name]] for name in ("logits", "eta_next", "hidden_next")] + [
+            outputs[self._output_index[self.state_outputs[key]]] for key in state]
 
 
 class Follower:
@@ -144,8 +159,9 @@ class Follower:
             "slot_indices": memory.slot_indices.astype(np.int64)[None],
             "demo_actions": memory.actions.astype(np.int64)[None],
             "route_length": np.array([memory.route_length], dtype=np.int64),
-            "eta": np.zeros(1, np.float32),
-            "hidden": np.zeros((1, self.hidden_size), np.float32),
+            "eta": np.full(1, self.export.initial_state["eta"], np.float32),
+            "hidden": np.full((1, self.hidden_size), self.export.initial_state["hidden"], np.float32),
+            **{key: np.full(1, value, np.float32) for key, value in self.export.initial_state.items() if key not in ("eta", "hidden")},
         }
 
     def step_logits(self, frame: np.ndarray) -> np.ndarray:
@@ -156,8 +172,10 @@ class Follower:
         frame = np.asarray(frame)
         if frame.dtype != np.uint8 or tuple(frame.shape) != (*self.image_size, 3):
             raise ValueError(f"frame must be uint8 [{self.image_size[0]}, {self.image_size[1]}, 3], got {frame.dtype} {list(frame.shape)}")
-        logits, eta, hidden = self.export.step(frame[None], **self._state)
+        extra = [key for key in self.export.initial_state if key not in ("eta", "hidden")]
+        logits, eta, hidden, *carried = self.export.step(frame[None], **self._state)
         self._state["eta"], self._state["hidden"] = eta, hidden
+        self._state.update(zip(extra, carried))
         return logits[0]
 
     def step(self, frame: np.ndarray) -> int:

@@ -31,10 +31,12 @@ from torch import nn
 
 from spf_rl.modules.anchor import PointerAnchor
 from spf_rl.modules.memory import padded_memory_indices, validate_sparsity
+from spf_rl.modules.replay_gate import start_cosine
 from spf_rl.modules.td_utils import (
     ANCHOR_CONFIDENCE_KEY,
     ANCHOR_KEY,
     DEMO_STEPS_KEY,
+    START_COSINE_KEY,
     demo_lengths,
     flat_or_zeros,
     init_flags,
@@ -332,6 +334,9 @@ class MemoryAttention(TensorDictModuleBase):
         anchor (PointerAnchor, optional): also locate the current frame among the slots near
             the pointer (:mod:`spf_rl.modules.anchor`), reading ``pixel_features_key`` and
             writing ``anchor_key`` and ``anchor_confidence_key``. Defaults to ``None``.
+        start_check (bool): also write ``start_cosine_key``, the cosine of the frame's features with
+            the memory's first frame (:func:`~spf_rl.modules.replay_gate.start_cosine`), reading
+            ``pixel_features_key``. Defaults to ``False``.
 
     Examples:
         >>> import torch
@@ -365,12 +370,17 @@ class MemoryAttention(TensorDictModuleBase):
         pixel_features_key: NestedKey = "pixel_features",
         anchor_key: NestedKey = ANCHOR_KEY,
         anchor_confidence_key: NestedKey = ANCHOR_CONFIDENCE_KEY,
+        start_check: bool = False,
+        start_cosine_key: NestedKey = START_COSINE_KEY,
     ) -> None:
         super().__init__()
         if anchor is not None and indices is None:
             raise ValueError("an anchor needs a visual memory to match the frame against; this attention is action-only.")
+        if start_check and indices is None:
+            raise ValueError("a start check needs a visual memory to match the frame against; this attention is action-only.")
         self.attention = attention
         self.anchor = anchor
+        self.start_check, self.start_cosine_key = bool(start_check), start_cosine_key
         self.pixel_features_key, self.anchor_key, self.anchor_confidence_key = pixel_features_key, anchor_key, anchor_confidence_key
         self.sparsity = None if sparsity is None else validate_sparsity(sparsity)
         self.register_buffer("indices", None if indices is None else torch.as_tensor(indices, dtype=torch.long), persistent=False)
@@ -380,8 +390,13 @@ class MemoryAttention(TensorDictModuleBase):
         self.mu_key, self.action_window_key, self.eta_used_key = mu_key, action_window_key, eta_used_key
         self.demo_steps_key = demo_steps_key
         optional = [key for key in (self.memory_key, memory_mask_key, demo_steps_key) if key is not None]
-        self.in_keys = [eta_key, is_init_key, demo_actions_key, *optional] + ([pixel_features_key] if anchor is not None else [])
-        self.out_keys = [mu_key, action_window_key, eta_used_key] + ([anchor_key, anchor_confidence_key] if anchor is not None else [])
+        reads_frame = anchor is not None or self.start_check
+        self.in_keys = [eta_key, is_init_key, demo_actions_key, *optional] + ([pixel_features_key] if reads_frame else [])
+        self.out_keys = (
+            [mu_key, action_window_key, eta_used_key]
+            + ([anchor_key, anchor_confidence_key] if anchor is not None else [])
+            + ([start_cosine_key] if self.start_check else [])
+        )
 
     def attend(
         self,
@@ -427,6 +442,19 @@ class MemoryAttention(TensorDictModuleBase):
         indices, used = self.slots(demo_length, mask, lengths)
         return self.anchor.locate(phi, memory, indices, used, eta)
 
+    def start_cosine(
+        self,
+        memory: torch.Tensor,
+        phi: torch.Tensor,
+        demo_length: int,
+        mask: torch.Tensor | None = None,
+        lengths: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """The cosine ``[*, 1]`` of the frame's features ``phi`` with the memory's first frame
+        (:func:`~spf_rl.modules.replay_gate.start_cosine`)."""
+        indices, used = self.slots(demo_length, mask, lengths)
+        return start_cosine(phi, memory, indices, used)
+
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """One step: read ``eta`` (0 where ``is_init``), write ``mu``, ``action_window``, ``eta_used``."""
         return with_batch_dim(self._forward_step, tensordict)
@@ -445,13 +473,17 @@ class MemoryAttention(TensorDictModuleBase):
         td.set(self.mu_key, mu)
         td.set(self.action_window_key, window)
         td.set(self.eta_used_key, eta)
-        if self.anchor is not None:
+        if self.anchor is not None or self.start_check:
             phi = td.get(self.pixel_features_key)
             flat = phi.reshape(-1, phi.shape[-1]).shape[0]
-            place, confidence = self.locate(
-                memory.reshape(flat, *memory.shape[-2:]), phi.reshape(flat, -1), eta.reshape(flat, 1), demo_actions.shape[-1],
-                None if mask is None else mask.reshape(flat, -1), None if lengths is None else lengths.reshape(flat, 1),
-            )
-            td.set(self.anchor_key, place.reshape(*batch, 1))
-            td.set(self.anchor_confidence_key, confidence.reshape(*batch, 1))
+            flat_memory, flat_phi = memory.reshape(flat, *memory.shape[-2:]), phi.reshape(flat, -1)
+            flat_mask = None if mask is None else mask.reshape(flat, -1)
+            flat_lengths = None if lengths is None else lengths.reshape(flat, 1)
+            if self.anchor is not None:
+                place, confidence = self.locate(flat_memory, flat_phi, eta.reshape(flat, 1), demo_actions.shape[-1], flat_mask, flat_lengths)
+                td.set(self.anchor_key, place.reshape(*batch, 1))
+                td.set(self.anchor_confidence_key, confidence.reshape(*batch, 1))
+            if self.start_check:
+                cosine = self.start_cosine(flat_memory, flat_phi, demo_actions.shape[-1], flat_mask, flat_lengths)
+                td.set(self.start_cosine_key, cosine.reshape(*batch, 1))
         return td

@@ -26,11 +26,13 @@ from torchrl.envs import TensorDictPrimer
 
 from spf_rl.modules.anchor import anchor_gate, reanchor
 from spf_rl.modules.config import POINTER_UPDATES
-from spf_rl.modules.replay_gate import fall_back, replay_gate_layer
+from spf_rl.modules.replay_gate import UNMEASURED, carry_start, fall_back, replay_gate_layer, replay_opening
 from spf_rl.modules.td_utils import (
     ANCHOR_CONFIDENCE_KEY,
     ANCHOR_KEY,
     DEMO_STEPS_KEY,
+    START_COSINE_KEY,
+    START_MATCH_KEY,
     demo_lengths,
     flat_or_zeros,
     init_flags,
@@ -65,6 +67,10 @@ class SPFCell(TensorDictModuleBase):
         replay_gate (bool): move the action distribution and the pointer toward blind replay of the
             demonstrated actions by a learned gate on the anchor's confidence
             (:mod:`spf_rl.modules.replay_gate`; needs ``anchor_radius``). ``False`` (default): no gate.
+        start_check (float, optional): replay the demonstrated actions for the episode where the
+            first frame's cosine with the memory's first frame (``start_cosine``, written by the
+            attention) is below this threshold (:mod:`spf_rl.modules.replay_gate`); the first step's
+            cosine is carried as recurrent state ``start_match``. ``None`` (default): no check.
 
     Keyword Args:
         mu_key, pixel_features_key, action_window_key, eta_used_key, is_init_key (NestedKey): inputs.
@@ -72,6 +78,8 @@ class SPFCell(TensorDictModuleBase):
             ``n_i`` (int64 ``[1]``, padded to ``demo_length``): the ``"rpf"`` rule caps the
             pointer at ``n_i - 1``. ``None``: never read. Defaults ``"demo_steps"``.
         hidden_key, eta_key (NestedKey): recurrent state. Defaults ``"spf_hidden"``, ``"eta"``.
+        start_cosine_key, start_match_key (NestedKey): the start check's input and recurrent state.
+            Defaults ``"start_cosine"``, ``"start_match"``.
         logits_key, features_key (NestedKey): outputs. Defaults ``"logits"``, ``"features"``.
 
     Examples:
@@ -85,6 +93,12 @@ class SPFCell(TensorDictModuleBase):
         (torch.Size([2, 3]), torch.Size([2, 1]))
         >>> sorted(cell.make_tensordict_primer().primers.keys())
         ['eta', 'spf_hidden']
+        >>> checked = SPFCell((16, 8, 15), hidden_size=32, num_actions=3, demo_length=10, start_check=0.5)
+        >>> td["action_window"] = torch.nn.functional.one_hot(torch.tensor([[0, 0, 2, 0, 0]] * 2), 3).float()  # shown: 2
+        >>> td["start_cosine"] = torch.tensor([[0.1], [0.9]])  # the first frame: another route's, the route's own
+        >>> out = checked(td)
+        >>> out["next", "start_match"].flatten().tolist(), round(out["logits"][0].exp()[2].item(), 3)  # row 0 replays
+        ([0.10000000149011612, 0.8999999761581421], 1.0)
         >>> rpf = SPFCell((16, 8, 15), hidden_size=32, num_actions=3, demo_length=10, pointer_update="rpf")
         >>> rpf.update_pointer(torch.tensor([[3.5], [3.5]]), torch.full((2, 1), 10.0), torch.tensor([[4], [10]])).tolist()
         [[3.0], [5.5]]
@@ -101,6 +115,7 @@ class SPFCell(TensorDictModuleBase):
         head_hidden: int | None = None,
         anchor_radius: float | None = None,
         replay_gate: bool = False,
+        start_check: float | None = None,
         *,
         mu_key: NestedKey = "mu",
         pixel_features_key: NestedKey = "pixel_features",
@@ -114,6 +129,8 @@ class SPFCell(TensorDictModuleBase):
         demo_steps_key: NestedKey | None = DEMO_STEPS_KEY,
         anchor_key: NestedKey = ANCHOR_KEY,
         anchor_confidence_key: NestedKey = ANCHOR_CONFIDENCE_KEY,
+        start_cosine_key: NestedKey = START_COSINE_KEY,
+        start_match_key: NestedKey = START_MATCH_KEY,
     ) -> None:
         super().__init__()
         if pointer_update not in POINTER_UPDATES:
@@ -137,16 +154,33 @@ class SPFCell(TensorDictModuleBase):
         self.anchor_radius = None if anchor_radius is None else float(anchor_radius)
         self.anchor_gate = None if anchor_radius is None else anchor_gate(hidden_size)
         self.replay_gate = replay_gate_layer(hidden_size) if replay_gate else None
+        self.start_check = None if start_check is None else float(start_check)
         self.anchor_key, self.anchor_confidence_key = anchor_key, anchor_confidence_key
+        self.start_cosine_key, self.start_match_key = start_cosine_key, start_match_key
+        checks = self.start_check is not None
         self.in_keys = [mu_key, pixel_features_key, action_window_key, eta_used_key, is_init_key, hidden_key] + (
             [demo_steps_key] if demo_steps_key is not None else []
-        ) + ([anchor_key, anchor_confidence_key] if anchor_radius is not None else [])
-        self.out_keys = [logits_key, features_key, next_key(hidden_key), next_key(eta_key)]
+        ) + ([anchor_key, anchor_confidence_key] if anchor_radius is not None else []) + (
+            [start_cosine_key, start_match_key] if checks else []
+        )
+        self.out_keys = [logits_key, features_key, next_key(hidden_key), next_key(eta_key)] + (
+            [next_key(start_match_key)] if checks else []
+        )
 
     def make_tensordict_primer(self) -> TensorDictPrimer:
-        """Primer for ``spf_hidden`` and ``eta`` (zeroed at every (partial) reset)."""
+        """Primer for ``spf_hidden`` and ``eta`` (zeroed at every (partial) reset) and, with a start check,
+        ``start_match`` (:data:`~spf_rl.modules.replay_gate.UNMEASURED` at every reset)."""
         specs = {self.hidden_key: Unbounded(shape=(self.hidden_size,)), self.eta_key: Unbounded(shape=(1,))}
-        return TensorDictPrimer(specs, expand_specs=True)
+        if self.start_check is not None:
+            specs[self.start_match_key] = Unbounded(shape=(1,))
+        return TensorDictPrimer(specs, expand_specs=True, default_value=self.state_defaults())
+
+    def state_defaults(self) -> dict[NestedKey, float]:
+        """Each recurrent state key's value at an episode's start."""
+        defaults: dict[NestedKey, float] = {self.hidden_key: 0.0, self.eta_key: 0.0}
+        if self.start_check is not None:
+            defaults[self.start_match_key] = UNMEASURED
+        return defaults
 
     def update_pointer(self, eta: torch.Tensor, b: torch.Tensor, lengths: torch.Tensor | None = None) -> torch.Tensor:
         """Pointer update (eq. 4, or the RPF code's clipped version, capped at ``n - 1``, or at
@@ -167,10 +201,12 @@ class SPFCell(TensorDictModuleBase):
         lengths: torch.Tensor | None = None,
         place: torch.Tensor | None = None,
         confidence: torch.Tensor | None = None,
+        start: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """One step on flat tensors -> (logits, next hidden state, next pointer); ``lengths``
         (int ``[*, 1]``, optional): each row's demonstration length; ``place`` and ``confidence``
-        (``[*, 1]``): the anchor, with ``anchor_radius``."""
+        (``[*, 1]``): the anchor, with ``anchor_radius``; ``start`` (``[*, 1]``): the episode's start
+        match (:func:`~spf_rl.modules.replay_gate.carry_start`), with ``start_check``."""
         h_next = self.gru(torch.cat([mu, phi, window.flatten(-2)], -1), h)
         logits = self.logits_head(h_next)  # before the pointer head: the order of their gradients' sum into h_next
         eta_next = self.update_pointer(eta, self.pointer_head(h_next), lengths)
@@ -178,11 +214,14 @@ class SPFCell(TensorDictModuleBase):
             if place is None or confidence is None:
                 raise ValueError("this cell re-anchors its pointer: step() needs the anchor's place and confidence.")
             eta_next = reanchor(eta_next, eta, place, confidence, h_next, self.anchor_gate, self.anchor_radius)
-            if self.replay_gate is not None:
-                logits, eta_next = fall_back(logits, eta_next, eta, window, confidence, h_next, self.replay_gate)
-            if self.pointer_update == "rpf":  # the rule's cap holds after the anchor too
-                last = float(self.demo_length - 1) if lengths is None else (lengths.to(eta.device) - 1).to(eta.dtype)
-                eta_next = torch.minimum(eta_next, torch.as_tensor(last, dtype=eta.dtype, device=eta.device))
+        if self.replay_gate is not None or self.start_check is not None:
+            if self.start_check is not None and start is None:
+                raise ValueError("this cell checks the route's start: step() needs the start match.")
+            opening = replay_opening(h_next, confidence, self.replay_gate, start, self.start_check)
+            logits, eta_next = fall_back(logits, eta_next, eta, window, opening)
+        if self.pointer_update == "rpf" and (self.anchor_gate is not None or self.start_check is not None):
+            last = float(self.demo_length - 1) if lengths is None else (lengths.to(eta.device) - 1).to(eta.dtype)
+            eta_next = torch.minimum(eta_next, torch.as_tensor(last, dtype=eta.dtype, device=eta.device))  # the rule's cap holds after them
         return logits, h_next, eta_next
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -193,10 +232,17 @@ class SPFCell(TensorDictModuleBase):
         batch = td.batch_size
         mu = td.get(self.mu_key)
         h = flat_or_zeros(td.get(self.hidden_key, None), (*batch, self.hidden_size), mu)
-        h = torch.where(init_flags(td, self.is_init_key, mu.device).unsqueeze(-1), torch.zeros_like(h), h)
+        is_init = init_flags(td, self.is_init_key, mu.device).unsqueeze(-1)
+        h = torch.where(is_init, torch.zeros_like(h), h)
         eta = td.get(self.eta_used_key)
         flat = mu.reshape(-1, mu.shape[-1]).shape[0]
         lengths = demo_lengths(td, self.demo_steps_key, self.demo_length, batch)
+        start = None
+        if self.start_check is not None:
+            state = td.get(self.start_match_key, None)
+            state = torch.full((*batch, 1), UNMEASURED, dtype=mu.dtype, device=mu.device) if state is None else state.to(mu.dtype)
+            state = torch.where(is_init, torch.full_like(state, UNMEASURED), state)
+            start = carry_start(state, td.get(self.start_cosine_key).to(mu.dtype)).reshape(flat, 1)
         logits, h_next, eta_next = self.step(
             mu.reshape(flat, -1),
             td.get(self.pixel_features_key).reshape(flat, -1),
@@ -207,13 +253,16 @@ class SPFCell(TensorDictModuleBase):
             *(
                 (td.get(self.anchor_key).reshape(flat, 1), td.get(self.anchor_confidence_key).reshape(flat, 1))
                 if self.anchor_gate is not None
-                else ()
+                else (None, None)
             ),
+            start,
         )
         td.set(self.logits_key, logits.reshape(*batch, self.num_actions))
         td.set(self.features_key, h_next.reshape(*batch, self.hidden_size))
         td.set(next_key(self.hidden_key), h_next.reshape(*batch, self.hidden_size))
         td.set(next_key(self.eta_key), eta_next.reshape(*batch, 1))
+        if start is not None:
+            td.set(next_key(self.start_match_key), start.reshape(*batch, 1))
         return td
 
 

@@ -28,7 +28,7 @@ MEMORY_MODES = ("sparse", "full", "none")
 #: Memory networks: SPF's (psi over attended features + action window) or the RPF lab code's.
 ARCHITECTURES = ("spf", "rpf_original")
 #: Fields of :class:`SPFConfig` added after models were shipped: kept in its dict only when not at their default.
-OPTIONAL_FIELDS = ("anchor_radius", "normalize_frames", "replay_gate")
+OPTIONAL_FIELDS = ("anchor_radius", "normalize_frames", "replay_gate", "start_check")
 #: Sparsity used by the full-memory (RPF) baseline.
 FULL_MEMORY_SPARSITY = 1.0
 
@@ -93,6 +93,12 @@ class SPFConfig:
             and the pointer toward blind replay of the demonstrated actions
             (:mod:`spf_rl.modules.replay_gate`), where the memory disagrees with the view. Needs
             ``anchor_radius``. ``False`` (default): no gate. Not in the SPF paper.
+        start_check (float, optional): replay the demonstrated actions for the whole episode when
+            the cosine of the encoder's features of the first frame the agent sees and of the
+            memory's first frame is below this threshold, in ``(-1, 1)``
+            (:mod:`spf_rl.modules.replay_gate`: another route's frames). Not learned: set on a
+            trained model by ``recipes/start_check.py``. Needs visual memory and SPF's
+            architecture. ``None`` (default): no check. Not in the SPF paper.
 
     Examples:
         >>> cfg = SPFConfig(sparsity=0.4)
@@ -121,6 +127,7 @@ class SPFConfig:
     anchor_radius: int | None = None
     normalize_frames: bool = False
     replay_gate: bool = False
+    start_check: float | None = None
 
     def __post_init__(self) -> None:
         if self.architecture not in ARCHITECTURES:
@@ -185,6 +192,15 @@ class SPFConfig:
             raise ValueError(f"replay_gate must be True or False, got {self.replay_gate!r}.")
         if self.replay_gate and self.anchor_radius is None:
             raise ValueError("replay_gate needs anchor_radius (the gate reads the anchor's confidence); set anchor_radius or replay_gate=False.")
+        if self.start_check is not None:
+            if isinstance(self.start_check, bool) or not isinstance(self.start_check, (int, float)) or not -1.0 < self.start_check < 1.0:
+                raise ValueError(f"start_check must be a cosine threshold in (-1, 1) or None, got {self.start_check!r}.")
+            if self.memory_mode == "none" or self.architecture != "spf":
+                raise ValueError(
+                    f"start_check needs visual memory and architecture='spf' (got memory_mode={self.memory_mode!r}, "
+                    f"architecture={self.architecture!r}); set start_check=None."
+                )
+            self.start_check = float(self.start_check)
         self.image_size = tuple(self.image_size)  # type: ignore[assignment]
         if len(self.image_size) != 2 or any(
             not isinstance(s, int) or s < 1 for s in self.image_size

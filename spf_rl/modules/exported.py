@@ -18,6 +18,8 @@ from spf_rl.modules.memory import memory_indices, memory_length
 
 #: The recurrent state an exported policy carries between steps (its primer zeroes it at every reset).
 MEMORY_KEY, SLOTS_KEY, ETA_KEY, HIDDEN_KEY = "exported_memory", "exported_slots", "exported_eta", "exported_hidden"
+#: The further state of an export with a start check (set to the manifest's initial value where ``is_init``).
+START_KEY = "exported_start_match"
 
 
 def is_export(path: str | os.PathLike) -> bool:
@@ -69,9 +71,15 @@ class ExportedPolicy(TensorDictModuleBase):
         self.slots = memory_length(self.demo_length, self.sparsity) if self.export.uses_memory else 1
         #: Read where ``is_init`` only (:func:`~spf_rl.evaluation.frames_lookup`): the memory is taught then.
         self.memory_key, self.is_init_key = MEMORY_KEY, "is_init"
+        #: The step's further state (``start_match``, with a start check) and its value at a route's start.
+        self.extra_state = {key: value for key, value in self.export.initial_state.items() if key not in ("eta", "hidden")}
+        if set(self.extra_state) - {"start_match"}:
+            raise ValueError(f"{directory}: a step state this module does not know: {sorted(self.extra_state)}")
+        extra = [START_KEY] if self.extra_state else []
         self.in_keys = ["pixels", "demo_frames", "demo_actions", "is_init", MEMORY_KEY, SLOTS_KEY, ETA_KEY, HIDDEN_KEY,
-                        "demo_steps"]  # optional, as the eager policy's: padded routes' own lengths
-        self.out_keys = ["logits", ("next", MEMORY_KEY), ("next", SLOTS_KEY), ("next", ETA_KEY), ("next", HIDDEN_KEY)]
+                        *extra, "demo_steps"]  # demo_steps optional, as the eager policy's: padded routes' own lengths
+        self.out_keys = ["logits", ("next", MEMORY_KEY), ("next", SLOTS_KEY), ("next", ETA_KEY), ("next", HIDDEN_KEY)] + [
+            ("next", key) for key in extra]
 
     def __getstate__(self) -> dict:  # ONNX Runtime's sessions do not pickle: a copy loads the directory again
         return {"directory": self.directory, "demo_length": self.demo_length, "sparsity": self.sparsity, "threads": self.threads,
@@ -121,6 +129,7 @@ class ExportedPolicy(TensorDictModuleBase):
             SLOTS_KEY: Unbounded(shape=(self.slots,), dtype=torch.long),
             ETA_KEY: Unbounded(shape=(1,)),
             HIDDEN_KEY: Unbounded(shape=(self.export.hidden_size,)),
+            **({START_KEY: Unbounded(shape=(1,))} if self.extra_state else {}),
         }
         return TensorDictPrimer(specs, expand_specs=True)
 
@@ -136,17 +145,23 @@ class ExportedPolicy(TensorDictModuleBase):
         slots = flat.get(SLOTS_KEY, None)
         eta = flat.get(ETA_KEY, None)
         hidden = flat.get(HIDDEN_KEY, None)
+        start = flat.get(START_KEY, None) if self.extra_state else None
         if memory is None:  # no primer (a bare env): every row starts now
             memory = torch.zeros(rows, self.slots, self.export.memory_width)
             slots = torch.zeros(rows, self.slots, dtype=torch.long)
             eta, hidden = torch.zeros(rows, 1), torch.zeros(rows, self.export.hidden_size)
             is_init = torch.ones(rows, dtype=torch.bool)
+        if self.extra_state and start is None:  # set where is_init, below
+            start = torch.zeros(rows, 1)
         memory, slots, eta, hidden = memory.clone(), slots.clone(), eta.clone(), hidden.clone()
+        start = None if start is None else start.clone()
         starting = is_init.nonzero().flatten().tolist()
         if starting:
             frames = flat.get("demo_frames") if self.export.uses_memory else None
             for row in starting:  # teach each new route once
-                eta[row], hidden[row] = 0.0, 0.0
+                eta[row], hidden[row] = self.export.initial_state["eta"], self.export.initial_state["hidden"]
+                if start is not None:
+                    start[row] = self.extra_state["start_match"]
                 slots[row] = -1
                 if frames is None:
                     continue
@@ -160,10 +175,11 @@ class ExportedPolicy(TensorDictModuleBase):
                 memory[row] = 0.0
                 memory[row, : kept.numel()] = torch.from_numpy(features)
                 slots[row, : kept.numel()] = kept
-        logits, eta_next, hidden_next = self.export.step(
+        logits, eta_next, hidden_next, *carried = self.export.step(
             flat.get("pixels").reshape(rows, *self.export.image_size, 3).cpu().numpy(),
             memory.numpy().astype(np.float32), slots.numpy(), actions.numpy(), lengths.numpy(),
             eta.reshape(rows).numpy().astype(np.float32), hidden.numpy().astype(np.float32),
+            **({} if start is None else {"start_match": start.reshape(rows).numpy().astype(np.float32)}),
         )
         out = {
             "logits": torch.from_numpy(logits),
@@ -171,6 +187,7 @@ class ExportedPolicy(TensorDictModuleBase):
             ("next", SLOTS_KEY): slots,
             ("next", ETA_KEY): torch.from_numpy(eta_next).reshape(rows, 1),
             ("next", HIDDEN_KEY): torch.from_numpy(hidden_next),
+            **({("next", START_KEY): torch.from_numpy(carried[0]).reshape(rows, 1)} if start is not None else {}),
         }
         for key, value in out.items():
             tensordict.set(key, value.reshape(*batch, *value.shape[1:]))

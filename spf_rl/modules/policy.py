@@ -37,6 +37,7 @@ from spf_rl.modules.attention import MemoryAttention, PointerAttention
 from spf_rl.modules.cell import SPFCell
 from spf_rl.modules.config import SPFConfig
 from spf_rl.modules.encoder import ImageEncoder
+from spf_rl.modules.replay_gate import UNMEASURED, carry_start
 from spf_rl.modules.rpf import RPF_HEAD_HIDDEN, RPFAttention, SlotMLP
 from spf_rl.modules.sparse_memory import SparseMemory
 from spf_rl.modules.td_utils import DEMO_STEPS_KEY, demo_lengths, flat_or_zeros, init_flags, next_key, with_batch_dim
@@ -241,6 +242,7 @@ class SPFPolicy(TensorDictModuleBase):
             demo_steps_key=demo_steps_key,
             anchor=None if config.anchor_radius is None else PointerAnchor(self.feature_dim, config.anchor_radius),
             pixel_features_key=pixel_features_key,
+            start_check=config.start_check is not None,
         )
         self.cell = SPFCell(
             (mu_dim, self.feature_dim, pointer_attention.window_dim),
@@ -252,6 +254,7 @@ class SPFPolicy(TensorDictModuleBase):
             RPF_HEAD_HIDDEN if lab_rpf else None,
             config.anchor_radius,
             config.replay_gate,
+            config.start_check,
             pixel_features_key=pixel_features_key,
             eta_used_key=eta_used_key,
             is_init_key=is_init_key,
@@ -265,7 +268,9 @@ class SPFPolicy(TensorDictModuleBase):
         self.is_init_key, self.hidden_key, self.eta_key, self.memory_key = is_init_key, hidden_key, eta_key, memory_key
         self.logits_key, self.features_key, self.eta_used_key = logits_key, features_key, eta_used_key
         self.memory_mask_key, self.demo_steps_key = memory_mask_key, demo_steps_key
-        state_keys = [hidden_key, eta_key] + ([memory_key] if self.use_memory else [])
+        state_keys = [hidden_key, eta_key] + ([memory_key] if self.use_memory else []) + (
+            [self.cell.start_match_key] if self.start_checks else []
+        )
         self.in_keys = (
             [pixels_key]
             + ([demo_frames_key] if self.use_memory else [])
@@ -278,6 +283,7 @@ class SPFPolicy(TensorDictModuleBase):
             + ([memory_mask_key] if self.random_sparsity else [])
             + [pixel_features_key, self.attention.mu_key, self.attention.action_window_key]
             + ([self.attention.anchor_key, self.attention.anchor_confidence_key] if self.anchors else [])
+            + ([self.attention.start_cosine_key] if self.start_checks else [])
             + [next_key(key) for key in state_keys]
         )
 
@@ -286,6 +292,12 @@ class SPFPolicy(TensorDictModuleBase):
     def anchors(self) -> bool:
         """Whether the pointer is re-anchored on the frame (``config.anchor_radius``, :mod:`spf_rl.modules.anchor`)."""
         return self.attention.anchor is not None
+
+    @property
+    def start_checks(self) -> bool:
+        """Whether the route's start is checked against the memory (``config.start_check``,
+        :mod:`spf_rl.modules.replay_gate`)."""
+        return self.config.start_check is not None
 
     @property
     def memory_length(self) -> int:
@@ -338,7 +350,10 @@ class SPFPolicy(TensorDictModuleBase):
         specs = dict(self.cell.make_tensordict_primer().primers.items())
         if self.use_memory:
             specs.update(self.memory.make_tensordict_primer().primers.items())
-        return TensorDictPrimer(specs, expand_specs=True)
+        if not self.start_checks:
+            return TensorDictPrimer(specs, expand_specs=True)
+        defaults = {key: 0.0 for key in specs} | dict(self.cell.state_defaults())  # start_match: UNMEASURED
+        return TensorDictPrimer(specs, expand_specs=True, default_value=defaults)
 
     def update_pointer(self, eta: torch.Tensor, b: torch.Tensor, lengths: torch.Tensor | None = None) -> torch.Tensor:
         """Pointer update (eq. 4 or the RPF code's clipped version; ``lengths``: each row's demonstration length)."""
@@ -419,7 +434,8 @@ class SPFPolicy(TensorDictModuleBase):
         Runs the policy over a ``[*B, T]`` sequence (time last), writing its outputs for every step.
 
         A segment (``t = 0`` or ``is_init``) starts from the stored ``h`` and ``eta`` of
-        that step, as in :class:`~torchrl.modules.GRUModule`.
+        that step, as in :class:`~torchrl.modules.GRUModule` (and, with a start check, the stored
+        ``start_match``: unmeasured where ``is_init`` or where the input has none).
 
         ``valid`` (``[*B, T]`` bool, e.g. a training batch's ``mask``): only these steps'
         frames are encoded; the others get zero features. For padding *after* an
@@ -446,11 +462,17 @@ class SPFPolicy(TensorDictModuleBase):
         demo_actions = td.get(self.demo_actions_key).reshape(rows, steps, -1).long().unbind(1)
         lengths = demo_lengths(td, self.demo_steps_key, self.config.demo_length, td.batch_size)
         step_lengths = [None] * steps if lengths is None else lengths.to(phi[0].device).unbind(1)
-        start = init_flags(td, self.is_init_key, phi[0].device).clone()
+        is_init = init_flags(td, self.is_init_key, phi[0].device)
+        start = is_init.clone()
         start[:, 0] = True
         h0 = flat_or_zeros(td.get(self.hidden_key, None), (rows, steps, self.config.hidden_size), phi[0])
         eta0 = flat_or_zeros(td.get(self.eta_key, None), (rows, steps, 1), phi[0])
-        stacked = self._unroll(phi, demo_actions, step_lengths, start, h0, eta0, segments)
+        match0 = None
+        if self.start_checks:
+            stored = td.get(self.cell.start_match_key, None)
+            unmeasured = torch.full((rows, steps, 1), UNMEASURED, dtype=phi[0].dtype, device=phi[0].device)
+            match0 = unmeasured if stored is None else torch.where(is_init.unsqueeze(-1), unmeasured, stored.reshape(rows, steps, 1).to(phi[0].dtype))
+        stacked = self._unroll(phi, demo_actions, step_lengths, start, h0, eta0, segments, match0)
         out = {
             self.logits_key: stacked["logits"],
             self.features_key: stacked["h"],
@@ -459,6 +481,8 @@ class SPFPolicy(TensorDictModuleBase):
             self.attention.action_window_key: stacked["window"],
             **({self.attention.anchor_key: stacked["anchor"], self.attention.anchor_confidence_key: stacked["anchor_confidence"]}
                if self.anchors else {}),
+            **({self.attention.start_cosine_key: stacked["start_cosine"], next_key(self.cell.start_match_key): stacked["start_match"]}
+               if self.start_checks else {}),
             next_key(self.hidden_key): stacked["h"],
             next_key(self.eta_key): stacked["eta_next"],
         }
@@ -478,18 +502,24 @@ class SPFPolicy(TensorDictModuleBase):
         h0: torch.Tensor,
         eta0: torch.Tensor,
         segments: tuple[torch.Tensor, torch.Tensor, torch.Tensor | None] | None,
+        match0: torch.Tensor | None = None,
     ) -> dict[str, torch.Tensor]:
         """The attention and the cell unrolled over the steps, on tensors: per-step
         ``phi``, ``demo_actions`` and ``step_lengths`` of ``[rows]`` leading shape, ``start``
-        ``[rows, T]`` segment starts, ``h0`` / ``eta0`` ``[rows, T, *]`` the states a segment
-        starts from; returns each output stacked to ``[rows, T, *]``."""
+        ``[rows, T]`` segment starts, ``h0`` / ``eta0`` (/ ``match0``, with a start check)
+        ``[rows, T, *]`` the states a segment starts from; returns each output stacked to ``[rows, T, *]``."""
         h, eta = h0[:, 0], eta0[:, 0]
-        names = ("logits", "h", "eta_used", "eta_next", "mu", "window") + (("anchor", "anchor_confidence") if self.anchors else ())
+        match = None if match0 is None else match0[:, 0]
+        names = ("logits", "h", "eta_used", "eta_next", "mu", "window") + (("anchor", "anchor_confidence") if self.anchors else ()) + (
+            ("start_cosine", "start_match") if self.start_checks else ()
+        )
         outputs: dict[str, list[torch.Tensor]] = {name: [] for name in names}
         for t in range(len(phi)):
             segment_start = start[:, t].unsqueeze(-1)
             h = torch.where(segment_start, h0[:, t], h)
             eta = torch.where(segment_start, eta0[:, t], eta)
+            if match is not None:
+                match = torch.where(segment_start, match0[:, t], match)
             memory = mask = None
             if segments is not None:
                 feats, segment, masks = segments
@@ -499,8 +529,14 @@ class SPFPolicy(TensorDictModuleBase):
             anchor = (
                 self.attention.locate(memory, phi[t], eta, demo_actions[t].shape[-1], mask, step_lengths[t]) if self.anchors else ()
             )
-            logits, h, eta_next = self.cell.step(mu, phi[t], window, eta, h, step_lengths[t], *anchor)
-            for name, value in zip(outputs, (logits, h, eta, eta_next, mu, window, *anchor)):
+            checked = ()
+            if match is not None:
+                cosine = self.attention.start_cosine(memory, phi[t], demo_actions[t].shape[-1], mask, step_lengths[t])
+                match = carry_start(match, cosine)
+                checked = (cosine, match)
+            logits, h, eta_next = self.cell.step(mu, phi[t], window, eta, h, step_lengths[t], *(anchor or (None, None)),
+                                                 None if match is None else match)
+            for name, value in zip(outputs, (logits, h, eta, eta_next, mu, window, *anchor, *checked)):
                 outputs[name].append(value)
             eta = eta_next
         return {name: torch.stack(values, 1) for name, values in outputs.items()}

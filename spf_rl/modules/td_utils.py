@@ -16,6 +16,10 @@ DEMO_STEPS_KEY = "demo_steps"
 #: matches near the pointer, and how well it matches (an expected cosine), ``[*batch, 1]`` each.
 ANCHOR_KEY = "anchor"
 ANCHOR_CONFIDENCE_KEY = "anchor_confidence"
+#: The start check's keys (:mod:`spf_rl.modules.replay_gate`): this step's cosine of the frame with the
+#: memory's first frame, and the recurrent start match (the first step's cosine), ``[*batch, 1]`` each.
+START_COSINE_KEY = "start_cosine"
+START_MATCH_KEY = "start_match"
 
 
 def next_key(key: NestedKey) -> tuple[str, ...]:
