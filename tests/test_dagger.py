@@ -1,6 +1,7 @@
 """DAgger: the beta-mixed behaviour policy, rounds, aggregation, resume and errors."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -317,6 +318,19 @@ def test_a_resumed_run_needs_only_its_own_state(tmp_path):
     assert [r["round"] for r in resumed["history"]] == [0, 1, 2]
     with pytest.raises(FileNotFoundError):  # a new run does need it
         train_dagger(tiny_config(tmp_path / "new", start))
+
+
+def test_a_finished_run_resumed_writes_its_results_without_collecting_its_window_again(tmp_path, three_learner_driven_rounds):
+    """A run resumed with no round left to train (its rounds reached, or rounds=N lowered to where it stopped) only
+    writes its results: the window's episodes, gone, are not collected again."""
+    config, results = three_learner_driven_rounds
+    copy_run(Path(config.output_dir).parent, tmp_path)
+    shutil.rmtree(tmp_path / "dagger" / "rounds")
+    (tmp_path / "dagger" / "results.json").unlink()
+    again = train_dagger(dataclasses.replace(config, output_dir=str(tmp_path / "dagger")))
+    assert not list((tmp_path / "dagger" / "rounds").glob("round-*"))  # nothing collected
+    assert [r["val_success"] for r in again["history"]] == [r["val_success"] for r in results["history"]]
+    assert json.loads((tmp_path / "dagger" / "results.json").read_text())["best"]["round"] == results["best"]["round"]
 
 
 def test_learners_are_kept_for_the_window_only(three_learner_driven_rounds):

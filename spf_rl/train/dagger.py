@@ -493,7 +493,8 @@ def _train_dagger(config: DAggerConfig, device: torch.device) -> dict:
     if done_rounds > 0 and ranks.is_main:
         if not learner_path(output, done_rounds).exists():  # last.pt's learner (a run begun before learners/)
             save_checkpoint(learner_path(output, done_rounds), model_type, policy_config, {"model": policy.state_dict()})
-        collect_missing_window(done_rounds)
+        if done_rounds < config.rounds:  # a run resumed with no round left to train (rounds=N lowered) collects nothing
+            collect_missing_window(done_rounds)
     if done_rounds == 0 and not history and ranks.is_main:
         bc_count = len(bc_data) if bc_data is not None else 0
         end_round(0, *score(0, {"beta": None, "training_episodes": bc_count}))
