@@ -192,6 +192,14 @@ IN_PROCESS = [
     ("evaluate", "spf-s0.8 --memory-mismatch 1.5", "--memory-mismatch must be a number in [0, 1], got 1.5"),
     ("route_bench", "--models spf-s0.8 --conditions light@-1", "argument --conditions: ", "the strength of 'light' must be a number in [0, 1]"),
     ("route_bench", "--models spf-s0.8 --conditions paint@1=-2", "argument --conditions: ", "the weight of 'paint@1.0' must be a finite number >= 0"),
+    # the start check's calibration (recipes/start_check.py)
+    ("start_check", "spf-s0.8 --out x.pt --results x.json --split house", "argument --split: must be one of ('train', 'val', 'test'), got 'house'"),
+    ("start_check", "spf-s0.8 --out x.pt --results x.json --episodes 0", "argument --episodes: must be >= 1, got 0"),
+    ("start_check", "spf-s0.8 --out x.pt --results x.json --max-false-alarm 1.5", "argument --max-false-alarm: must be in [0, 1), got 1.5"),
+    ("start_check", "spf-s0.8 --out x.onnx --results x.json", "argument --out: must be a .pt file, got 'x.onnx'"),
+    ("start_check", "action_only-s0 --out x.pt --results x.json", "argument checkpoint: a start check needs a model with visual memory"),
+    ("start_check", "corrupt.pt --out x.pt --results x.json", "argument checkpoint: checkpoint corrupt.pt is corrupt"),
+    ("start_check", "corrupt.pt --out corrupt.pt --results x.json", "argument checkpoint: checkpoint corrupt.pt is corrupt"),
 ]
 
 

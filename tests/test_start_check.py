@@ -2,12 +2,11 @@
 first frame makes the whole episode blind replay, one like it leaves the network as it was; step and sequence
 mode agree, a new episode is measured anew, an env's primer starts it unmeasured; the export carries it; the
 calibration picks a threshold within its false-alarm cap and writes a checkpoint that loads; bad settings
-are refused before any work."""
+are refused before any work (the recipe's bad arguments: tests/test_recipe_bad_values.py)."""
 from __future__ import annotations
 
 import dataclasses
 import json
-import subprocess
 import sys
 
 import numpy as np
@@ -199,35 +198,19 @@ def test_calibration_keeps_every_conditions_false_alarms_within_the_cap():
         calibrate(own, mismatched, max_false_alarm=1.0)
 
 
-def test_the_recipe_refuses_bad_arguments_before_any_work(tmp_path):
-    def run(*args):
-        return subprocess.run([sys.executable, "recipes/start_check.py", *args], capture_output=True, text=True)
+def test_the_recipe_writes_a_checkpoint_that_loads_with_the_check(tmp_path, monkeypatch, capsys):
+    """(Its refusals of bad arguments are in tests/test_recipe_bad_values.py.)"""
+    import importlib
 
-    for args, message in [
-        (["spf-s0.8", "--out", str(tmp_path / "x.pt"), "--results", str(tmp_path / "x.json"), "--split", "house"],
-         "argument --split: must be one of ('train', 'val', 'test'), got 'house'"),
-        (["spf-s0.8", "--out", str(tmp_path / "x.pt"), "--results", str(tmp_path / "x.json"), "--episodes", "0"],
-         "argument --episodes: must be >= 1, got 0"),
-        (["spf-s0.8", "--out", str(tmp_path / "x.pt"), "--results", str(tmp_path / "x.json"), "--max-false-alarm", "1.5"],
-         "argument --max-false-alarm: must be in [0, 1), got 1.5"),
-        (["spf-s0.8", "--out", str(tmp_path / "x.onnx"), "--results", str(tmp_path / "x.json")], "argument --out: must be a .pt file"),
-        (["missing.pt", "--out", str(tmp_path / "x.pt"), "--results", str(tmp_path / "x.json")], "checkpoint file missing.pt does not exist"),
-        (["action_only-s0", "--out", str(tmp_path / "x.pt"), "--results", str(tmp_path / "x.json")], "a start check needs a model with visual memory"),
-    ]:
-        result = run(*args)
-        assert result.returncode == 2 and message in result.stderr and result.stderr.count("\n") == 1, result.stderr
-    assert not list(tmp_path.iterdir())
-
-
-def test_the_recipe_writes_a_checkpoint_that_loads_with_the_check(tmp_path):
     from spf_rl.checkpoint import save_checkpoint
     from spf_rl.hub import load_policy
 
     source = build_policy("spf_random", SPFConfig(demo_length=30, feature_dim=8, hidden_size=8, sparsity_range=(0.2, 1.0)))
     save_checkpoint(tmp_path / "in.pt", "spf_random", source.config, {"model": source.state_dict(), "round": 3})
     out, results = tmp_path / "out.pt", tmp_path / "out.json"
-    subprocess.run([sys.executable, "recipes/start_check.py", str(tmp_path / "in.pt"), "--out", str(out), "--results", str(results),
-                    "--episodes", "4"], check=True, capture_output=True, text=True)
+    monkeypatch.setattr(sys, "argv", ["start_check.py"])
+    importlib.import_module("start_check").main([str(tmp_path / "in.pt"), "--out", str(out), "--results", str(results), "--episodes", "4"])
+    assert json.loads(capsys.readouterr().out)["start_check"] == json.loads(results.read_text())["start_check"]
     written = json.loads(results.read_text())
     loaded = load_policy(out)
     assert loaded.config.start_check == written["start_check"] and -1.0 < written["start_check"] < 1.0
