@@ -216,13 +216,15 @@ def success(exports: dict[str, Path], model: str, episodes: int) -> dict:
 
 #: The sparsities the route model's cells are played at: the route bench's, and the 8 KB target's.
 ROUTE_SPARSITIES = (0.8, 0.4)
+#: The length buckets of the route model's cells (``None``: the route bench's, 10-30, 31-60 and 61-100 steps).
+ROUTE_BUCKETS: tuple[tuple[int, int], ...] | None = None
 
 
 def route_success(exports: dict[str, Path], model: str, episodes: int, workdir: Path, sparsity: float) -> dict:
     """The route model's export at each memory precision and with int8 weights on the route bench's cells
     (test set, every style x length bucket, ``episodes`` per cell, played at ``sparsity``), each cell and
     all of them pooled paired against the float32 export on the same episodes."""
-    from spf_rl.eval.route_bench import OPEN_LOOP, BenchModel, BenchOptions, paired_against, run_bench
+    from spf_rl.eval.route_bench import DEFAULT_BUCKETS, OPEN_LOOP, BenchModel, BenchOptions, paired_against, run_bench
     from spf_rl.modules.exported import ExportedPolicy
 
     variants = {f"fp32-weights-{dtype}-memory": (exports["fp32"], dtype) for dtype in PRECISIONS}
@@ -231,7 +233,8 @@ def route_success(exports: dict[str, Path], model: str, episodes: int, workdir: 
     for name, (directory, dtype) in variants.items():
         models.append(BenchModel(name, ExportedPolicy(directory, memory_dtype=dtype), sparsity,
                                  {"checkpoint": str(directory), "memory_dtype": dtype, "played_at_sparsity": sparsity}))
-    options = BenchOptions(models=(), sets=("test",), episodes=episodes, out=workdir / f"route_bench_{model}_s{sparsity}_precisions.json")
+    options = BenchOptions(models=(), sets=("test",), episodes=episodes, buckets=ROUTE_BUCKETS or DEFAULT_BUCKETS,
+                           out=workdir / f"route_bench_{model}_s{sparsity}_precisions.json")
     content = run_bench(options, models)
     reference = "fp32-weights-float32-memory"
     out: dict = {"model": model, "episodes_per_cell": episodes, "sparsity": sparsity, "cells": {}}

@@ -2,6 +2,11 @@
 from __future__ import annotations
 
 import os
+import runpy
+import shutil
+import sys
+from collections.abc import Callable
+from pathlib import Path
 
 import matplotlib
 
@@ -92,6 +97,55 @@ def _episode_stores_in_a_temporary_directory(tmp_path_factory):
         os.environ.pop(EPISODE_STORE_ROOT_ENV, None)
     else:
         os.environ[EPISODE_STORE_ROOT_ENV] = previous
+
+
+#: The repository root, where the recipes (``recipes/<name>.py``) run from.
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def run_recipe(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture):
+    """``run_recipe(name, args) -> (status, stderr)``: ``recipes/<name>.py`` run as its script runs (its
+    ``__main__`` block, :func:`runpy.run_path`) in this process, from the repository root; the status is
+    its ``SystemExit`` code, 0 where it returned. A new interpreter would add about 4 s of CPU (torch's
+    import) to each."""
+
+    def run(name: str, args: list[str]) -> tuple[int, str]:
+        monkeypatch.chdir(ROOT)
+        monkeypatch.setattr(sys, "argv", [f"{name}.py", *args])
+        capsys.readouterr()
+        try:
+            runpy.run_path(str(ROOT / "recipes" / f"{name}.py"), run_name="__main__")
+        except SystemExit as exit_info:
+            code = exit_info.code
+            return (code if isinstance(code, int) else 1), capsys.readouterr().err
+        return 0, capsys.readouterr().err
+
+    return run
+
+
+@pytest.fixture(scope="session")
+def shared_build(tmp_path_factory: pytest.TempPathFactory) -> Callable[[str, Callable[[Path], object]], Path]:
+    """``shared_build(name, build) -> directory``: ``build(directory)`` run once in the test session, by whichever
+    pytest-xdist worker asks first. A worker asking meanwhile waits for it (a file lock); later ones find it done (a
+    ``.built`` file, written once ``build`` has returned) and read what it wrote, never changing it. For costly
+    read-only fixtures that tests of several workers share (an export, a training run)."""
+    from filelock import FileLock
+
+    base = tmp_path_factory.getbasetemp()
+    root = (base.parent if "PYTEST_XDIST_WORKER" in os.environ else base) / "shared-builds"  # every worker's
+    root.mkdir(exist_ok=True)
+
+    def get(name: str, build: Callable[[Path], object]) -> Path:
+        directory = root / name
+        with FileLock(str(root / f"{name}.lock")):
+            if not (root / f"{name}.built").is_file():
+                shutil.rmtree(directory, ignore_errors=True)  # an interrupted build's
+                build(directory)
+                (root / f"{name}.built").touch()
+        return directory
+
+    return get
 
 
 class CountingEncoder(nn.Module):

@@ -122,6 +122,36 @@ def test_the_pointer_loss_teaches_the_anchor_on_the_routes_own_frames_only():
     assert torch.equal(pointer_loss(mismatched.detach(), 3), pointer_loss(out.detach()))
 
 
+def test_the_anchor_loss_is_added_under_data_parallel_training_too(monkeypatch):
+    """bc_loss reads the anchor's radius from the policy that DistributedDataParallel wraps (a 1-process gloo
+    group here): the same pointer loss as the bare policy's, the anchor's part included."""
+    import torch.distributed as dist
+    from torch.nn.parallel import DistributedDataParallel
+
+    from spf_rl.train import bc
+
+    policy, sequence = anchored().train(), episodes(batch=2, steps=5)
+    steps = TensorDict({"pixels": sequence["pixels"], "expert_action": torch.randint(0, 3, (2, 5)), "is_init": sequence["is_init"],
+                        "mask": torch.ones(2, 5, dtype=torch.bool), "route_step": torch.arange(5).expand(2, 5)}, [2, 5])
+    batch = TensorDict({"steps": steps, "demo_frames": sequence["demo_frames"][:, 0], "demo_actions": sequence["demo_actions"][:, 0],
+                        "demo_steps": torch.tensor([[8], [5]])}, [2])
+
+    def pointer_part(module) -> float:
+        parts: dict = {}
+        torch.manual_seed(1)  # the same memory masks for every pass
+        bc.bc_loss(module, batch, pointer_coef=1.0, parts=parts)
+        return parts["pointer"]
+
+    bare = pointer_part(policy)
+    dist.init_process_group("gloo", store=dist.HashStore(), rank=0, world_size=1)
+    try:
+        wrapped = pointer_part(DistributedDataParallel(policy))
+    finally:
+        dist.destroy_process_group()
+    monkeypatch.setattr(bc, "anchor_loss", lambda *args: torch.zeros(()))
+    assert wrapped == pytest.approx(bare, rel=1e-6) and bare > pointer_part(policy)  # the anchor's part counted
+
+
 @pytest.mark.parametrize("config, message", [
     ({"anchor_radius": 0}, "anchor_radius must be a positive int"),
     ({"anchor_radius": 2.5}, "anchor_radius must be a positive int"),

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -76,31 +77,43 @@ def _bc(tmp_path: Path, name: str, launcher: list[str]) -> dict:
     return _run("bc.py", launcher, overrides, tmp_path / name)
 
 
+@pytest.fixture(scope="session")
+def one_process_bc(shared_build) -> Path:
+    """The 1-process BC run (``one/``) and its dataset (``data/``), made once in the test session; tests copy
+    the dataset rather than write next to it."""
+    return shared_build("distributed-bc", lambda root: _bc(root, "one", [sys.executable]))
+
+
+def _copy_data(one_process_bc: Path, tmp_path: Path) -> None:
+    shutil.copytree(one_process_bc / "data", tmp_path / "data")
+
+
 def _assert_same_weights(first: Path, second: Path) -> None:
     weights = [load_checkpoint(path)["model"] for path in (first, second)]
     for key, value in weights[0].items():
         torch.testing.assert_close(weights[1][key], value, atol=TOLERANCE, rtol=0)
 
 
-def test_two_processes_follow_one_at_the_same_global_batch(tmp_path):
-    one = _bc(tmp_path, "one", [sys.executable])
+def test_two_processes_follow_one_at_the_same_global_batch(tmp_path, one_process_bc):
+    _copy_data(one_process_bc, tmp_path)
+    one = json.loads((one_process_bc / "one" / "results.json").read_text())
     two = _bc(tmp_path, "two", TORCHRUN)
     assert len(one["history"]) == len(two["history"]) == 2
     for a, b in zip(one["history"], two["history"]):
         assert a["step"] == b["step"] == 2 * a["epoch"]  # 16 episodes, global batch 8: 2 steps an epoch
         assert abs(a["train_loss"] - b["train_loss"]) < TOLERANCE
         assert abs(a["train_accuracy"] - b["train_accuracy"]) < TOLERANCE
-    _assert_same_weights(tmp_path / "one" / "last.pt", tmp_path / "two" / "last.pt")
+    _assert_same_weights(one_process_bc / "one" / "last.pt", tmp_path / "two" / "last.pt")
     # rank 0 alone wrote the run's files: one set, in the 2-process run's directory
     assert sorted(path.name for path in (tmp_path / "two").iterdir()) == sorted(
-        path.name for path in (tmp_path / "one").iterdir()
+        path.name for path in (one_process_bc / "one").iterdir()
     )
 
 
-def test_dagger_retrains_on_two_processes_as_on_one(tmp_path):
-    _bc(tmp_path, "bc", [sys.executable])  # the start checkpoint
+def test_dagger_retrains_on_two_processes_as_on_one(tmp_path, one_process_bc):
+    _copy_data(one_process_bc, tmp_path)
     overrides = [
-        f"checkpoint={tmp_path / 'bc' / 'best.pt'}", "seed=0", "num_workers=1", "progress=false", "rounds=2",
+        f"checkpoint={one_process_bc / 'one' / 'best.pt'}", "seed=0", "num_workers=1", "progress=false", "rounds=2",
         "episodes_per_round=4", "steps_per_round=3", "window_rounds=2", "test_every_round=false",
         "optim.batch_size=6", f"bc_data_dir={tmp_path / 'data'}", "bc_data.num_episodes=16",
         *(f"bc_data.{size}" for size in SIZES), *(f"env.{size}" for size in SIZES), "collector.num_agents=2",

@@ -3,9 +3,6 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 import torch
@@ -51,7 +48,6 @@ def test_an_unknown_policy_is_refused_before_any_work():
         run_one("train", "random", "none", 4, ENV, seed=0, resamples=200, progress=False)
 
 
-EXPERT_STATS = Path(__file__).resolve().parents[1] / "recipes" / "expert_stats.py"
 
 
 @pytest.mark.parametrize(
@@ -62,17 +58,17 @@ EXPERT_STATS = Path(__file__).resolve().parents[1] / "recipes" / "expert_stats.p
         (["--expert", "shortest"], "argument --expert: invalid choice: 'shortest'"),
     ],
 )
-def test_expert_stats_refuses_bad_route_options_before_any_work(tmp_path, args, message):
+def test_expert_stats_refuses_bad_route_options_before_any_work(tmp_path, args, message, run_recipe):
     out = tmp_path / "stats.json"
-    result = subprocess.run([sys.executable, str(EXPERT_STATS), *args, "--output", str(out)], capture_output=True, text=True)
-    assert result.returncode == 2 and message in result.stderr and not out.exists()
+    status, stderr = run_recipe("expert_stats", [*args, "--output", str(out)])
+    assert status == 2 and message in stderr and not out.exists()
 
 
-def test_expert_stats_scores_an_expert_on_a_route_style(tmp_path):
+def test_expert_stats_scores_an_expert_on_a_route_style(tmp_path, run_recipe):
     out = tmp_path / "stats.json"
     args = ["--splits", "test", "--demo-length", "20", "--route-style", "driven", "--route-lengths", "10", "20",
             "--expert", "route", "--runs", "expert:none", "--episodes", "2", "--num-agents", "2", "--resamples", "50"]
-    subprocess.run([sys.executable, str(EXPERT_STATS), *args, "--output", str(out)], check=True, capture_output=True)
+    assert run_recipe("expert_stats", [*args, "--output", str(out)])[0] == 0
     content = json.loads(out.read_text())
     assert content["setup"]["expert"] == "route" and content["setup"]["route_lengths"] == [10, 20]
     row = content["results"][0]

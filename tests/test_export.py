@@ -9,6 +9,7 @@ import os
 import subprocess
 import sys
 import venv
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -78,11 +79,30 @@ def route(seed: int = 1, steps: int = 10):
     return frames, demo_frames, demo_actions
 
 
-@pytest.fixture(scope="module")
-def exports(tmp_path_factory) -> dict:
-    root = tmp_path_factory.mktemp("exports")
-    return {name: (tiny_policy(model_type, **config), export_policy(tiny_policy(model_type, **config), root / name, model_type), root / name)
-            for name, (model_type, config) in CASES.items()}
+class Exports(dict):
+    """``exports[name]``: (policy, manifest, directory) of :data:`CASES`' ``name``, exported on first use."""
+
+    def __init__(self, shared_build: Callable[[str, Callable[[Path], object]], Path]):
+        super().__init__()
+        self.shared_build = shared_build
+
+    def __missing__(self, name: str) -> tuple:
+        model_type, config = CASES[name]
+        directory = self.shared_build(name, lambda out: export_policy(tiny_policy(model_type, **config), out, model_type))
+        self[name] = (tiny_policy(model_type, **config), json.loads((directory / "manifest.json").read_text()), directory)
+        return self[name]
+
+
+@pytest.fixture(scope="session")
+def exports(shared_build) -> Exports:
+    """Built once in the test session (the ``shared_build`` fixture): an export costs about 7 s of CPU."""
+    return Exports(shared_build)
+
+
+@pytest.fixture(scope="session")
+def shipped_export(shared_build) -> Path:
+    """The export of the shipped ``spf-s0.8`` (read only)."""
+    return shared_build("spf-s0.8", lambda out: export_checkpoint("spf-s0.8", out))
 
 
 @pytest.mark.parametrize("name", list(CASES))
@@ -216,10 +236,10 @@ def test_int8_weights_export_and_step_close_to_float32(exports, tmp_path):
         export_policy(policy, tmp_path / "bad", "spf", weights="int4")
 
 
-def test_a_shipped_checkpoint_exports_by_name(tmp_path):
-    manifest = export_checkpoint("spf-s0.8", tmp_path / "spf-s0.8")
+def test_a_shipped_checkpoint_exports_by_name(shipped_export):
+    manifest = json.loads((shipped_export / "manifest.json").read_text())
     assert manifest["source"]["checkpoint"] == "spf-s0.8" and tuple(manifest["model_config"]["image_size"]) == (64, 64)
-    assert Follower(tmp_path / "spf-s0.8").sparsity == pytest.approx(0.8)
+    assert Follower(shipped_export).sparsity == pytest.approx(0.8)
 
 
 def test_the_runtime_runs_without_torch(exports, tmp_path):
@@ -325,7 +345,7 @@ def test_the_exported_policy_plays_the_eager_policys_episodes(tmp_path, name):
     assert [{k: r[k] for k in keys} for r in exported] == [{k: r[k] for k in keys} for r in eager]
 
 
-def test_evaluate_runs_an_export_directory_as_the_eager_checkpoint(tmp_path):
+def test_evaluate_runs_an_export_directory_as_the_eager_checkpoint(tmp_path, shipped_export):
     """recipes/evaluate.py DIR: the exported policy, in worker processes too, scores as its checkpoint does."""
     import copy
 
@@ -333,34 +353,32 @@ def test_evaluate_runs_an_export_directory_as_the_eager_checkpoint(tmp_path):
 
     from spf_rl.modules.exported import ExportedPolicy
 
-    export_checkpoint("spf-s0.8", tmp_path / "spf-s0.8")
-    assert copy.deepcopy(ExportedPolicy(tmp_path / "spf-s0.8")).export.export_id  # picklable: sessions made again
+    assert copy.deepcopy(ExportedPolicy(shipped_export)).export.export_id  # picklable: sessions made again
     common = ["--episodes", "4", "--num-agents", "2", "--split", "val", "--store-root", str(tmp_path / "stores"), "--no-progress"]
-    exported = recipe.main([str(tmp_path / "spf-s0.8"), *common, "--out", str(tmp_path / "a"), "--num-collectors", "2"])[0]
+    exported = recipe.main([str(shipped_export), *common, "--out", str(tmp_path / "a"), "--num-collectors", "2"])[0]
     eager = recipe.main(["spf-s0.8", *common, "--out", str(tmp_path / "b")])[0]
     assert exported["model"] == "spf" and exported["success"] == eager["success"]
     keys = ("episode_seed", "success", "steps", "goal_distance")
     assert [{k: r[k] for k in keys} for r in exported["episodes_records"]] == [{k: r[k] for k in keys} for r in eager["episodes_records"]]
 
 
-def test_the_route_bench_and_teach_run_an_export(tmp_path):
+def test_the_route_bench_and_teach_run_an_export(tmp_path, shipped_export):
     """recipes/route_bench.py --models DIR and recipes/teach.py --checkpoint DIR: the exported policy plays what
     the eager one plays (the same records), at another route length too."""
     import teach as teach_recipe
 
     from spf_rl.eval import route_bench
 
-    export_checkpoint("spf-s0.8", tmp_path / "spf-s0.8")
     options = dict(styles=("driven",), buckets=((10, 12),), sets=("test",), episodes=2, test_houses=2, num_resamples=100,
                    store_root=str(tmp_path / "stores"))
     eager = route_bench.run_bench(route_bench.BenchOptions(models=("spf-s0.8",), out=tmp_path / "a.json", **options))
-    exported = route_bench.run_bench(route_bench.BenchOptions(models=(str(tmp_path / "spf-s0.8"),), out=tmp_path / "b.json", **options))
+    exported = route_bench.run_bench(route_bench.BenchOptions(models=(str(shipped_export),), out=tmp_path / "b.json", **options))
     columns = {name: next(iter(content["cells"].values()))["models"] for name, content in (("eager", eager), ("exported", exported))}
-    assert columns["exported"][str(tmp_path / "spf-s0.8")]["columns"]["success"] == columns["eager"]["spf-s0.8"]["columns"]["success"]
-    assert columns["exported"][str(tmp_path / "spf-s0.8")]["policy_sha256"] != columns["eager"]["spf-s0.8"]["policy_sha256"]
-    content = teach_recipe.main(["--actions", "FFFFLFFFFF", "--checkpoint", str(tmp_path / "spf-s0.8"), "--repeats", "1",
+    assert columns["exported"][str(shipped_export)]["columns"]["success"] == columns["eager"]["spf-s0.8"]["columns"]["success"]
+    assert columns["exported"][str(shipped_export)]["policy_sha256"] != columns["eager"]["spf-s0.8"]["policy_sha256"]
+    content = teach_recipe.main(["--actions", "FFFFLFFFFF", "--checkpoint", str(shipped_export), "--repeats", "1",
                                  "--no-video", "--out", str(tmp_path / "teach")])
-    assert content["checkpoint"] == str(tmp_path / "spf-s0.8") and len(content["repeats"]) == 1
+    assert content["checkpoint"] == str(shipped_export) and len(content["repeats"]) == 1
 
 
 @pytest.mark.parametrize("name", ["spf", "spf_random", "rpf_original", "action_only", "spf_random-anchor-replay-gate-start-check"])

@@ -1,17 +1,11 @@
 """spf_rl.eval.pointer_trace and recipes/pointer_trace.py: the pointer against the agent's place on the route."""
 from __future__ import annotations
 
-import subprocess
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from spf_rl.eval.pointer_trace import OFF_PATH_M, Trace, distance_to_path, summarize_traces, trace_routes
 from spf_rl.modules import SPFConfig, SPFPolicy
-
-RECIPE = Path(__file__).resolve().parents[1] / "recipes" / "pointer_trace.py"
 
 
 def tiny_policy(pointer_update: str = "rpf") -> SPFPolicy:
@@ -104,7 +98,7 @@ def test_failures_that_stay_on_the_path_are_counted_apart():
         (["--checkpoint", "spf_rpf_pointer-s0.8", "--route-lengths", "10", "30", "--memory-mismatch", "2"], "--memory-mismatch must be a number in [0, 1]"),
     ],
 )
-def test_the_recipe_refuses_bad_options_before_any_work(tmp_path, args, message):
+def test_the_recipe_refuses_bad_options_before_any_work(tmp_path, args, message, run_recipe):
     out = tmp_path / "trace.json"
-    result = subprocess.run([sys.executable, str(RECIPE), *args, "--out", str(out)], capture_output=True, text=True)
-    assert result.returncode == 2 and message in result.stderr and not out.exists()
+    status, stderr = run_recipe("pointer_trace", [*args, "--out", str(out)])
+    assert status == 2 and message in stderr and not out.exists()

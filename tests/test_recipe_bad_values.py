@@ -10,10 +10,9 @@ Each kind of bad value is tried on every recipe that takes it:
   path or shipped name on the command line, a run directory);
 * a bad value of its own for the recipes that take neither.
 
-Each of these cases runs the recipe as a script (``python recipes/<recipe>.py``, from the repository
-root) with every output redirected into a temporary directory, which must stay empty. Run alone, this
-module starts all of them at once on a small pool (each pays for importing torch, about 4 s of CPU);
-under pytest-xdist, each runs in its own test.
+Each of these cases runs the recipe as its script does (its ``__main__`` block, from the repository
+root, in this process) with every output redirected into a temporary directory, which must stay
+empty. A few (:data:`SCRIPT_CASES`) also run as ``python recipes/<recipe>.py`` in a new interpreter.
 
 More bad values (``--sparsity`` of the recipes that evaluate a checkpoint, a file that is not a
 checkpoint for each way the recipes load one, an unknown shipped name) run each recipe's ``main()``
@@ -22,20 +21,14 @@ are tested on their own.
 """
 from __future__ import annotations
 
-import os
-import shutil
 import subprocess
 import sys
-import tempfile
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-#: Cases run at once when this module runs without pytest-xdist.
-WORKERS = max(2, min(4, os.cpu_count() or 2))
 
 
 @dataclass(frozen=True)
@@ -105,6 +98,13 @@ CASES = [
 ]
 
 
+#: Cases also run as a new interpreter, ``python recipes/<recipe> <args>``: what only a fresh process shows
+#: (a warning printed at import, an exit status through the interpreter) for the training, deployment and
+#: teaching recipes' import chains. The rest run in this process (each new interpreter costs about 4 s of CPU
+#: importing torch).
+SCRIPT_CASES = ("bc-unknown-key", "export-missing-checkpoint", "teach-missing-checkpoint")
+
+
 @dataclass(frozen=True)
 class Outcome:
     returncode: int
@@ -112,41 +112,22 @@ class Outcome:
     written: list[str]  # paths under {out}, which must not even exist
 
 
-def run_case(case: Case) -> Outcome:
-    tmp = Path(tempfile.mkdtemp(prefix="recipe-bad-value-"))
-    try:
-        out = tmp / "out"
-        args = [arg.replace("{out}", str(out)).replace("{tmp}", str(tmp)) for arg in case.args]
-        process = subprocess.run(
-            [sys.executable, str(ROOT / "recipes" / case.recipe), *args],
-            cwd=ROOT, stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=300,
-        )
-        written = [str(path.relative_to(tmp)) for path in [out, *out.rglob("*")] if path.exists()]
-        return Outcome(process.returncode, process.stderr, written)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+def _arguments(case: Case, tmp: Path) -> list[str]:
+    return [arg.replace("{out}", str(tmp / "out")).replace("{tmp}", str(tmp)) for arg in case.args]
 
 
-@pytest.fixture(scope="module")
-def outcome_of(request):
-    """``outcome_of(case)``: its :class:`Outcome`. Without pytest-xdist, every selected case of this
-    module is started at once on :data:`WORKERS` threads (each a recipe process)."""
-    executor = ThreadPoolExecutor(max_workers=WORKERS)
-    started: dict[str, Future] = {}
-    if "PYTEST_XDIST_WORKER" not in os.environ:
-        for item in request.session.items:
-            selected = getattr(getattr(item, "callspec", None), "params", {}).get("case")
-            if item.path == Path(__file__) and isinstance(selected, Case):
-                started[selected.id] = executor.submit(run_case, selected)
+def _written(tmp: Path) -> list[str]:
+    out = tmp / "out"
+    return [str(path.relative_to(tmp)) for path in [out, *out.rglob("*")] if path.exists()]
 
-    def outcome(case: Case) -> Outcome:
-        future = started.get(case.id) or executor.submit(run_case, case)
-        return future.result()
 
-    yield outcome
-    for future in started.values():
-        future.cancel()
-    executor.shutdown(wait=True)
+def run_script(case: Case, tmp: Path) -> Outcome:
+    """The case as ``python recipes/<recipe> <args>`` from the repository root."""
+    process = subprocess.run(
+        [sys.executable, str(ROOT / "recipes" / case.recipe), *_arguments(case, tmp)],
+        cwd=ROOT, stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=300,
+    )
+    return Outcome(process.returncode, process.stderr, _written(tmp))
 
 
 def test_every_recipe_has_cases():
@@ -154,11 +135,10 @@ def test_every_recipe_has_cases():
     recipes = {path.name for path in (ROOT / "recipes").glob("*.py")}
     assert recipes == {c.recipe for c in CASES}
     assert len({c.id for c in CASES}) == len(CASES)
+    assert set(SCRIPT_CASES) <= {c.id for c in CASES}
 
 
-@pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])
-def test_a_bad_value_is_one_line_naming_it_and_exit_2(case, outcome_of):
-    outcome = outcome_of(case)
+def check_outcome(case: Case, outcome: Outcome) -> None:
     lines = [line for line in outcome.stderr.splitlines() if line.strip()]
     assert "Traceback" not in outcome.stderr, outcome.stderr
     assert len(lines) == 1, outcome.stderr
@@ -167,6 +147,18 @@ def test_a_bad_value_is_one_line_naming_it_and_exit_2(case, outcome_of):
         assert name in lines[0], lines[0]
     assert outcome.returncode == 2, outcome.stderr
     assert outcome.written == [], outcome.written
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])
+def test_a_bad_value_is_one_line_naming_it_and_exit_2(case, tmp_path, run_recipe):
+    """As its script runs it, in this process (the ``run_recipe`` fixture)."""
+    status, stderr = run_recipe(case.recipe.removesuffix(".py"), _arguments(case, tmp_path))
+    check_outcome(case, Outcome(status, stderr, _written(tmp_path)))
+
+
+@pytest.mark.parametrize("case", [c for c in CASES if c.id in SCRIPT_CASES], ids=[c.id for c in CASES if c.id in SCRIPT_CASES])
+def test_a_bad_value_given_to_a_new_interpreter_is_one_line_and_exit_2(case, tmp_path):
+    check_outcome(case, run_script(case, tmp_path))
 
 
 # More bad values, each recipe's main() in this process (no interpreter to start).

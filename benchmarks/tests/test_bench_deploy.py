@@ -30,22 +30,24 @@ def test_a_short_run_writes_every_figure(tmp_path):
     assert (tmp_path / "deploy.png").stat().st_size > 10_000
 
 
-def test_the_route_models_cells_at_each_precision_merge_into_the_output(tmp_path):
+def test_the_route_models_cells_at_each_precision_merge_into_the_output(tmp_path, monkeypatch):
     import bench_deploy
 
+    monkeypatch.setattr(bench_deploy, "ROUTE_SPARSITIES", (0.4,))  # of the bench's two sparsities and three buckets, the shorter
+    monkeypatch.setattr(bench_deploy, "ROUTE_BUCKETS", ((10, 30), (31, 60)))
     out = tmp_path / "deploy.json"
     out.write_text(json.dumps({"model": "spf-s0.8"}))
     result = bench_deploy.main(["--exports", str(tmp_path / "exports"), "--only-routes", "--route-episodes", "1", "--output", str(out)])
     assert result["model"] == "spf-s0.8"  # the earlier figures kept
     by_sparsity = json.loads(out.read_text())["route_success"]
-    assert {key: routes["sparsity"] for key, routes in by_sparsity.items() if key != "command"} == {"sparsity_0.8": 0.8, "sparsity_0.4": 0.4}
+    assert {key: routes["sparsity"] for key, routes in by_sparsity.items() if key != "command"} == {"sparsity_0.4": 0.4}
     routes = by_sparsity["sparsity_0.4"]
-    assert routes["model"] == "routes-spf" and len(routes["cells"]) == 9
+    assert routes["model"] == "routes-spf" and len(routes["cells"]) == 6
     pooled = routes["pooled"]
     assert set(pooled) == {"fp32-weights-float32-memory", "fp32-weights-float16-memory", "fp32-weights-int8-memory",
                            "int8-weights-float32-memory"}
-    assert all(row["episodes"] == 9 for row in pooled.values())
-    assert list(routes["pooled_by_length"]) == ["10-30", "31-60", "61-100"]
+    assert all(row["episodes"] == 6 for row in pooled.values())
+    assert list(routes["pooled_by_length"]) == ["10-30", "31-60"]
     assert all(row["episodes"] == 3 for bucket in routes["pooled_by_length"].values() for row in bucket.values())
     assert "vs_fp32" in pooled["fp32-weights-int8-memory"] and "vs_fp32" not in pooled["fp32-weights-float32-memory"]
 

@@ -209,7 +209,7 @@ def bc_loss(
     if parts is not None:
         parts["cross_entropy"] = loss.item()
     if pointer_coef > 0:
-        pointer = pointer_loss(sequence, getattr(getattr(policy, "config", None), "anchor_radius", None))
+        pointer = pointer_loss(sequence, getattr(getattr(unwrapped(policy), "config", None), "anchor_radius", None))
         loss = loss + pointer_coef * pointer
         if parts is not None:
             parts["pointer"] = pointer.item()
@@ -221,12 +221,15 @@ def bc_loss(
     return loss, accuracy
 
 
+def unwrapped(policy: torch.nn.Module) -> torch.nn.Module:
+    """The policy itself: the wrapped one under data-parallel training (its config and layers are there)."""
+    return policy.module if isinstance(policy, torch.nn.parallel.DistributedDataParallel) else policy
+
+
 def replay_gate_of(policy) -> torch.nn.Linear | None:
     """The policy's replay gate layer (:mod:`spf_rl.modules.replay_gate`; the wrapped policy's under
     data-parallel training), ``None`` where it has none."""
-    if isinstance(policy, torch.nn.parallel.DistributedDataParallel):
-        policy = policy.module
-    return getattr(getattr(policy, "cell", None), "replay_gate", None)
+    return getattr(getattr(unwrapped(policy), "cell", None), "replay_gate", None)
 
 
 def replay_gate_loss(sequence: TensorDict, gate: torch.nn.Linear) -> torch.Tensor:
