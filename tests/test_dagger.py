@@ -142,7 +142,9 @@ def tiny_config(tmp_path, checkpoint, **overrides) -> DAggerConfig:
     return DAggerConfig(**base)
 
 
-def save_bc_checkpoint(directory) -> Path:
+def save_bc_checkpoint(directory: Path, make: bool = False) -> Path:
+    if make:
+        directory.mkdir(parents=True)
     torch.manual_seed(0)
     config = SPFConfig(demo_length=5, sparsity=0.4, feature_dim=8, hidden_size=8, image_size=(32, 32))
     policy = build_policy("spf", config)
@@ -156,39 +158,45 @@ def bc_checkpoint(tmp_path):
     return save_bc_checkpoint(tmp_path)
 
 
-# Runs shared by the module's tests (each run once per test process). They start from one
-# checkpoint file (a run's config names it: a resumed copy must start from the same file).
-# Tests read them, never change them: a test that changes a run works on its own copy (copy_run).
-@pytest.fixture(scope="module")
-def shared_checkpoint(tmp_path_factory) -> Path:
-    return save_bc_checkpoint(tmp_path_factory.mktemp("bc"))
+# Runs shared by the module's tests, each made once in the test session (the ``shared_build`` fixture: by
+# whichever pytest-xdist worker asks first). They start from one checkpoint file (a run's config names it: a
+# resumed copy must start from the same file). Tests read them, never change them: a test that changes a run
+# works on its own copy (copy_run). Their results are the runs' results.json.
+@pytest.fixture(scope="session")
+def shared_checkpoint(shared_build) -> Path:
+    return shared_build("dagger-bc", lambda directory: save_bc_checkpoint(directory, make=True)) / "bc.pt"
 
 
-@pytest.fixture(scope="module")
-def two_rounds(tmp_path_factory, shared_checkpoint) -> tuple[Path, dict]:
+def _shared_run(shared_build, name: str, config) -> tuple[Path, dict]:
+    """``config(root)``'s run, made once: its root (of ``dagger/``) and results."""
+    root = shared_build(name, lambda directory: train_dagger(config(directory)))
+    return root, json.loads((root / "dagger" / "results.json").read_text())
+
+
+@pytest.fixture(scope="session")
+def two_rounds(shared_build, shared_checkpoint) -> tuple[Path, dict]:
     """``tiny_config``'s run (2 rounds): its directory (of ``dagger/``) and results."""
-    root = tmp_path_factory.mktemp("two_rounds")
-    return root, train_dagger(tiny_config(root, shared_checkpoint))
+    return _shared_run(shared_build, "dagger-two-rounds", lambda root: tiny_config(root, shared_checkpoint))
 
 
-@pytest.fixture(scope="module")
-def one_round(tmp_path_factory, shared_checkpoint) -> Path:
+@pytest.fixture(scope="session")
+def one_round(shared_build, shared_checkpoint) -> Path:
     """The directory (of ``dagger/``) of ``tiny_config``'s run stopped after round 1."""
-    root = tmp_path_factory.mktemp("one_round")
-    train_dagger(tiny_config(root, shared_checkpoint, rounds=1))
-    return root
+    return _shared_run(shared_build, "dagger-one-round", lambda root: tiny_config(root, shared_checkpoint, rounds=1))[0]
 
 
-@pytest.fixture(scope="module")
-def three_learner_driven_rounds(tmp_path_factory, shared_checkpoint) -> tuple[DAggerConfig, dict]:
+def _three_learner_driven_rounds(root: Path, checkpoint: Path) -> DAggerConfig:
+    config = tiny_config(root, checkpoint, rounds=3, beta0=0.0, steps_per_round=3, window_rounds=2, test_every_round=False)
+    config.optim.batch_size = 2
+    return config
+
+
+@pytest.fixture(scope="session")
+def three_learner_driven_rounds(shared_build, shared_checkpoint) -> tuple[DAggerConfig, dict]:
     """Learner-driven rounds (beta 0) of 3 gradient steps on a window of 2 rounds, tested
     only at round 0 and after the last round: the config and results."""
-    config = tiny_config(
-        tmp_path_factory.mktemp("three_rounds"), shared_checkpoint, rounds=3, beta0=0.0, steps_per_round=3,
-        window_rounds=2, test_every_round=False,
-    )
-    config.optim.batch_size = 2
-    return config, train_dagger(config)
+    root, results = _shared_run(shared_build, "dagger-three-rounds", lambda root: _three_learner_driven_rounds(root, shared_checkpoint))
+    return _three_learner_driven_rounds(root, shared_checkpoint), results
 
 
 def copy_run(run: Path, to: Path) -> None:
