@@ -27,11 +27,11 @@ def headless(out: Path, *extra: str) -> list[str]:
     return ["--house", HOUSE, "--start", START, "--out", str(out), "--quiet", *extra]
 
 
-@pytest.fixture(scope="module")
-def taught(tmp_path_factory):
-    out = tmp_path_factory.mktemp("teach")
-    content = teach.main(headless(out, "--actions", ROUTE, "--repeats", "4", "--seed", "3"))
-    return out, content
+@pytest.fixture(scope="session")
+def taught(shared_build):
+    """A headless run's directory and its teach.json, made once in the test session (read only)."""
+    out = shared_build("teach", lambda directory: teach.main(headless(directory, "--actions", ROUTE, "--repeats", "4", "--seed", "3")))
+    return out, json.loads((out / "teach.json").read_text())
 
 
 def test_headless_run_writes_video_map_and_json(taught):
