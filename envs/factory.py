@@ -18,6 +18,7 @@ from torchrl.envs import Compose, InitTracker, ParallelEnv, SerialEnv, TensorDic
 from envs.episode_spec import SPEC_FIELDS, EpisodeSpec
 from envs.nav_env import PathFollowEnv
 from envs.transforms import ActuationNoise, NoiseModel
+from envs.worker_processes import start_method
 
 
 def make_env(
@@ -126,7 +127,7 @@ def make_parallel_path_follow_env(
         >>> env.batch_size, env.transform[0]
         (torch.Size([2]), ActuationNoise(noise='paper'))
     """
-    batched = SerialEnv if serial else partial(ParallelEnv, mp_start_method="spawn")
+    batched = SerialEnv if serial else partial(ParallelEnv, mp_start_method=start_method())
     env = batched(num_workers, partial(PathFollowEnv, **env_kwargs))
     transforms = [ActuationNoise(noise)] + ([InitTracker()] if init_tracker else [])
     return TransformedEnv(env, Compose(*transforms))

@@ -29,7 +29,6 @@ import contextlib
 import hashlib
 import json
 import logging
-import multiprocessing
 import os
 import shutil
 from collections.abc import Callable
@@ -43,6 +42,7 @@ from tqdm.auto import tqdm
 
 from envs.atomic_io import atomic_write_json
 from envs.version import ENV_VERSION, check_env_version
+from envs.worker_processes import worker_context
 
 logger = logging.getLogger(__name__)
 
@@ -89,7 +89,7 @@ def worker_threads(num_workers: int) -> int:
 
 
 def worker_pool(num_workers: int) -> concurrent.futures.ProcessPoolExecutor:
-    """``num_workers`` ``spawn`` worker processes, each with its share of the cores for
+    """``num_workers`` worker processes (:func:`envs.worker_processes.worker_context`), each with its share of the cores for
     torch's threads (:func:`worker_threads`); started at the first task submitted.
 
     Examples:
@@ -100,7 +100,7 @@ def worker_pool(num_workers: int) -> concurrent.futures.ProcessPoolExecutor:
     if isinstance(num_workers, bool) or not isinstance(num_workers, int) or num_workers < 1:
         raise ValueError(f"num_workers must be a positive int, got {num_workers!r}.")
     return concurrent.futures.ProcessPoolExecutor(
-        num_workers, mp_context=multiprocessing.get_context("spawn"), initializer=torch.set_num_threads,
+        num_workers, mp_context=worker_context(), initializer=torch.set_num_threads,
         initargs=(worker_threads(num_workers),),
     )
 

@@ -31,6 +31,7 @@ from envs.factory import make_parallel_path_follow_env, make_path_follow_env
 from envs.nav_env import PathFollowEnv
 from envs.specs import PRIVILEGED_KEYS, HidePrivileged
 from envs.transforms import ActuationNoise
+from envs.worker_processes import start_method
 
 SMALL = dict(num_houses=1, demo_length=6, max_steps=25, image_size=32, render=False)
 STEPS = 20
@@ -67,7 +68,7 @@ def test_noise_around_a_batched_env_reaches_the_workers(serial: bool) -> None:
     deviation = np.abs(heading_deviation_deg(noisy))
     assert deviation.max() <= 4 + 1e-3 and (np.abs(deviation - 4) < 1e-3).mean() > 0.8
     # the same noise as with the transform inside each worker
-    batched = SerialEnv if serial else functools.partial(ParallelEnv, mp_start_method="spawn")
+    batched = SerialEnv if serial else functools.partial(ParallelEnv, mp_start_method=start_method())
     inside = _final_poses(batched(2, functools.partial(make_path_follow_env, noise="paper", **SMALL)))
     torch.testing.assert_close(inside["next", "pose"], noisy["next", "pose"])
 

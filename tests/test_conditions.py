@@ -22,6 +22,7 @@ from envs.follow import episode_for_seed
 from envs.nav_env import PathFollowEnv
 from envs.render import MAX_MODELS_PER_RENDERER, FirstPersonRenderer
 from envs.scenes import build_house, split_seeds
+from envs.worker_processes import start_method
 
 SMALL = {"split": "test", "num_houses": 3, "demo_length": 12, "image_size": 24}
 _OPEN: list = []
@@ -189,7 +190,7 @@ def test_the_sensors_noise_is_new_every_frame_with_the_drawn_spread_and_the_same
 
 def test_conditions_work_through_a_parallel_env():
     spec = EpisodeSpec(seed=3, conditions="sensor@1", **SMALL)
-    env = ParallelEnv(2, make_env_factory(spec), mp_start_method="spawn")
+    env = ParallelEnv(2, make_env_factory(spec), mp_start_method=start_method())
     try:
         env.set_seed(3)
         td = env.rollout(3)

@@ -23,6 +23,7 @@ from envs.nav_env import PathFollowEnv
 from envs.render import FirstPersonRenderer
 from envs.scenes import build_house, split_seeds
 from envs.version import ENV_VERSION
+from envs.worker_processes import start_method
 from spf_rl.modules import SPFConfig, make_actor, make_spf_policy
 
 # K = 20 so that two env seeds drawing the same sequence of demo ids is unlikely
@@ -342,7 +343,7 @@ def test_store_env_specs(store_root, emit, num_agents):
 def test_store_env_specs_serial_and_parallel(store_root):
     factory = partial(make_path_follow_env, demo_store=str(store_root), emit_demo_frames=False, **ENV_KWARGS)
     serial = SerialEnv(2, factory)
-    parallel = ParallelEnv(2, factory, mp_start_method="spawn")
+    parallel = ParallelEnv(2, factory, mp_start_method=start_method())
     try:
         for env in (serial, parallel):
             env.set_seed(0)

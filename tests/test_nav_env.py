@@ -14,6 +14,7 @@ from envs.expert import STOP, TURN_LEFT
 from envs.nav_env import PathFollowEnv
 from envs.scripted import ExpertPolicy
 from envs.transforms import ActuationNoise
+from envs.worker_processes import start_method
 
 SMALL = dict(num_houses=2, demo_length=6, max_steps=10, image_size=32)
 
@@ -33,7 +34,7 @@ def test_specs_serial_and_parallel():
     serial.set_seed(0)
     check_env_specs(serial)
     serial.close()
-    parallel = ParallelEnv(2, partial(PathFollowEnv, **SMALL), mp_start_method="spawn")
+    parallel = ParallelEnv(2, partial(PathFollowEnv, **SMALL), mp_start_method=start_method())
     parallel.set_seed(0)
     check_env_specs(parallel)
     rollout = parallel.rollout(4, break_when_any_done=False)

@@ -17,6 +17,7 @@ from torchrl.envs.utils import check_env_specs
 from torchrl.modules import set_recurrent_mode
 
 from envs.factory import make_path_follow_env
+from envs.worker_processes import start_method
 from spf_rl.modules import (
     ImageEncoder,
     OpenLoopPolicy,
@@ -104,7 +105,7 @@ def test_parallel_env_collector_and_sequence_replay():
     torch.manual_seed(0)
     policy = make_spf_policy(CFG)
     actor = make_actor(policy, 3)
-    env = ParallelEnv(2, MAKE_ENV, mp_start_method="spawn")
+    env = ParallelEnv(2, MAKE_ENV, mp_start_method=start_method())
     batches = _collect(env, actor, frames_per_batch=20, total_frames=40)
     assert len(batches) == 2
     for data in batches:

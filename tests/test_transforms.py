@@ -15,6 +15,7 @@ from envs.expert import FORWARD, TURN_LEFT, TURN_RIGHT
 from envs.factory import make_path_follow_env
 from envs.nav_env import PathFollowEnv
 from envs.transforms import NOISE_PRESETS, ActuationNoise, NoiseModel, make_noise_model
+from envs.worker_processes import start_method
 
 TURN = np.deg2rad(20.0)
 SMALL = dict(num_houses=1, demo_length=6, max_steps=8, image_size=32)
@@ -185,7 +186,7 @@ def test_serial_trans_env_check():
 
 
 def test_parallel_trans_env_check():
-    env = ParallelEnv(2, partial(make_path_follow_env, noise="locobot", **SMALL), mp_start_method="spawn")
+    env = ParallelEnv(2, partial(make_path_follow_env, noise="locobot", **SMALL), mp_start_method=start_method())
     env.set_seed(0)
     check_env_specs(env)
     env.close(raise_if_closed=False)

@@ -38,6 +38,7 @@ from torchrl.modules.utils import get_primers_from_module
 from envs.demo_store import DemoStore
 from envs.episode_spec import EpisodeSpec
 from envs.factory import make_env
+from envs.worker_processes import start_method
 from spf_rl.device import DEFAULT_DEVICE, resolve_device
 
 logger = logging.getLogger(__name__)
@@ -200,7 +201,7 @@ def make_collection_env(
         for i in range(num_agents)
     ]
     transforms = [InitTracker()] + ([primer.clone()] if primer is not None else [])
-    return TransformedEnv(ParallelEnv(num_agents, factories, mp_start_method="spawn"), Compose(*transforms))
+    return TransformedEnv(ParallelEnv(num_agents, factories, mp_start_method=start_method()), Compose(*transforms))
 
 
 def make_collector(
