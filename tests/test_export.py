@@ -88,7 +88,7 @@ class Exports(dict):
 
     def __missing__(self, name: str) -> tuple:
         model_type, config = CASES[name]
-        directory = self.shared_build(name, lambda out: export_policy(tiny_policy(model_type, **config), out, model_type))
+        directory = self.shared_build(f"export-{name}", lambda out: export_policy(tiny_policy(model_type, **config), out, model_type))
         self[name] = (tiny_policy(model_type, **config), json.loads((directory / "manifest.json").read_text()), directory)
         return self[name]
 
@@ -102,7 +102,7 @@ def exports(shared_build) -> Exports:
 @pytest.fixture(scope="session")
 def shipped_export(shared_build) -> Path:
     """The export of the shipped ``spf-s0.8`` (read only)."""
-    return shared_build("spf-s0.8", lambda out: export_checkpoint("spf-s0.8", out))
+    return shared_build("export-spf-s0.8", lambda out: export_checkpoint("spf-s0.8", out))
 
 
 @pytest.mark.parametrize("name", list(CASES))
