@@ -3,11 +3,12 @@
 
 Where the platform has it (Linux, macOS), they fork from a *fork server*: one clean process,
 started at the first worker, that imports :data:`PRELOAD` (torch, TorchRL, the env) once. Each
-worker then starts in about a second. A ``spawn`` worker imports all of them anew: measured on a
-2-core machine, starting a 2-worker ``ParallelEnv`` of :class:`~envs.nav_env.PathFollowEnv` and
-stepping it once took 6.1 s with ``spawn``, and 1.0 s with the fork server once it ran (4.2 s for
-the first, which starts the server). Like ``spawn``, and unlike ``fork``, no worker inherits the
-parent's threads, GL contexts or CUDA state: the server has only imported modules.
+later worker starts without importing them anew, as a ``spawn`` worker does: a 2-worker
+``ParallelEnv`` of :class:`~envs.nav_env.PathFollowEnv`, started and stepped once, took 0.16x the
+time of a ``spawn`` one (``python benchmarks/bench_worker_start.py``,
+``benchmarks/results/worker_start.json``; the first start of a process also starts the server).
+Like ``spawn``, and unlike ``fork``, no worker inherits the parent's threads, GL contexts or CUDA
+state: the server has only imported modules.
 
 A worker sees the environment variables of the moment the server started (the first worker of
 the process), not later changes. Elsewhere (Windows) workers are spawned.
